@@ -1,0 +1,533 @@
+//! Triangle meshes: loading (OBJ via tobj, PLY via ply-rs-bw, STL via stl_io), NOCS
+//! normalisation, welding, closure checks, and area-weighted surface sampling.
+
+use std::collections::HashMap;
+use std::fs::File;
+use std::io::BufReader;
+use std::path::Path;
+
+use nalgebra::Vector3;
+use rand::{Rng, RngExt};
+use serde::{Deserialize, Serialize};
+
+use super::CadError;
+
+/// Colours of a mesh, when it has any.
+#[derive(Debug, Clone, PartialEq)]
+pub enum MeshColors {
+    /// One RGB colour per triangle.
+    PerFace(Vec<[u8; 3]>),
+    /// One RGB colour per vertex (rendered per face as the mean of its vertices).
+    PerVertex(Vec<[u8; 3]>),
+}
+
+/// A triangle mesh. `source` names where it came from (a file path or `shape:<name>`), so that
+/// every error about it can say which mesh is wrong.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Mesh {
+    /// Where the mesh came from, for messages.
+    pub source: String,
+    /// Vertex positions.
+    pub vertices: Vec<Vector3<f32>>,
+    /// Triangles as indices into `vertices`, counter-clockwise seen from outside.
+    pub triangles: Vec<[u32; 3]>,
+    /// Optional colours.
+    pub colors: Option<MeshColors>,
+}
+
+/// How a mesh was mapped to NOCS: `x_nocs = (x − centre) / scale`, where `centre` is the centre of
+/// the bounding box and `scale` the radius of the bounding sphere around it (DESIGN.md §1).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Normalisation {
+    /// Bounding-box centre in the file's units.
+    pub centre: [f64; 3],
+    /// Bounding-sphere radius in the file's units.
+    pub scale: f64,
+}
+
+impl Normalisation {
+    /// Maps a point in the file's units to NOCS.
+    pub fn to_nocs(&self, p: &Vector3<f64>) -> Vector3<f64> {
+        (p - Vector3::from(self.centre)) / self.scale
+    }
+
+    /// Maps a NOCS point back to the file's units.
+    pub fn from_nocs(&self, p: &Vector3<f64>) -> Vector3<f64> {
+        p * self.scale + Vector3::from(self.centre)
+    }
+}
+
+/// A point sampled on the surface, with the triangle it lies on.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SurfacePoint {
+    /// The point.
+    pub point: Vector3<f32>,
+    /// Index of its triangle.
+    pub face: u32,
+}
+
+impl Mesh {
+    /// Loads an OBJ, PLY or STL file (by extension) and validates it (non-empty, triangles only,
+    /// indices in range, finite coordinates). It is not normalised; see [`Mesh::normalised`].
+    pub fn load(path: &Path) -> Result<Mesh, CadError> {
+        let ext = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(str::to_ascii_lowercase)
+            .unwrap_or_default();
+        let mesh = match ext.as_str() {
+            "obj" => load_obj(path)?,
+            "ply" => load_ply(path)?,
+            "stl" => load_stl(path)?,
+            _ => return Err(CadError::UnknownFormat(path.display().to_string())),
+        };
+        mesh.validate()?;
+        Ok(mesh)
+    }
+
+    /// Checks that the mesh is non-empty, has in-range indices and finite coordinates.
+    pub fn validate(&self) -> Result<(), CadError> {
+        if self.vertices.is_empty() || self.triangles.is_empty() {
+            return Err(CadError::Empty(self.source.clone()));
+        }
+        if let Some(v) = self
+            .vertices
+            .iter()
+            .position(|v| !v.iter().all(|c| c.is_finite()))
+        {
+            return Err(CadError::NonFinite {
+                mesh: self.source.clone(),
+                vertex: v,
+            });
+        }
+        let n = self.vertices.len() as u32;
+        for (face, tri) in self.triangles.iter().enumerate() {
+            if let Some(&index) = tri.iter().find(|&&i| i >= n) {
+                return Err(CadError::BadIndex {
+                    mesh: self.source.clone(),
+                    face,
+                    index,
+                    vertices: n as usize,
+                });
+            }
+        }
+        match &self.colors {
+            Some(MeshColors::PerFace(c)) if c.len() != self.triangles.len() => {
+                Err(CadError::Parse {
+                    mesh: self.source.clone(),
+                    message: format!(
+                        "{} face colours for {} faces",
+                        c.len(),
+                        self.triangles.len()
+                    ),
+                })
+            }
+            Some(MeshColors::PerVertex(c)) if c.len() != self.vertices.len() => {
+                Err(CadError::Parse {
+                    mesh: self.source.clone(),
+                    message: format!(
+                        "{} vertex colours for {} vertices",
+                        c.len(),
+                        self.vertices.len()
+                    ),
+                })
+            }
+            _ => Ok(()),
+        }
+    }
+
+    /// The NOCS normalisation of this mesh (bounding-box centre, bounding-sphere radius).
+    pub fn normalisation(&self) -> Normalisation {
+        let mut lo = Vector3::repeat(f64::INFINITY);
+        let mut hi = Vector3::repeat(f64::NEG_INFINITY);
+        for v in &self.vertices {
+            let v = v.cast::<f64>();
+            lo = lo.inf(&v);
+            hi = hi.sup(&v);
+        }
+        let centre = (lo + hi) / 2.0;
+        let scale = self
+            .vertices
+            .iter()
+            .map(|v| (v.cast::<f64>() - centre).norm())
+            .fold(0.0, f64::max);
+        Normalisation {
+            centre: centre.into(),
+            scale: if scale > 0.0 { scale } else { 1.0 },
+        }
+    }
+
+    /// The mesh mapped to NOCS, with the normalisation that did it.
+    pub fn normalised(&self) -> (Mesh, Normalisation) {
+        let n = self.normalisation();
+        let mut out = self.clone();
+        for v in &mut out.vertices {
+            *v = n.to_nocs(&v.cast::<f64>()).cast::<f32>();
+        }
+        (out, n)
+    }
+
+    /// The same surface with vertices at identical positions merged (STL and some OBJ/PLY files
+    /// repeat them per face). Per-vertex colours keep the first occurrence's colour.
+    pub fn welded(&self) -> Mesh {
+        let mut index_of: HashMap<[u32; 3], u32> = HashMap::new();
+        let mut remap = Vec::with_capacity(self.vertices.len());
+        let mut vertices = Vec::new();
+        let mut kept = Vec::new();
+        for (i, v) in self.vertices.iter().enumerate() {
+            let key = [v.x.to_bits(), v.y.to_bits(), v.z.to_bits()];
+            let id = *index_of.entry(key).or_insert_with(|| {
+                vertices.push(*v);
+                kept.push(i);
+                (vertices.len() - 1) as u32
+            });
+            remap.push(id);
+        }
+        let triangles = self
+            .triangles
+            .iter()
+            .map(|t| t.map(|i| remap[i as usize]))
+            .collect();
+        let colors = match &self.colors {
+            Some(MeshColors::PerVertex(c)) => {
+                Some(MeshColors::PerVertex(kept.iter().map(|&i| c[i]).collect()))
+            }
+            other => other.clone(),
+        };
+        Mesh {
+            source: self.source.clone(),
+            vertices,
+            triangles,
+            colors,
+        }
+    }
+
+    /// Checks that the (welded) mesh is closed and consistently oriented: every directed edge
+    /// appears once and its reverse once. Errors name the mesh and count the bad edges.
+    pub fn check_closed(&self) -> Result<(), CadError> {
+        let mut directed: HashMap<(u32, u32), u32> = HashMap::new();
+        for t in &self.triangles {
+            for k in 0..3 {
+                *directed.entry((t[k], t[(k + 1) % 3])).or_default() += 1;
+            }
+        }
+        let bad = directed
+            .iter()
+            .filter(|&(&(a, b), &count)| count != 1 || directed.get(&(b, a)) != Some(&1))
+            .count();
+        if bad > 0 {
+            return Err(CadError::NotClosed {
+                mesh: self.source.clone(),
+                bad_edges: bad,
+            });
+        }
+        Ok(())
+    }
+
+    /// Signed volume (positive when triangles wind counter-clockwise seen from outside).
+    pub fn signed_volume(&self) -> f64 {
+        self.triangles
+            .iter()
+            .map(|t| {
+                let [a, b, c] = t.map(|i| self.vertices[i as usize].cast::<f64>());
+                a.dot(&b.cross(&c)) / 6.0
+            })
+            .sum()
+    }
+
+    /// Area of triangle `face`.
+    pub fn face_area(&self, face: usize) -> f32 {
+        let [a, b, c] = self.triangles[face].map(|i| self.vertices[i as usize]);
+        0.5 * (b - a).cross(&(c - a)).norm()
+    }
+
+    /// Outward unit normal of triangle `face` (zero for a degenerate triangle).
+    pub fn face_normal(&self, face: usize) -> Vector3<f32> {
+        let [a, b, c] = self.triangles[face].map(|i| self.vertices[i as usize]);
+        (b - a)
+            .cross(&(c - a))
+            .try_normalize(0.0)
+            .unwrap_or_default()
+    }
+
+    /// Colour of triangle `face`: its own, the mean of its vertices', or `default`.
+    pub fn face_color(&self, face: usize, default: [u8; 3]) -> [u8; 3] {
+        match &self.colors {
+            Some(MeshColors::PerFace(c)) => c[face],
+            Some(MeshColors::PerVertex(c)) => {
+                let t = self.triangles[face];
+                std::array::from_fn(|k| {
+                    let sum: u32 = t.iter().map(|&i| c[i as usize][k] as u32).sum();
+                    (sum / 3) as u8
+                })
+            }
+            None => default,
+        }
+    }
+
+    /// `n` points uniform over the surface (area-weighted choice of triangle, then uniform
+    /// barycentric coordinates by the square-root trick).
+    pub fn sample_surface<R: Rng + ?Sized>(&self, n: usize, rng: &mut R) -> Vec<SurfacePoint> {
+        let mut cumulative = Vec::with_capacity(self.triangles.len());
+        let mut total = 0.0f64;
+        for f in 0..self.triangles.len() {
+            total += self.face_area(f) as f64;
+            cumulative.push(total);
+        }
+        (0..n)
+            .map(|_| {
+                let u = rng.random_range(0.0..total);
+                let face = cumulative
+                    .partition_point(|&c| c <= u)
+                    .min(self.triangles.len() - 1);
+                let [a, b, c] = self.triangles[face].map(|i| self.vertices[i as usize]);
+                let (r1, r2): (f32, f32) = (rng.random(), rng.random());
+                let s = r1.sqrt();
+                let point = a * (1.0 - s) + b * (s * (1.0 - r2)) + c * (s * r2);
+                SurfacePoint {
+                    point,
+                    face: face as u32,
+                }
+            })
+            .collect()
+    }
+}
+
+fn parse_err(path: &Path, message: impl Into<String>) -> CadError {
+    CadError::Parse {
+        mesh: path.display().to_string(),
+        message: message.into(),
+    }
+}
+
+fn open(path: &Path) -> Result<BufReader<File>, CadError> {
+    File::open(path)
+        .map(BufReader::new)
+        .map_err(|source| CadError::Io {
+            path: path.display().to_string(),
+            source,
+        })
+}
+
+fn load_obj(path: &Path) -> Result<Mesh, CadError> {
+    let options = tobj::LoadOptions {
+        single_index: true,
+        triangulate: false,
+        ..Default::default()
+    };
+    let mut reader = open(path)?;
+    let (models, _) = tobj::load_obj_buf(&mut reader, &options, |_| {
+        Err(tobj::LoadError::OpenFileFailed)
+    })
+    .map_err(|e| parse_err(path, e.to_string()))?;
+    let mut vertices = Vec::new();
+    let mut triangles = Vec::new();
+    let mut colors = Vec::new();
+    for model in models {
+        let m = model.mesh;
+        if let Some(face) = m.face_arities.iter().position(|&a| a != 3) {
+            return Err(CadError::NotTriangular {
+                mesh: path.display().to_string(),
+                face,
+                corners: m.face_arities[face] as usize,
+            });
+        }
+        let base = vertices.len() as u32;
+        vertices.extend(
+            m.positions
+                .chunks_exact(3)
+                .map(|p| Vector3::new(p[0], p[1], p[2])),
+        );
+        triangles.extend(
+            m.indices
+                .chunks_exact(3)
+                .map(|t| [t[0] + base, t[1] + base, t[2] + base]),
+        );
+        colors.extend(
+            m.vertex_color
+                .chunks_exact(3)
+                .map(|c| std::array::from_fn(|k| (c[k].clamp(0.0, 1.0) * 255.0).round() as u8)),
+        );
+    }
+    let colors = (!colors.is_empty() && colors.len() == vertices.len())
+        .then_some(MeshColors::PerVertex(colors));
+    Ok(Mesh {
+        source: path.display().to_string(),
+        vertices,
+        triangles,
+        colors,
+    })
+}
+
+fn load_ply(path: &Path) -> Result<Mesh, CadError> {
+    use ply_rs_bw::parser::Parser;
+    use ply_rs_bw::ply::{DefaultElement, Property};
+
+    let mut reader = open(path)?;
+    let ply = Parser::<DefaultElement>::new()
+        .read_ply(&mut reader)
+        .map_err(|e| parse_err(path, e.to_string()))?;
+    let scalar = |p: Option<&Property>| -> Option<f64> {
+        Some(match p? {
+            Property::Float(v) => *v as f64,
+            Property::Double(v) => *v,
+            Property::Char(v) => *v as f64,
+            Property::UChar(v) => *v as f64,
+            Property::Short(v) => *v as f64,
+            Property::UShort(v) => *v as f64,
+            Property::Int(v) => *v as f64,
+            Property::UInt(v) => *v as f64,
+            _ => return None,
+        })
+    };
+    let empty = Vec::new();
+    let vertex_elems = ply.payload.get("vertex").unwrap_or(&empty);
+    let mut vertices = Vec::with_capacity(vertex_elems.len());
+    let mut colors = Vec::new();
+    for (i, v) in vertex_elems.iter().enumerate() {
+        let coord = |name: &str| {
+            scalar(v.get(name))
+                .ok_or_else(|| parse_err(path, format!("vertex {i} has no numeric '{name}'")))
+        };
+        vertices.push(Vector3::new(
+            coord("x")? as f32,
+            coord("y")? as f32,
+            coord("z")? as f32,
+        ));
+        if let (Some(r), Some(g), Some(b)) = (
+            scalar(v.get("red")),
+            scalar(v.get("green")),
+            scalar(v.get("blue")),
+        ) {
+            colors.push([r as u8, g as u8, b as u8]);
+        }
+    }
+    let face_elems = ply.payload.get("face").unwrap_or(&empty);
+    let mut triangles = Vec::with_capacity(face_elems.len());
+    let mut face_colors = Vec::new();
+    for (face, f) in face_elems.iter().enumerate() {
+        let list = f
+            .get("vertex_indices")
+            .or_else(|| f.get("vertex_index"))
+            .ok_or_else(|| parse_err(path, format!("face {face} has no 'vertex_indices' list")))?;
+        let idx: Vec<i64> = match list {
+            Property::ListInt(v) => v.iter().map(|&x| x as i64).collect(),
+            Property::ListUInt(v) => v.iter().map(|&x| x as i64).collect(),
+            Property::ListShort(v) => v.iter().map(|&x| x as i64).collect(),
+            Property::ListUShort(v) => v.iter().map(|&x| x as i64).collect(),
+            Property::ListChar(v) => v.iter().map(|&x| x as i64).collect(),
+            Property::ListUChar(v) => v.iter().map(|&x| x as i64).collect(),
+            _ => {
+                return Err(parse_err(
+                    path,
+                    format!("face {face}: 'vertex_indices' is not an integer list"),
+                ));
+            }
+        };
+        if idx.len() != 3 {
+            return Err(CadError::NotTriangular {
+                mesh: path.display().to_string(),
+                face,
+                corners: idx.len(),
+            });
+        }
+        if let Some(&bad) = idx.iter().find(|&&i| i < 0 || i > u32::MAX as i64) {
+            return Err(parse_err(
+                path,
+                format!("face {face} has vertex index {bad}"),
+            ));
+        }
+        triangles.push([idx[0] as u32, idx[1] as u32, idx[2] as u32]);
+        if let (Some(r), Some(g), Some(b)) = (
+            scalar(f.get("red")),
+            scalar(f.get("green")),
+            scalar(f.get("blue")),
+        ) {
+            face_colors.push([r as u8, g as u8, b as u8]);
+        }
+    }
+    let colors = if !face_colors.is_empty() && face_colors.len() == triangles.len() {
+        Some(MeshColors::PerFace(face_colors))
+    } else {
+        (colors.len() == vertices.len() && !colors.is_empty())
+            .then_some(MeshColors::PerVertex(colors))
+    };
+    Ok(Mesh {
+        source: path.display().to_string(),
+        vertices,
+        triangles,
+        colors,
+    })
+}
+
+fn load_stl(path: &Path) -> Result<Mesh, CadError> {
+    let mut file = File::open(path).map_err(|source| CadError::Io {
+        path: path.display().to_string(),
+        source,
+    })?;
+    let stl = stl_io::read_stl(&mut file).map_err(|e| parse_err(path, e.to_string()))?;
+    Ok(Mesh {
+        source: path.display().to_string(),
+        vertices: stl
+            .vertices
+            .iter()
+            .map(|v| Vector3::new(v[0], v[1], v[2]))
+            .collect(),
+        triangles: stl
+            .faces
+            .iter()
+            .map(|f| f.vertices.map(|i| i as u32))
+            .collect(),
+        colors: None,
+    })
+}
+
+/// Writes `mesh` as a binary little-endian PLY with per-vertex colours when it has them (the BOP
+/// model format). Per-face colours are written as a `face` property `red/green/blue`.
+pub fn write_ply(mesh: &Mesh, path: &Path) -> Result<(), CadError> {
+    use std::io::Write;
+    let io_err = |source| CadError::Io {
+        path: path.display().to_string(),
+        source,
+    };
+    let mut out = Vec::new();
+    let vertex_colors = matches!(mesh.colors, Some(MeshColors::PerVertex(_)));
+    let face_colors = matches!(mesh.colors, Some(MeshColors::PerFace(_)));
+    let mut header = format!(
+        "ply\nformat binary_little_endian 1.0\ncomment written by alignist\nelement vertex {}\n\
+         property float x\nproperty float y\nproperty float z\n",
+        mesh.vertices.len()
+    );
+    if vertex_colors {
+        header += "property uchar red\nproperty uchar green\nproperty uchar blue\n";
+    }
+    header += &format!(
+        "element face {}\nproperty list uchar int vertex_indices\n",
+        mesh.triangles.len()
+    );
+    if face_colors {
+        header += "property uchar red\nproperty uchar green\nproperty uchar blue\n";
+    }
+    header += "end_header\n";
+    out.extend_from_slice(header.as_bytes());
+    for (i, v) in mesh.vertices.iter().enumerate() {
+        for c in v.iter() {
+            out.extend_from_slice(&c.to_le_bytes());
+        }
+        if let Some(MeshColors::PerVertex(c)) = &mesh.colors {
+            out.extend_from_slice(&c[i]);
+        }
+    }
+    for (f, t) in mesh.triangles.iter().enumerate() {
+        out.push(3);
+        for &i in t {
+            out.extend_from_slice(&(i as i32).to_le_bytes());
+        }
+        if let Some(MeshColors::PerFace(c)) = &mesh.colors {
+            out.extend_from_slice(&c[f]);
+        }
+    }
+    let mut file = File::create(path).map_err(io_err)?;
+    file.write_all(&out).map_err(io_err)?;
+    Ok(())
+}

@@ -1,0 +1,262 @@
+//! A z-buffer rasteriser: pinhole camera `K`, pose `(R, t)` with `x_cam = R·x_obj + t`
+//! (OpenCV camera: x right, y down, z forward), flat Lambertian + ambient shading from a light
+//! fixed in the camera frame, per-face colours, a background colour.
+//!
+//! Outputs RGB8, the mask, depth (in the units of `t`, metres when the mesh is in metres) and the
+//! NOCS map (the object coordinates of the surface point seen at each pixel, perspective-correct).
+//! Pixel `(u, v)` covers `[u, u+1) × [v, v+1)` and is sampled at its centre.
+
+use nalgebra::{Matrix3, Rotation3, Vector3};
+use serde::{Deserialize, Serialize};
+
+use super::Mesh;
+
+/// A pinhole camera with an image size.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Camera {
+    /// Focal length in pixels along x.
+    pub fx: f64,
+    /// Focal length in pixels along y.
+    pub fy: f64,
+    /// Principal point x in pixels.
+    pub cx: f64,
+    /// Principal point y in pixels.
+    pub cy: f64,
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+}
+
+impl Camera {
+    /// A square `size × size` camera with focal length `size` pixels (a 53° field of view) and
+    /// the principal point at the image centre.
+    pub fn square(size: u32) -> Camera {
+        Camera {
+            fx: size as f64,
+            fy: size as f64,
+            cx: size as f64 / 2.0,
+            cy: size as f64 / 2.0,
+            width: size,
+            height: size,
+        }
+    }
+
+    /// `K` row-major, as BOP's `cam_K`.
+    pub fn k(&self) -> [f64; 9] {
+        [self.fx, 0.0, self.cx, 0.0, self.fy, self.cy, 0.0, 0.0, 1.0]
+    }
+
+    /// Projects a camera-frame point to pixel coordinates.
+    pub fn project(&self, p: &Vector3<f64>) -> (f64, f64) {
+        (self.fx * p.x / p.z + self.cx, self.fy * p.y / p.z + self.cy)
+    }
+}
+
+/// An object pose: `x_cam = rotation · x_obj + translation`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Pose {
+    /// `R`, object to camera.
+    pub rotation: Rotation3<f64>,
+    /// `t`, the object origin in the camera frame.
+    pub translation: Vector3<f64>,
+}
+
+/// Shading and background.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RenderOptions {
+    /// Background colour.
+    pub background: [u8; 3],
+    /// Unit direction towards the light, in the camera frame.
+    pub light: Vector3<f64>,
+    /// Ambient fraction of the light (0 ..= 1).
+    pub ambient: f64,
+    /// Colour of faces of a mesh without colours.
+    pub default_color: [u8; 3],
+}
+
+impl Default for RenderOptions {
+    fn default() -> Self {
+        RenderOptions {
+            background: [0, 0, 0],
+            light: Vector3::new(-0.4, -0.6, -1.0).normalize(),
+            ambient: 0.3,
+            default_color: [200, 200, 200],
+        }
+    }
+}
+
+/// The images of one render, row-major, `width × height`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Render {
+    /// Width in pixels.
+    pub width: u32,
+    /// Height in pixels.
+    pub height: u32,
+    /// RGB8, 3 bytes per pixel.
+    pub rgb: Vec<u8>,
+    /// True where the object is seen.
+    pub mask: Vec<bool>,
+    /// Depth along the optical axis; 0 where the object is not seen.
+    pub depth: Vec<f32>,
+    /// Object coordinates of the surface point seen; NaN where the object is not seen.
+    pub nocs: Vec<[f32; 3]>,
+}
+
+impl Render {
+    /// Number of object pixels.
+    pub fn mask_area(&self) -> usize {
+        self.mask.iter().filter(|&&m| m).count()
+    }
+}
+
+/// Renders `mesh` at `pose` through `camera`. Triangles with a vertex closer than `1e-6` to the
+/// camera plane are skipped (objects are expected in front of the camera).
+pub fn render(mesh: &Mesh, camera: &Camera, pose: &Pose, options: &RenderOptions) -> Render {
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    let rot: Matrix3<f64> = *pose.rotation.matrix();
+    let cam: Vec<Vector3<f64>> = mesh
+        .vertices
+        .iter()
+        .map(|v| rot * v.cast::<f64>() + pose.translation)
+        .collect();
+    let screen: Vec<(f64, f64)> = cam.iter().map(|p| camera.project(p)).collect();
+
+    let mut zbuf = vec![f64::INFINITY; w * h];
+    let mut face_at = vec![u32::MAX; w * h];
+    let mut nocs = vec![[f32::NAN; 3]; w * h];
+
+    for (f, tri) in mesh.triangles.iter().enumerate() {
+        let [i0, i1, i2] = tri.map(|i| i as usize);
+        let (z0, z1, z2) = (cam[i0].z, cam[i1].z, cam[i2].z);
+        if z0 <= 1e-6 || z1 <= 1e-6 || z2 <= 1e-6 {
+            continue;
+        }
+        let (p0, p1, p2) = (screen[i0], screen[i1], screen[i2]);
+        let area = edge(p0, p1, p2);
+        if area.abs() < 1e-12 {
+            continue;
+        }
+        let min_y = p0.1.min(p1.1).min(p2.1).floor().max(0.0) as usize;
+        let max_y = (p0.1.max(p1.1).max(p2.1).ceil() as i64).clamp(0, h as i64) as usize;
+        let (o0, o1, o2) = (
+            mesh.vertices[i0].cast::<f64>(),
+            mesh.vertices[i1].cast::<f64>(),
+            mesh.vertices[i2].cast::<f64>(),
+        );
+        let box_x0 = p0.0.min(p1.0).min(p2.0).floor().max(0.0) as usize;
+        let box_x1 = (p0.0.max(p1.0).max(p2.0).ceil() as i64).clamp(0, w as i64) as usize;
+        for y in min_y..max_y {
+            // Wide triangles (long, thin fans) scan only their span on this row, widened by a
+            // pixel; the edge tests below decide coverage either way.
+            let (min_x, max_x) = if box_x1 - box_x0.min(box_x1) > 8 {
+                let Some((x0, x1)) = row_span([p0, p1, p2], y as f64 + 0.5) else {
+                    continue;
+                };
+                (
+                    ((x0 - 1.0).floor().max(0.0) as usize).max(box_x0),
+                    (((x1 + 1.0).ceil() as i64).clamp(0, w as i64) as usize).min(box_x1),
+                )
+            } else {
+                (box_x0, box_x1)
+            };
+            for x in min_x..max_x {
+                let p = (x as f64 + 0.5, y as f64 + 0.5);
+                let b0 = edge(p1, p2, p) / area;
+                let b1 = edge(p2, p0, p) / area;
+                let b2 = edge(p0, p1, p) / area;
+                if b0 < 0.0 || b1 < 0.0 || b2 < 0.0 {
+                    continue;
+                }
+                // Perspective-correct interpolation: 1/z is affine in screen space.
+                let inv_z = b0 / z0 + b1 / z1 + b2 / z2;
+                let z = 1.0 / inv_z;
+                let idx = y * w + x;
+                if z < zbuf[idx] {
+                    zbuf[idx] = z;
+                    face_at[idx] = f as u32;
+                    let obj = (o0 * (b0 / z0) + o1 * (b1 / z1) + o2 * (b2 / z2)) * z;
+                    nocs[idx] = [obj.x as f32, obj.y as f32, obj.z as f32];
+                }
+            }
+        }
+    }
+
+    let face_rgb: Vec<[u8; 3]> = (0..mesh.triangles.len())
+        .map(|f| {
+            let centroid = mesh.triangles[f]
+                .iter()
+                .map(|&i| cam[i as usize])
+                .sum::<Vector3<f64>>()
+                / 3.0;
+            shade(mesh, f, &rot, &centroid, options)
+        })
+        .collect();
+    let mut rgb = Vec::with_capacity(w * h * 3);
+    let mut mask = Vec::with_capacity(w * h);
+    let mut depth = Vec::with_capacity(w * h);
+    for idx in 0..w * h {
+        let f = face_at[idx];
+        if f == u32::MAX {
+            rgb.extend_from_slice(&options.background);
+            mask.push(false);
+            depth.push(0.0);
+        } else {
+            rgb.extend_from_slice(&face_rgb[f as usize]);
+            mask.push(true);
+            depth.push(zbuf[idx] as f32);
+        }
+    }
+    Render {
+        width: camera.width,
+        height: camera.height,
+        rgb,
+        mask,
+        depth,
+        nocs,
+    }
+}
+
+/// Where the horizontal line at `y` crosses the triangle: `(x_min, x_max)`, or `None`.
+fn row_span(p: [(f64, f64); 3], y: f64) -> Option<(f64, f64)> {
+    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+    for k in 0..3 {
+        let (a, b) = (p[k], p[(k + 1) % 3]);
+        if (a.1 <= y && y <= b.1) || (b.1 <= y && y <= a.1) {
+            let x = if (b.1 - a.1).abs() < 1e-12 {
+                lo = lo.min(a.0.min(b.0));
+                a.0.max(b.0)
+            } else {
+                a.0 + (y - a.1) * (b.0 - a.0) / (b.1 - a.1)
+            };
+            lo = lo.min(x);
+            hi = hi.max(x);
+        }
+    }
+    (lo <= hi).then_some((lo, hi))
+}
+
+/// Twice the signed area of `(a, b, c)`.
+#[inline]
+fn edge(a: (f64, f64), b: (f64, f64), c: (f64, f64)) -> f64 {
+    (b.0 - a.0) * (c.1 - a.1) - (b.1 - a.1) * (c.0 - a.0)
+}
+
+/// Flat Lambertian + ambient colour of face `f`, whose centroid is at `centroid` in the camera
+/// frame. The normal is turned towards the camera, so the inside of an open mesh shades too.
+fn shade(
+    mesh: &Mesh,
+    f: usize,
+    rot: &Matrix3<f64>,
+    centroid: &Vector3<f64>,
+    options: &RenderOptions,
+) -> [u8; 3] {
+    let mut normal = rot * mesh.face_normal(f).cast::<f64>();
+    if normal.dot(centroid) > 0.0 {
+        normal = -normal;
+    }
+    let lambert = normal.dot(&options.light).max(0.0);
+    let intensity = options.ambient + (1.0 - options.ambient) * lambert;
+    mesh.face_color(f, options.default_color)
+        .map(|c| (c as f64 * intensity).round().clamp(0.0, 255.0) as u8)
+}

@@ -1,0 +1,12 @@
+//! alignist: orientation distributions over SO(3) from images of known objects, trained with
+//! dense, symmetry-aware targets from CAD experts (Alignist, ECCV 2024).
+//!
+//! See `DESIGN.md` in the project's shared notes for the conventions every module shares.
+
+#![warn(missing_docs)]
+
+pub mod backend;
+pub mod cad;
+pub mod data;
+pub mod encoding;
+pub mod so3;

@@ -1,0 +1,163 @@
+//! Metrics of a distribution over a grid level against the equivalent ground truths of an image
+//! (IPDF conventions, DESIGN.md §2).
+//!
+//! A distribution is given as unnormalised log-weights `s_i`, one per cell of the level, in index
+//! order; its mass is `p_i = softmax(s)_i`.
+
+use nalgebra::Rotation3;
+use rayon::prelude::*;
+
+use super::{GridLevel, So3Error, quaternion_angle, quaternion_dot, to_quaternion};
+
+/// The metrics of one image.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ImageMetrics {
+    /// `LL = mean_j log(p_{cell(G_j)} · N)`, see [`log_likelihood`].
+    pub log_likelihood: f64,
+    /// `Σ_i p_i · min_j angle(R_i, G_j)` in degrees, see [`spread_deg`].
+    pub spread_deg: f64,
+    /// `min_j angle(R_argmax, G_j)` in degrees.
+    pub argmax_error_deg: f64,
+}
+
+/// Normalised masses `p = softmax(s)`; errors when the length is not the grid's or a weight is
+/// NaN/+∞.
+pub fn softmax(grid: &GridLevel, log_weights: &[f32]) -> Result<Vec<f64>, So3Error> {
+    if log_weights.len() != grid.len() {
+        return Err(So3Error::WrongLength {
+            got: log_weights.len(),
+            level: grid.level(),
+            expected: grid.len(),
+        });
+    }
+    let max = log_weights
+        .iter()
+        .copied()
+        .fold(f32::NEG_INFINITY, f32::max);
+    if !max.is_finite() || log_weights.iter().any(|v| v.is_nan()) {
+        return Err(So3Error::NonFiniteWeights);
+    }
+    let exp: Vec<f64> = log_weights
+        .par_iter()
+        .map(|&s| ((s - max) as f64).exp())
+        .collect();
+    let total: f64 = exp.par_iter().sum();
+    Ok(exp.into_par_iter().map(|e| e / total).collect())
+}
+
+/// Log-likelihood with IPDF's `+log π²` (uniform = 0), averaged over every equivalent ground
+/// truth `G_j` of the image:
+///
+/// `LL = (1/J) Σ_j log(p_{c(G_j)} · N)`, where `c = cell_of` (the cell that contains `G_j` by
+/// construction) and `N = 72·8^L`. The density of cell `c` is `p_c / (π²/N)`, so
+/// `log density + log π² = log(p_c·N)`.
+pub fn log_likelihood(grid: &GridLevel, probs: &[f64], ground_truths: &[Rotation3<f64>]) -> f64 {
+    let n = grid.len() as f64;
+    ground_truths
+        .iter()
+        .map(|g| (probs[grid.cell_of(g) as usize] * n).ln())
+        .sum::<f64>()
+        / ground_truths.len() as f64
+}
+
+/// Spread in degrees, `Σ_i p_i · min_j angle(R_i, G_j)`, where `R_i` are the cell centres.
+/// `centres` are the grid's quaternions ([`GridLevel::quaternions`], computed once per level).
+pub fn spread_deg(probs: &[f64], centres: &[[f64; 4]], ground_truths: &[Rotation3<f64>]) -> f64 {
+    let gts: Vec<[f64; 4]> = ground_truths.iter().map(to_quaternion).collect();
+    probs
+        .par_iter()
+        .zip(centres.par_iter())
+        .filter(|(p, _)| **p > 0.0)
+        .map(|(p, q)| p * min_angle(q, &gts))
+        .sum::<f64>()
+        .to_degrees()
+}
+
+/// Angle in degrees from `r` to the nearest equivalent ground truth.
+pub fn error_to_nearest_deg(r: &Rotation3<f64>, ground_truths: &[Rotation3<f64>]) -> f64 {
+    let gts: Vec<[f64; 4]> = ground_truths.iter().map(to_quaternion).collect();
+    min_angle(&to_quaternion(r), &gts).to_degrees()
+}
+
+/// Angle to the nearest of `gts`: the nearest has the largest `|⟨q, g⟩|`, so only one angle is
+/// computed per call.
+fn min_angle(q: &[f64; 4], gts: &[[f64; 4]]) -> f64 {
+    let nearest = gts.iter().max_by(|a, b| {
+        quaternion_dot(q, a)
+            .abs()
+            .total_cmp(&quaternion_dot(q, b).abs())
+    });
+    nearest.map_or(f64::INFINITY, |g| quaternion_angle(q, g))
+}
+
+/// All metrics of one image: LL, spread and the argmax's error (see the functions above).
+pub fn image_metrics(
+    grid: &GridLevel,
+    centres: &[[f64; 4]],
+    log_weights: &[f32],
+    ground_truths: &[Rotation3<f64>],
+) -> Result<ImageMetrics, So3Error> {
+    if ground_truths.is_empty() {
+        return Err(So3Error::NoGroundTruth);
+    }
+    let probs = softmax(grid, log_weights)?;
+    let argmax = probs
+        .iter()
+        .enumerate()
+        .max_by(|a, b| a.1.total_cmp(b.1))
+        .map(|(i, _)| i as u64)
+        .unwrap_or(0);
+    Ok(ImageMetrics {
+        log_likelihood: log_likelihood(grid, &probs, ground_truths),
+        spread_deg: spread_deg(&probs, centres, ground_truths),
+        argmax_error_deg: error_to_nearest_deg(&grid.rotation(argmax), ground_truths),
+    })
+}
+
+/// The best LL that a distribution on this level can reach for these ground truths: all mass
+/// spread evenly over the `M` distinct cells that hold them gives `log(N/M)` (DESIGN.md §2, "the
+/// grid caps LL").
+pub fn ll_ceiling(grid: &GridLevel, ground_truths: &[Rotation3<f64>]) -> f64 {
+    let mut cells: Vec<u64> = ground_truths.iter().map(|g| grid.cell_of(g)).collect();
+    cells.sort_unstable();
+    cells.dedup();
+    (grid.len() as f64 / cells.len() as f64).ln()
+}
+
+/// Metrics averaged over images.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct MetricsSummary {
+    /// Number of images.
+    pub images: usize,
+    /// Mean LL (uniform = 0).
+    pub log_likelihood: f64,
+    /// Mean spread in degrees.
+    pub spread_deg: f64,
+    /// `AR@θ`: fraction of images whose argmax is within `θ` of the nearest ground truth, as
+    /// `(θ in degrees, fraction)`.
+    pub accuracy_at: Vec<(f64, f64)>,
+    /// Median over images of the argmax's error in degrees.
+    pub median_error_deg: f64,
+}
+
+/// Averages per-image metrics; `thresholds_deg` are the `θ` of `AR@θ` (e.g. `[30.0]`).
+pub fn summarize(per_image: &[ImageMetrics], thresholds_deg: &[f64]) -> MetricsSummary {
+    let n = per_image.len().max(1) as f64;
+    let mut errors: Vec<f64> = per_image.iter().map(|m| m.argmax_error_deg).collect();
+    errors.sort_by(f64::total_cmp);
+    let median = match errors.len() {
+        0 => f64::NAN,
+        k if k % 2 == 1 => errors[k / 2],
+        k => 0.5 * (errors[k / 2 - 1] + errors[k / 2]),
+    };
+    MetricsSummary {
+        images: per_image.len(),
+        log_likelihood: per_image.iter().map(|m| m.log_likelihood).sum::<f64>() / n,
+        spread_deg: per_image.iter().map(|m| m.spread_deg).sum::<f64>() / n,
+        accuracy_at: thresholds_deg
+            .iter()
+            .map(|&t| (t, errors.iter().filter(|&&e| e < t).count() as f64 / n))
+            .collect(),
+        median_error_deg: median,
+    }
+}

@@ -1,0 +1,205 @@
+//! Datasets in BOP layout: the render CLI, the reader, crops, and errors naming the file.
+
+use std::path::Path;
+use std::process::Command;
+
+use alignist::cad::{Camera, RenderOptions, Shape, render};
+use alignist::data::{BopDataset, crop, symsol_pose};
+use alignist::so3::{from_quaternion, geodesic_angle, haar_rotations, to_quaternion};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+fn train(args: &[&str], out: &Path) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_alignist-train"))
+        .args(args)
+        .arg("--out")
+        .arg(out)
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn a_rendered_dataset_reads_back_with_the_same_rotations_and_crops() {
+    let dir = tempfile::tempdir().unwrap();
+    let rots = haar_rotations(&mut ChaCha8Rng::seed_from_u64(11), 6);
+    let csv = dir.path().join("rots.csv");
+    let mut text = String::from("qw,qx,qy,qz\n");
+    for r in &rots {
+        let q = to_quaternion(r);
+        text += &format!("{:.17},{:.17},{:.17},{:.17}\n", q[0], q[1], q[2], q[3]);
+    }
+    std::fs::write(&csv, text).unwrap();
+    let root = dir.path().join("cube_ds");
+    let out = train(
+        &[
+            "render",
+            "--shape",
+            "cube",
+            "--size",
+            "64",
+            "--rotations",
+            csv.to_str().unwrap(),
+        ],
+        &root,
+    );
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    for f in [
+        "models/obj_000001.ply",
+        "models/models_info.json",
+        "train/000000/rgb/000005.png",
+        "train/000000/depth/000005.png",
+        "train/000000/mask_visib/000005_000000.png",
+        "train/000000/scene_gt.json",
+        "train/000000/scene_camera.json",
+        "train/000000/scene_gt_equivalents.json",
+    ] {
+        assert!(root.join(f).exists(), "{f} missing");
+    }
+
+    let ds = BopDataset::open(&root, "train").unwrap();
+    assert_eq!(ds.samples.len(), 6);
+    let mesh = Shape::Cube.mesh();
+    let camera = Camera::square(64);
+    for (sample, r) in ds.samples.iter().zip(&rots) {
+        assert!(geodesic_angle(&sample.rotation, r) < 1e-9);
+        assert_eq!(sample.equivalents.len(), 24);
+        assert!(
+            sample
+                .equivalents
+                .iter()
+                .any(|e| geodesic_angle(e, r) < 1e-9)
+        );
+        // The equivalents recorded in the file equal those from models_info's symmetries.
+        let from_info: Vec<_> = ds.models[&1]
+            .symmetry_rotations()
+            .unwrap()
+            .iter()
+            .map(|s| sample.rotation * s)
+            .collect();
+        for e in &sample.equivalents {
+            let best = from_info
+                .iter()
+                .map(|f| geodesic_angle(e, f))
+                .fold(9.0, f64::min);
+            assert!(best < 1e-9, "{best}");
+        }
+        // The crop from disk equals the crop of the same render made in memory.
+        let image = render(&mesh, &camera, &symsol_pose(*r), &RenderOptions::default());
+        let from_disk = ds.crop(sample, 32).unwrap();
+        let radius_mm = ds.models[&1].diameter / 2.0;
+        let in_memory = crop(
+            &image.rgb,
+            64,
+            64,
+            &sample.cam_k,
+            &sample.translation,
+            radius_mm,
+            32,
+        );
+        assert_eq!(from_disk, in_memory);
+        // And the object fills the crop's centre.
+        let centre = ((16 * 32 + 16) * 3) as usize;
+        assert_ne!(&from_disk.rgb[centre..centre + 3], &[0, 0, 0]);
+    }
+    // The mesh written in millimetres reads back to the NOCS shape.
+    let (model, norm) = alignist::cad::Mesh::load(&root.join("models/obj_000001.ply"))
+        .unwrap()
+        .normalised();
+    assert!((norm.scale - 100.0).abs() < 1e-3);
+    assert_eq!(model.triangles.len(), mesh.triangles.len());
+}
+
+#[test]
+fn random_renders_are_seeded_and_cli_errors_are_clear() {
+    let dir = tempfile::tempdir().unwrap();
+    let a = dir.path().join("a");
+    let b = dir.path().join("b");
+    for root in [&a, &b] {
+        let out = train(
+            &[
+                "render", "--shape", "tetX", "--count", "3", "--size", "48", "--seed", "7",
+            ],
+            root,
+        );
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    let gt =
+        |root: &Path| std::fs::read_to_string(root.join("train/000000/scene_gt.json")).unwrap();
+    assert_eq!(gt(&a), gt(&b));
+    let ds = BopDataset::open(&a, "train").unwrap();
+    assert_eq!(ds.samples[0].equivalents.len(), 3);
+
+    let bad_shape = train(
+        &["render", "--shape", "pyramid", "--count", "1"],
+        &dir.path().join("c"),
+    );
+    assert!(!bad_shape.status.success());
+    assert!(String::from_utf8_lossy(&bad_shape.stderr).contains("unknown shape 'pyramid'"));
+
+    let rots = dir.path().join("bad.csv");
+    std::fs::write(&rots, "qw,qx,qy,qz\n1,0,0,0\n0,0,0\n").unwrap();
+    let bad_rows = train(
+        &[
+            "render",
+            "--shape",
+            "cube",
+            "--rotations",
+            rots.to_str().unwrap(),
+        ],
+        &dir.path().join("d"),
+    );
+    let err = String::from_utf8_lossy(&bad_rows.stderr);
+    assert!(!bad_rows.status.success());
+    assert!(err.contains("bad.csv") && err.contains("line 3"), "{err}");
+
+    let neither = train(&["render", "--count", "1"], &dir.path().join("e"));
+    assert!(!neither.status.success());
+}
+
+#[test]
+fn corrupt_dataset_files_are_named_in_the_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().join("ds");
+    let out = train(
+        &["render", "--shape", "cube", "--count", "2", "--size", "32"],
+        &root,
+    );
+    assert!(out.status.success());
+    let gt = root.join("train/000000/scene_gt.json");
+    std::fs::write(
+        &gt,
+        "{\"0\": [{\"cam_R_m2c\": [1,0,0], \"cam_t_m2c\": [0,0,300], \"obj_id\": 1}]}",
+    )
+    .unwrap();
+    let err = BopDataset::open(&root, "train").unwrap_err().to_string();
+    assert!(err.contains("scene_gt.json"), "{err}");
+
+    // A rotation that is not a rotation names the image and the field.
+    let q = from_quaternion([1.0, 0.0, 0.0, 0.0]).unwrap();
+    assert!(geodesic_angle(&q, &q) < 1e-12);
+    std::fs::write(
+        &gt,
+        "{\"0\": [{\"cam_R_m2c\": [2,0,0,0,1,0,0,0,1], \"cam_t_m2c\": [0,0,300], \"obj_id\": 1}]}",
+    )
+    .unwrap();
+    let err = BopDataset::open(&root, "train").unwrap_err().to_string();
+    assert!(
+        err.contains("scene_gt.json") && err.contains("cam_R_m2c"),
+        "{err}"
+    );
+
+    assert!(
+        BopDataset::open(&root, "test")
+            .unwrap_err()
+            .to_string()
+            .contains("test")
+    );
+}
