@@ -18,7 +18,7 @@ pub fn geodesic_angle(a: &Rotation3<f64>, b: &Rotation3<f64>) -> f64 {
 }
 
 /// Geodesic angle (radians) between two rotations given as quaternions `(w, x, y, z)`:
-/// `2·atan2(‖p − s·q‖, ‖p + s·q‖)` with `s = sign⟨p, q⟩`, which equals `2·acos(|⟨p, q⟩|)` for
+/// `4·atan2(‖p − s·q‖, ‖p + s·q‖)` with `s = sign⟨p, q⟩` (the half-angle of the half-angle), which equals `2·acos(|⟨p, q⟩|)` for
 /// unit quaternions but stays accurate near 0 and tolerates quaternions that are unit only to
 /// rounding (e.g. read from a CSV).
 #[inline]
@@ -33,7 +33,7 @@ pub fn quaternion_angle(p: &[f64; 4], q: &[f64; 4]) -> f64 {
         minus += (p[k] - s * q[k]).powi(2);
         plus += (p[k] + s * q[k]).powi(2);
     }
-    2.0 * minus.sqrt().atan2(plus.sqrt())
+    4.0 * minus.sqrt().atan2(plus.sqrt())
 }
 
 /// `⟨p, q⟩` of two quaternions; `|⟨p, q⟩|` is larger the closer the rotations are.
