@@ -1,30 +1,47 @@
-//! The one place where the compute device is chosen (DESIGN.md §4: keep the backend one switch).
+//! The one place where compute devices are chosen (DESIGN.md §4: keep the backend one switch).
 //!
-//! The default is burn's ndarray backend (measured 2× faster than flex for the head's matmuls on
-//! the 2-core CPU); building with `--features flex` switches every part of the project to flex.
+//! burn 0.22 compiles both CPU backends in. Measured here (2 cores): ndarray runs the head's and
+//! the SIRENs' matmuls ~2× faster than flex, but flex trains the query U-Net ~30× faster than
+//! ndarray (`cargo run --release --example probe_conv`: 8×3×64×64 forward+backward 0.43 s on flex,
+//! 13.6 s on ndarray). So each workload gets its own default, and `ALIGNIST_BACKEND=ndarray` or
+//! `ALIGNIST_BACKEND=flex` forces one backend for everything, to measure them against each other.
 
 use burn::tensor::Device;
 
-/// The device every network, expert and encoding of the project runs on.
-pub fn device() -> Device {
-    #[cfg(feature = "flex")]
-    {
-        Device::flex()
+/// What a device is for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Workload {
+    /// Dense layers: SIRENs, the distribution head, scoring (default ndarray).
+    Dense,
+    /// Convolutions: the query CNN, the image encoder (default flex).
+    Conv,
+}
+
+/// The backend that runs `workload`: `ALIGNIST_BACKEND` when set, else the measured default.
+pub fn backend_for(workload: Workload) -> &'static str {
+    match std::env::var("ALIGNIST_BACKEND").as_deref() {
+        Ok("ndarray") => "ndarray",
+        Ok("flex") => "flex",
+        _ => match workload {
+            Workload::Dense => "ndarray",
+            Workload::Conv => "flex",
+        },
     }
-    #[cfg(not(feature = "flex"))]
-    {
+}
+
+/// The device for `workload`.
+pub fn device_for(workload: Workload) -> Device {
+    if backend_for(workload) == "flex" {
+        Device::flex()
+    } else {
         // burn 0.22 marks ndarray deprecated in favour of flex; it is still the faster choice
-        // for our matmul-bound workloads (DESIGN.md §4).
+        // for matmul-bound work (DESIGN.md §4).
         #[allow(deprecated)]
         Device::ndarray()
     }
 }
 
-/// Name of the backend compiled in, for logs and reports.
-pub fn backend_name() -> &'static str {
-    if cfg!(feature = "flex") {
-        "flex"
-    } else {
-        "ndarray"
-    }
+/// The device for dense work ([`Workload::Dense`]).
+pub fn device() -> Device {
+    device_for(Workload::Dense)
 }

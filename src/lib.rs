@@ -9,4 +9,6 @@ pub mod backend;
 pub mod cad;
 pub mod data;
 pub mod encoding;
+pub mod experts;
 pub mod so3;
+pub mod bundle;

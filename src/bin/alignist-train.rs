@@ -33,10 +33,12 @@ enum Command {
     /// Render a dataset of one object in BOP layout (SYMSOL style: centred, fully in view,
     /// every equivalent ground truth recorded in scene_gt_equivalents.json).
     Render(RenderArgs),
-    /// Train the CAD experts of an object (not yet implemented).
-    Experts,
-    /// Score a target distribution with trained experts (not yet implemented).
-    Score,
+    /// Train the two CAD experts of an object (SDF and SurfEmb features), bake them, choose λ by
+    /// the LL of their targets, and write the expert set.
+    Experts(ExpertsArgs),
+    /// Write the target distribution the experts give for one rotation on every cell of a grid
+    /// level (`index,log_a_sdf,log_a_se`).
+    Score(ScoreArgs),
     /// Train a distribution network and write a model bundle (not yet implemented).
     Fit,
     /// Evaluate a model bundle on a dataset (not yet implemented).
@@ -50,8 +52,8 @@ fn main() -> Result<()> {
     match cli.command {
         Command::Grid { level, out } => write_grid(level, &out),
         Command::Render(args) => render_cmd(&args),
-        Command::Experts => not_yet("experts"),
-        Command::Score => not_yet("score"),
+        Command::Experts(args) => experts_cmd(&args),
+        Command::Score(args) => score_cmd(&args),
         Command::Fit => not_yet("fit"),
         Command::Eval => not_yet("eval"),
         Command::Bench => not_yet("bench"),
@@ -200,6 +202,230 @@ fn read_rotations(path: &Path) -> Result<Vec<nalgebra::Rotation3<f64>>> {
         bail!("{}: no rotations in the file", path.display());
     }
     Ok(out)
+}
+
+#[derive(clap::Args)]
+#[command(group(clap::ArgGroup::new("object").required(true).args(["shape", "mesh"])))]
+struct ExpertsArgs {
+    /// A SYMSOL shape: tet, cube, icosa, cone, cyl, tetX, cylO, sphereX.
+    #[arg(long)]
+    shape: Option<String>,
+    /// A closed mesh file (.obj, .ply, .stl); it is normalised to NOCS.
+    #[arg(long)]
+    mesh: Option<PathBuf>,
+    /// Symmetry group of --mesh (none, T, O, I, C<n>, D<n>, cone, cylinder), for the λ choice.
+    #[arg(long, default_value = "none", requires = "mesh")]
+    symmetry: String,
+    /// Output folder of the expert set.
+    #[arg(long)]
+    out: PathBuf,
+    /// Adam steps of the SDF expert.
+    #[arg(long, default_value_t = 500)]
+    steps: usize,
+    /// Points per SDF step.
+    #[arg(long, default_value_t = 1024)]
+    sdf_batch: usize,
+    /// Adam steps of the feature expert.
+    #[arg(long, default_value_t = 600)]
+    feature_steps: usize,
+    /// Renders per feature step.
+    #[arg(long, default_value_t = 8)]
+    images: usize,
+    /// Render side of the feature training (divisible by 4).
+    #[arg(long, default_value_t = 32)]
+    image_size: u32,
+    /// Foreground pixels per render (InfoNCE positives).
+    #[arg(long, default_value_t = 128)]
+    pixels: usize,
+    /// Surface negatives per feature step.
+    #[arg(long, default_value_t = 512)]
+    negatives: usize,
+    /// Voxel bake resolution per axis.
+    #[arg(long, default_value_t = 64)]
+    bake_resolution: usize,
+    /// Seed.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+}
+
+fn experts_cmd(args: &ExpertsArgs) -> Result<()> {
+    use alignist::bundle::experts::{ExpertsJob, train_expert_set};
+    use alignist::cad::{Mesh, Shape};
+    use alignist::experts::feature::FeatureTrainConfig;
+    use alignist::experts::sdf::SdfTrainConfig;
+    use alignist::so3::SymmetryGroup;
+
+    if args.image_size < 8 || args.image_size % 4 != 0 {
+        bail!("--image-size must be a multiple of 4 and at least 8, got {}", args.image_size);
+    }
+    if !(8..=256).contains(&args.bake_resolution) {
+        bail!("--bake-resolution must be in 8 ..= 256, got {}", args.bake_resolution);
+    }
+    for (flag, v) in [
+        ("--steps", args.steps),
+        ("--sdf-batch", args.sdf_batch),
+        ("--feature-steps", args.feature_steps),
+        ("--images", args.images),
+        ("--pixels", args.pixels),
+        ("--negatives", args.negatives),
+    ] {
+        if v == 0 {
+            bail!("{flag} must be at least 1");
+        }
+    }
+    let (name, source_mesh, symmetries) = match (&args.shape, &args.mesh) {
+        (Some(name), _) => {
+            let shape: Shape = name.parse().context("--shape")?;
+            (shape.name().to_string(), shape.mesh(), shape.symmetries())
+        }
+        (None, Some(path)) => {
+            let group: SymmetryGroup = args.symmetry.parse().context("--symmetry")?;
+            let mesh = Mesh::load(path).with_context(|| format!("--mesh {}", path.display()))?;
+            let stem = path.file_stem().and_then(|s| s.to_str()).unwrap_or("object");
+            (stem.to_string(), mesh, group.rotations())
+        }
+        (None, None) => bail!("give --shape NAME or --mesh FILE"),
+    };
+    let (mesh, normalisation) = source_mesh.normalised();
+    alignist::cad::SignedDistance::new(&mesh).context("the SDF expert needs a closed mesh")?;
+    let job = ExpertsJob {
+        name,
+        mesh,
+        normalisation,
+        symmetries,
+        sdf: SdfTrainConfig {
+            steps: args.steps,
+            batch: args.sdf_batch,
+            seed: args.seed,
+            ..Default::default()
+        },
+        features: FeatureTrainConfig {
+            steps: args.feature_steps,
+            images: args.images,
+            image_size: args.image_size,
+            pixels: args.pixels,
+            negatives: args.negatives,
+            seed: args.seed,
+            ..Default::default()
+        },
+        bake_resolution: args.bake_resolution,
+        command: std::env::args().collect::<Vec<_>>().join(" "),
+    };
+    let style = ProgressStyle::with_template("{prefix:>9} {bar:40} {pos}/{len}  {msg}  eta {eta}")
+        .expect("static progress template");
+    let mut bar: Option<(String, ProgressBar)> = None;
+    let started = std::time::Instant::now();
+    let mut set = train_expert_set(job, &mut |phase, step, steps, loss| {
+        if bar.as_ref().is_none_or(|(p, _)| p != phase) {
+            if let Some((_, b)) = bar.take() {
+                b.finish();
+            }
+            let b = ProgressBar::new(steps as u64).with_style(style.clone());
+            b.set_prefix(phase.to_string());
+            bar = Some((phase.to_string(), b));
+        }
+        if let Some((_, b)) = &bar {
+            b.set_position(step as u64);
+            if step > 0 {
+                b.set_message(format!("loss {loss:.4}"));
+            }
+        }
+    })
+    .context("training the experts")?;
+    if let Some((_, b)) = bar.take() {
+        b.finish();
+    }
+    set.save(&args.out)
+        .with_context(|| format!("writing the expert set to {}", args.out.display()))?;
+    let m = &set.manifest;
+    eprintln!("expert set for {} written to {} in {:.0} s", m.object.name, args.out.display(), started.elapsed().as_secs_f64());
+    eprintln!(
+        "  SDF: MAE near surface {:.4} (radius units), sign accuracy {:.4}, {:.0} s",
+        m.sdf.fit.mae_near_surface, m.sdf.fit.sign_accuracy_off_surface, m.sdf.fit.train_seconds
+    );
+    eprintln!(
+        "  features: InfoNCE {:.3}, mask BCE {:.3}, symmetry ratio {:.3}, {:.0} s",
+        m.features.fit.final_info_nce,
+        m.features.fit.final_mask_bce,
+        m.features.fit.symmetry_ratio,
+        m.features.fit.train_seconds
+    );
+    eprintln!(
+        "  bake {}^3: SDF mean error {:.5}, keys relative error {:.4}",
+        m.bake.resolution, m.bake.sdf_mean_error, m.bake.keys_relative_error
+    );
+    eprintln!(
+        "  energy: {:?} eps {} lambda_sdf {} lambda_se {:.3} (LL sweeps at level {}: sdf {:?}, se {:?})",
+        m.energy.norm,
+        m.energy.epsilon,
+        m.energy.lambda_sdf,
+        m.energy.lambda_se,
+        m.energy_selection.level,
+        m.energy_selection.lambda_sdf,
+        m.energy_selection.lambda_se
+    );
+    Ok(())
+}
+
+#[derive(clap::Args)]
+struct ScoreArgs {
+    /// An expert set folder (from `alignist-train experts`).
+    #[arg(long)]
+    experts: PathBuf,
+    /// The ground-truth rotation as qw,qx,qy,qz.
+    #[arg(long, allow_hyphen_values = true)]
+    rotation: String,
+    /// Grid level (0 ..= 5).
+    #[arg(long)]
+    level: u8,
+    /// Output CSV.
+    #[arg(long)]
+    out: PathBuf,
+    /// Seed of the visible-point sampling.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+}
+
+fn score_cmd(args: &ScoreArgs) -> Result<()> {
+    use alignist::bundle::experts::ExpertSet;
+    use alignist::experts::select::visible_points_at;
+
+    if args.level > 5 {
+        bail!("--level {} is above 5 (level 5 already has 2 359 296 cells)", args.level);
+    }
+    let q: Vec<f64> = args
+        .rotation
+        .split(',')
+        .map(|v| v.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .with_context(|| format!("--rotation '{}' is not four numbers qw,qx,qy,qz", args.rotation))?;
+    if q.len() != 4 {
+        bail!("--rotation needs 4 values qw,qx,qy,qz, got {}", q.len());
+    }
+    let r_gt = alignist::so3::from_quaternion([q[0], q[1], q[2], q[3]]).context("--rotation")?;
+    let set = ExpertSet::load(&args.experts)
+        .with_context(|| format!("loading --experts {}", args.experts.display()))?;
+    let baked = set.bake();
+    let x0 = visible_points_at(&set.mesh, &r_gt, args.seed);
+    if x0.is_empty() {
+        bail!("the object is not visible at this rotation");
+    }
+    let grid = GridLevel::new(args.level)?;
+    let targets = baked.log_targets(&r_gt, &x0, &grid.matrices_f32());
+    let tmp = args.out.with_extension("csv.partial");
+    let mut w = BufWriter::new(
+        File::create(&tmp).with_context(|| format!("cannot create {}", tmp.display()))?,
+    );
+    let write_err = || format!("writing {}", tmp.display());
+    writeln!(w, "index,log_a_sdf,log_a_se").with_context(write_err)?;
+    for (i, (s, f)) in targets.log_a_sdf.iter().zip(&targets.log_a_se).enumerate() {
+        writeln!(w, "{i},{s},{f}").with_context(write_err)?;
+    }
+    w.into_inner().map_err(|e| e.into_error()).with_context(write_err)?;
+    std::fs::rename(&tmp, &args.out)
+        .with_context(|| format!("renaming {} to {}", tmp.display(), args.out.display()))?;
+    eprintln!("wrote {} cells of level {} to {}", grid.len(), args.level, args.out.display());
+    Ok(())
 }
 
 fn not_yet(name: &str) -> Result<()> {

@@ -1,0 +1,368 @@
+//! An expert set on disk: a folder with `manifest.json`, the normalised mesh (`mesh.ply`) and
+//! safetensors weights of the SDF SIREN, the key SIREN and the query CNN.
+
+use std::collections::BTreeMap;
+use std::fs;
+use std::path::Path;
+
+use burn::tensor::Device;
+use nalgebra::Rotation3;
+use serde::{Deserialize, Serialize};
+
+use super::{BundleError, FileEntry, load_weights, read_manifest, save_weights, sha256_file};
+use crate::cad::{Mesh, Normalisation, write_ply};
+use crate::experts::baked::VoxelGrid;
+use crate::experts::energy::{BakedExperts, EnergyParams};
+use crate::experts::feature::{
+    FEATURE_DIM, FeatureFit, FeatureTrainConfig, QueryNet, QueryNetConfig,
+};
+use crate::experts::sdf::{SdfFit, SdfTrainConfig};
+use crate::experts::select::EnergySelection;
+use crate::experts::{Siren, SirenConfig, run_batched};
+use crate::so3::{from_row_major, to_row_major};
+
+/// Format version of expert manifests this build reads and writes.
+pub const EXPERTS_FORMAT_VERSION: u32 = 1;
+
+/// The object an expert set was trained for.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ObjectInfo {
+    /// Name (a SYMSOL shape name or the mesh file's stem).
+    pub name: String,
+    /// Where the mesh came from.
+    pub source: String,
+    /// sha256 of the normalised mesh file `mesh.ply`.
+    pub mesh_sha256: String,
+    /// How the original mesh was mapped to NOCS.
+    pub normalisation: Normalisation,
+    /// The object's symmetries (row-major rotations, identity first), for evaluation.
+    pub symmetries: Vec<[f64; 9]>,
+}
+
+/// How the voxel bakes are made, and how far they are from the networks.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct BakeInfo {
+    /// Grid points per axis.
+    pub resolution: usize,
+    /// The grid covers `[−bound, bound]³`.
+    pub bound: f32,
+    /// Mean |baked − network| of the SDF at points near the surface (NOCS units).
+    pub sdf_mean_error: f64,
+    /// Mean ‖baked − network‖ of the keys at surface points, relative to the mean distance
+    /// between keys of random surface points.
+    pub keys_relative_error: f64,
+}
+
+/// `manifest.json` of an expert set.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ExpertsManifest {
+    /// [`EXPERTS_FORMAT_VERSION`].
+    pub format_version: u32,
+    /// The object.
+    pub object: ObjectInfo,
+    /// SDF expert training and fit.
+    pub sdf: SdfSection,
+    /// Feature expert training and fit.
+    pub features: FeatureSection,
+    /// Energy hyper-parameters (λ, ε, norm).
+    pub energy: EnergyParams,
+    /// How the selection of λ went: `(λ_SDF or λ_SE, mean LL of the targets at level 3)`.
+    pub energy_selection: EnergySelection,
+    /// The voxel bakes.
+    pub bake: BakeInfo,
+    /// The command that made this set.
+    pub command: String,
+    /// Checksums of every file in the folder except the manifest.
+    pub files: BTreeMap<String, FileEntry>,
+}
+
+/// The SDF expert's part of the manifest.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SdfSection {
+    /// Training configuration (also the network's shape).
+    pub config: SdfTrainConfig,
+    /// Fit figures.
+    pub fit: SdfFit,
+}
+
+/// The feature expert's part of the manifest.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FeatureSection {
+    /// Training configuration (also the networks' shape).
+    pub config: FeatureTrainConfig,
+    /// Fit figures.
+    pub fit: FeatureFit,
+}
+
+/// A loaded expert set.
+pub struct ExpertSet {
+    /// The manifest.
+    pub manifest: ExpertsManifest,
+    /// The normalised mesh.
+    pub mesh: Mesh,
+    /// `f_SDF`.
+    pub sdf: Siren,
+    /// `f_SE` keys.
+    pub keys: Siren,
+    /// The query CNN.
+    pub query: QueryNet,
+}
+
+const MESH_FILE: &str = "mesh.ply";
+const SDF_FILE: &str = "sdf.safetensors";
+const KEYS_FILE: &str = "keys.safetensors";
+const QUERY_FILE: &str = "query.safetensors";
+const MANIFEST_FILE: &str = "manifest.json";
+
+impl ExpertSet {
+    /// The object's symmetries as rotations.
+    pub fn symmetries(&self) -> Vec<Rotation3<f64>> {
+        self.manifest
+            .object
+            .symmetries
+            .iter()
+            .filter_map(|m| from_row_major(*m).ok())
+            .collect()
+    }
+
+    /// Writes the set into `dir` (created if needed): weights, mesh, then the manifest with every
+    /// file's checksum (written last and atomically, so a half-written set has no manifest).
+    pub fn save(&mut self, dir: &Path) -> Result<(), BundleError> {
+        fs::create_dir_all(dir).map_err(|e| super::io_err(dir, e))?;
+        let mesh_path = dir.join(MESH_FILE);
+        write_ply(&self.mesh, &mesh_path)?;
+        let mut files = BTreeMap::new();
+        files.insert(MESH_FILE.to_string(), sha256_file(&mesh_path)?);
+        files.insert(SDF_FILE.into(), save_weights(&self.sdf, &dir.join(SDF_FILE))?);
+        files.insert(KEYS_FILE.into(), save_weights(&self.keys, &dir.join(KEYS_FILE))?);
+        files.insert(QUERY_FILE.into(), save_weights(&self.query, &dir.join(QUERY_FILE))?);
+        self.manifest.object.mesh_sha256 = files[MESH_FILE].sha256.clone();
+        self.manifest.files = files;
+        super::write_manifest(&dir.join(MANIFEST_FILE), &self.manifest)
+    }
+
+    /// Loads and validates a set: format version, every file's checksum, every tensor's shape.
+    /// The SIRENs go to the dense device, the query CNN to the convolution device.
+    pub fn load(dir: &Path) -> Result<ExpertSet, BundleError> {
+        let device = &crate::backend::device();
+        let conv_device = &crate::backend::device_for(crate::backend::Workload::Conv);
+        let manifest_path = dir.join(MANIFEST_FILE);
+        let manifest: ExpertsManifest = read_manifest(&manifest_path)?;
+        let field = |message: String| BundleError::Manifest {
+            path: manifest_path.display().to_string(),
+            message,
+        };
+        if manifest.format_version != EXPERTS_FORMAT_VERSION {
+            return Err(field(format!(
+                "format_version is {} but this build reads {EXPERTS_FORMAT_VERSION}",
+                manifest.format_version
+            )));
+        }
+        for name in [MESH_FILE, SDF_FILE, KEYS_FILE, QUERY_FILE] {
+            if !manifest.files.contains_key(name) {
+                return Err(field(format!("files: no entry for {name}")));
+            }
+        }
+        if manifest.object.mesh_sha256 != manifest.files[MESH_FILE].sha256 {
+            return Err(field("object.mesh_sha256 differs from files.\"mesh.ply\".sha256".into()));
+        }
+        for (i, m) in manifest.object.symmetries.iter().enumerate() {
+            from_row_major(*m).map_err(|e| field(format!("object.symmetries[{i}]: {e}")))?;
+        }
+        let mesh_path = dir.join(MESH_FILE);
+        super::verify_file(&mesh_path, &manifest.files[MESH_FILE])?;
+        let mesh = Mesh::load(&mesh_path)?;
+        let sdf_cfg = &manifest.sdf.config;
+        let sdf = load_weights(
+            SirenConfig::new(3, sdf_cfg.hidden, sdf_cfg.layers, 1).init(device),
+            &dir.join(SDF_FILE),
+            &manifest.files[SDF_FILE],
+        )?;
+        let keys = load_weights(
+            key_siren_config().init(device),
+            &dir.join(KEYS_FILE),
+            &manifest.files[KEYS_FILE],
+        )?;
+        let query = load_weights(
+            QueryNetConfig::new()
+                .with_width(manifest.features.config.width)
+                .init(conv_device),
+            &dir.join(QUERY_FILE),
+            &manifest.files[QUERY_FILE],
+        )?;
+        Ok(ExpertSet {
+            manifest,
+            mesh,
+            sdf,
+            keys,
+            query,
+        })
+    }
+
+    /// Bakes both experts on the manifest's grid and attaches its energy hyper-parameters.
+    pub fn bake(&self) -> BakedExperts {
+        let device = &crate::backend::device();
+        bake_experts(
+            &self.sdf,
+            &self.keys,
+            self.manifest.bake.resolution,
+            self.manifest.bake.bound,
+            self.manifest.energy,
+            device,
+        )
+    }
+}
+
+/// The key SIREN's shape: 3 → 256 → 256 → 12 (SurfEmb).
+pub fn key_siren_config() -> SirenConfig {
+    SirenConfig::new(3, 256, 2, FEATURE_DIM)
+}
+
+/// Bakes the SDF and key networks into voxel grids.
+pub fn bake_experts(
+    sdf: &Siren,
+    keys: &Siren,
+    resolution: usize,
+    bound: f32,
+    params: EnergyParams,
+    device: &Device,
+) -> BakedExperts {
+    BakedExperts {
+        sdf: VoxelGrid::bake(resolution, bound, 1, |p| run_batched(sdf, p, 1, device)),
+        keys: VoxelGrid::bake(resolution, bound, FEATURE_DIM, |p| {
+            run_batched(keys, p, FEATURE_DIM, device)
+        }),
+        params,
+    }
+}
+
+/// Row-major symmetries for the manifest.
+pub fn symmetries_row_major(symmetries: &[Rotation3<f64>]) -> Vec<[f64; 9]> {
+    symmetries.iter().map(to_row_major).collect()
+}
+
+/// What [`train_expert_set`] needs besides the mesh.
+pub struct ExpertsJob {
+    /// Object name.
+    pub name: String,
+    /// The mesh in NOCS.
+    pub mesh: Mesh,
+    /// How the source mesh was normalised.
+    pub normalisation: Normalisation,
+    /// The object's symmetries (identity first).
+    pub symmetries: Vec<Rotation3<f64>>,
+    /// SDF expert training.
+    pub sdf: SdfTrainConfig,
+    /// Feature expert training.
+    pub features: FeatureTrainConfig,
+    /// Voxel bake resolution and bound.
+    pub bake_resolution: usize,
+    /// The command line, for the manifest.
+    pub command: String,
+}
+
+/// Progress of [`train_expert_set`]: `(phase, step, steps, loss)`.
+pub type ExpertsProgress<'a> = dyn FnMut(&str, usize, usize, f64) + 'a;
+
+/// Trains both experts, bakes them, measures the bakes' error, and selects λ_SDF and λ_SE by the
+/// LL of their targets at level 3 on 4 random poses.
+pub fn train_expert_set(
+    job: ExpertsJob,
+    progress: &mut ExpertsProgress<'_>,
+) -> Result<ExpertSet, crate::experts::ExpertError> {
+    use crate::experts::energy::EnergyParams;
+    use crate::experts::feature::train_features;
+    use crate::experts::sdf::{eval_sdf, sample_near_surface, train_sdf};
+    use crate::experts::select::select_lambdas;
+    use rand::SeedableRng;
+
+    let device = crate::backend::device();
+    let sdf_steps = job.sdf.steps;
+    let (sdf, sdf_fit) = train_sdf(&job.mesh, &job.sdf, |s, l| progress("sdf", s, sdf_steps, l))?;
+    let feat_steps = job.features.steps;
+    let (features, feature_fit) = train_features(&job.mesh, &job.symmetries, &job.features, |s, l| {
+        progress("features", s, feat_steps, l)
+    })?;
+    progress("bake", 0, 1, 0.0);
+    let bound = 1.05f32;
+    let baked = bake_experts(
+        &sdf,
+        &features.keys,
+        job.bake_resolution,
+        bound,
+        EnergyParams::default(),
+        &device,
+    );
+    // Bake error against the networks.
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(job.sdf.seed ^ 0xba4e);
+    let near = sample_near_surface(&job.mesh, 5000, &mut rng);
+    let sdf_net = eval_sdf(&sdf, &near, &device);
+    let sdf_baked = baked.sdf.sample(&near);
+    let sdf_mean_error = sdf_net
+        .iter()
+        .zip(&sdf_baked)
+        .map(|(a, b)| (a - b).abs() as f64)
+        .sum::<f64>()
+        / near.len() as f64;
+    let surface: Vec<_> = job.mesh.sample_surface(5000, &mut rng).iter().map(|s| s.point).collect();
+    let others: Vec<_> = job.mesh.sample_surface(5000, &mut rng).iter().map(|s| s.point).collect();
+    let key_net = run_batched(&features.keys, &surface, FEATURE_DIM, &device);
+    let key_other = run_batched(&features.keys, &others, FEATURE_DIM, &device);
+    let key_baked = baked.keys.sample(&surface);
+    let mean_dist = |a: &[f32], b: &[f32]| {
+        a.chunks(FEATURE_DIM)
+            .zip(b.chunks(FEATURE_DIM))
+            .map(|(u, v)| u.iter().zip(v).map(|(p, q)| (p - q).powi(2)).sum::<f32>().sqrt() as f64)
+            .sum::<f64>()
+            / (a.len() / FEATURE_DIM).max(1) as f64
+    };
+    let key_scale = mean_dist(&key_net, &key_other).max(1e-9);
+    let keys_relative_error = mean_dist(&key_net, &key_baked) / key_scale;
+
+    progress("select", 0, 1, 0.0);
+    let se_values: Vec<f64> = [2.0, 5.0, 10.0, 20.0, 40.0].iter().map(|c| c / key_scale).collect();
+    let (energy, selection) = select_lambdas(
+        &baked,
+        &job.mesh,
+        &job.symmetries,
+        &[5.0, 10.0, 20.0, 40.0, 80.0],
+        &se_values,
+        3,
+        4,
+        job.sdf.seed,
+    );
+    Ok(ExpertSet {
+        manifest: ExpertsManifest {
+            format_version: EXPERTS_FORMAT_VERSION,
+            object: ObjectInfo {
+                name: job.name,
+                source: job.mesh.source.clone(),
+                mesh_sha256: String::new(),
+                normalisation: job.normalisation,
+                symmetries: symmetries_row_major(&job.symmetries),
+            },
+            sdf: SdfSection {
+                config: job.sdf,
+                fit: sdf_fit,
+            },
+            features: FeatureSection {
+                config: job.features,
+                fit: feature_fit,
+            },
+            energy,
+            energy_selection: selection,
+            bake: BakeInfo {
+                resolution: job.bake_resolution,
+                bound,
+                sdf_mean_error,
+                keys_relative_error,
+            },
+            command: job.command,
+            files: BTreeMap::new(),
+        },
+        mesh: job.mesh,
+        sdf,
+        keys: features.keys,
+        query: features.query,
+    })
+}

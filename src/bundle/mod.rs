@@ -1,0 +1,169 @@
+//! Model files: manifests, checksums, weights in safetensors (readable from numpy too), and
+//! validation that names the file and the field that is wrong.
+
+pub mod experts;
+
+use std::fs;
+use std::io::Write;
+use std::path::Path;
+
+use burn::module::Module;
+use burn::store::{ModuleSnapshot, SafetensorsStore};
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+
+/// Errors reading or writing model files; each names the file (and the field where one is
+/// wrong).
+#[derive(Debug, thiserror::Error)]
+pub enum BundleError {
+    /// A file could not be read or written.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: String,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// A manifest that does not parse or misses a field.
+    #[error("{path}: {message}")]
+    Manifest {
+        /// The manifest.
+        path: String,
+        /// What is wrong, naming the field.
+        message: String,
+    },
+    /// A file whose checksum differs from the manifest's.
+    #[error("{path}: sha256 is {actual} but the manifest records {expected} (file changed or corrupt)")]
+    Checksum {
+        /// The file.
+        path: String,
+        /// Recorded.
+        expected: String,
+        /// Computed.
+        actual: String,
+    },
+    /// Weights that do not fit the network the manifest describes.
+    #[error("{path}: {message}")]
+    Weights {
+        /// The weight file.
+        path: String,
+        /// Which tensors are missing, extra or of the wrong shape.
+        message: String,
+    },
+    /// A mesh problem.
+    #[error(transparent)]
+    Cad(#[from] crate::cad::CadError),
+}
+
+/// Checksum and size of one file of a bundle.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FileEntry {
+    /// Lower-case hex sha256.
+    pub sha256: String,
+    /// Size in bytes.
+    pub bytes: u64,
+}
+
+/// sha256 of a file, lower-case hex.
+pub fn sha256_file(path: &Path) -> Result<FileEntry, BundleError> {
+    let bytes = fs::read(path).map_err(|e| io_err(path, e))?;
+    Ok(FileEntry {
+        sha256: hex::encode(Sha256::digest(&bytes)),
+        bytes: bytes.len() as u64,
+    })
+}
+
+pub(crate) fn io_err(path: &Path, source: std::io::Error) -> BundleError {
+    BundleError::Io {
+        path: path.display().to_string(),
+        source,
+    }
+}
+
+/// Checks a file against its manifest entry.
+pub fn verify_file(path: &Path, expected: &FileEntry) -> Result<(), BundleError> {
+    let actual = sha256_file(path)?;
+    if actual.sha256 != expected.sha256 {
+        return Err(BundleError::Checksum {
+            path: path.display().to_string(),
+            expected: expected.sha256.clone(),
+            actual: actual.sha256,
+        });
+    }
+    Ok(())
+}
+
+/// Writes `bytes` to `path` atomically: a temporary file in the same folder, fsync, rename.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), BundleError> {
+    let tmp = path.with_extension("partial");
+    let mut f = fs::File::create(&tmp).map_err(|e| io_err(&tmp, e))?;
+    f.write_all(bytes).map_err(|e| io_err(&tmp, e))?;
+    f.sync_all().map_err(|e| io_err(&tmp, e))?;
+    fs::rename(&tmp, path).map_err(|e| io_err(path, e))
+}
+
+/// Saves a module's weights as safetensors (atomically) and returns the file's entry.
+pub fn save_weights<M: Module>(module: &M, path: &Path) -> Result<FileEntry, BundleError> {
+    let tmp = path.with_extension("safetensors.partial");
+    let mut store = SafetensorsStore::from_file(&tmp).overwrite(true);
+    module.save_into(&mut store).map_err(|e| BundleError::Weights {
+        path: path.display().to_string(),
+        message: e.to_string(),
+    })?;
+    fs::File::open(&tmp)
+        .and_then(|f| f.sync_all())
+        .map_err(|e| io_err(&tmp, e))?;
+    fs::rename(&tmp, path).map_err(|e| io_err(path, e))?;
+    sha256_file(path)
+}
+
+/// Loads safetensors weights into `module` (built from the manifest's configuration), after
+/// checking the file's checksum. Every tensor must be present with the right shape.
+pub fn load_weights<M: Module>(
+    mut module: M,
+    path: &Path,
+    expected: &FileEntry,
+) -> Result<M, BundleError> {
+    verify_file(path, expected)?;
+    let mut store = SafetensorsStore::from_file(path);
+    let result = module.load_from(&mut store).map_err(|e| BundleError::Weights {
+        path: path.display().to_string(),
+        message: e.to_string(),
+    })?;
+    let mut problems = Vec::new();
+    if !result.errors.is_empty() {
+        problems.push(format!("{} tensors do not fit: {:?}", result.errors.len(), result.errors));
+    }
+    if !result.missing.is_empty() {
+        let names: Vec<&str> = result.missing.iter().map(|(n, _)| n.as_str()).collect();
+        problems.push(format!("missing tensors {names:?}"));
+    }
+    if !result.unused.is_empty() {
+        problems.push(format!("unexpected tensors {:?}", result.unused));
+    }
+    if !problems.is_empty() {
+        return Err(BundleError::Weights {
+            path: path.display().to_string(),
+            message: problems.join("; "),
+        });
+    }
+    Ok(module)
+}
+
+/// Reads and parses a JSON manifest; a parse error names the file, line and field.
+pub fn read_manifest<T: for<'de> Deserialize<'de>>(path: &Path) -> Result<T, BundleError> {
+    let text = fs::read_to_string(path).map_err(|e| io_err(path, e))?;
+    serde_json::from_str(&text).map_err(|e| BundleError::Manifest {
+        path: path.display().to_string(),
+        message: e.to_string(),
+    })
+}
+
+/// Writes a JSON manifest atomically.
+pub fn write_manifest<T: Serialize>(path: &Path, manifest: &T) -> Result<(), BundleError> {
+    let text = serde_json::to_string_pretty(manifest).map_err(|e| BundleError::Manifest {
+        path: path.display().to_string(),
+        message: e.to_string(),
+    })?;
+    write_atomic(path, text.as_bytes())
+}

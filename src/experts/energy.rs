@@ -1,0 +1,150 @@
+//! Energies of candidate rotations and the target measures they give (paper Eq. 3–4,
+//! DESIGN.md §2).
+//!
+//! `x⁰_i` are visible surface points in canonical coordinates (from a NOCS render at `R_gt`).
+//! A candidate `R` explains them as `x'_i = Rᵀ·R_gt·x⁰_i`; at `R = R_gt·S` for a symmetry `S`,
+//! every `x'_i` is on the surface again, and (with symmetry-aware keys) has the key of `x⁰_i`.
+
+use nalgebra::{Matrix3, Rotation3, Vector3};
+use rand::{Rng, RngExt};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::baked::VoxelGrid;
+use crate::cad::Render;
+
+/// The norm of the SDF energy.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SdfNorm {
+    /// The paper's "L0 norm": the fraction of points with `|f_SDF(x')| > ε`.
+    L0,
+    /// `mean |f_SDF(x')| / ε`.
+    L1,
+}
+
+/// Hyper-parameters of the energies, recorded in the expert manifest.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct EnergyParams {
+    /// `λ_SDF`.
+    pub lambda_sdf: f64,
+    /// `ε`, in NOCS units (fraction of the bounding-sphere radius).
+    pub epsilon: f64,
+    /// Norm of the SDF energy.
+    pub norm: SdfNorm,
+    /// `λ_SE`, per unit of key distance.
+    pub lambda_se: f64,
+}
+
+impl Default for EnergyParams {
+    /// DESIGN.md §2's starting point: L0, ε = 0.02, λ_SDF = 20; λ_SE is set from the keys'
+    /// scale when the experts are trained.
+    fn default() -> Self {
+        EnergyParams {
+            lambda_sdf: 20.0,
+            epsilon: 0.02,
+            norm: SdfNorm::L0,
+            lambda_se: 20.0,
+        }
+    }
+}
+
+/// `U_SDF = λ_SDF · ‖f_SDF(x')‖₀` (fraction of `|f| > ε`), or `λ_SDF · mean|f|/ε` for L1.
+pub fn sdf_energy(sdf_values: &[f32], params: &EnergyParams) -> f64 {
+    let n = sdf_values.len().max(1) as f64;
+    let eps = params.epsilon as f32;
+    let norm = match params.norm {
+        SdfNorm::L0 => sdf_values.iter().filter(|v| v.abs() > eps).count() as f64 / n,
+        SdfNorm::L1 => sdf_values.iter().map(|v| v.abs() as f64).sum::<f64>() / n / params.epsilon,
+    };
+    params.lambda_sdf * norm
+}
+
+/// `U_SE = λ_SE · mean_i ‖f_SE(x'_i) − f_SE(x⁰_i)‖₂`; keys are row-major `n × d`.
+pub fn se_energy(keys_moved: &[f32], keys_seen: &[f32], dim: usize, params: &EnergyParams) -> f64 {
+    let n = (keys_seen.len() / dim).max(1) as f64;
+    let total: f64 = keys_moved
+        .chunks(dim)
+        .zip(keys_seen.chunks(dim))
+        .map(|(a, b)| {
+            a.iter()
+                .zip(b)
+                .map(|(p, q)| (p - q).powi(2))
+                .sum::<f32>()
+                .sqrt() as f64
+        })
+        .sum();
+    params.lambda_se * total / n
+}
+
+/// Up to `n` visible canonical points: NOCS values of pixels drawn uniformly inside the mask.
+pub fn visible_points<R: Rng + ?Sized>(render: &Render, n: usize, rng: &mut R) -> Vec<Vector3<f32>> {
+    let fg: Vec<usize> = (0..render.mask.len()).filter(|&k| render.mask[k]).collect();
+    if fg.is_empty() {
+        return Vec::new();
+    }
+    (0..n)
+        .map(|_| Vector3::from(render.nocs[fg[rng.random_range(0..fg.len())]]))
+        .collect()
+}
+
+/// Log target weights of many candidate rotations: `log a^SDF_k = −U_SDF(R_k)` and
+/// `log a^SE_k = −U_SE(R_k)`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LogTargets {
+    /// `−U_SDF` per candidate.
+    pub log_a_sdf: Vec<f32>,
+    /// `−U_SE` per candidate.
+    pub log_a_se: Vec<f32>,
+}
+
+/// The experts, baked, with their energy hyper-parameters.
+#[derive(Debug, Clone)]
+pub struct BakedExperts {
+    /// `f_SDF` on a grid (1 channel).
+    pub sdf: VoxelGrid,
+    /// `f_SE` on a grid (12 channels).
+    pub keys: VoxelGrid,
+    /// λ, ε, norm.
+    pub params: EnergyParams,
+}
+
+impl BakedExperts {
+    /// Scores `candidates` (row-major `f32` matrices) for an image whose ground truth is `r_gt`
+    /// and whose visible canonical points are `x0` (parallel over candidates).
+    pub fn log_targets(
+        &self,
+        r_gt: &Rotation3<f64>,
+        x0: &[Vector3<f32>],
+        candidates: &[[f32; 9]],
+    ) -> LogTargets {
+        let dim = self.keys.channels();
+        let seen = self.keys.sample(x0);
+        let gt: Matrix3<f32> = r_gt.matrix().cast();
+        let scored: Vec<(f32, f32)> = candidates
+            .par_iter()
+            .map_init(
+                || (vec![0f32; x0.len()], vec![0f32; x0.len() * dim]),
+                |(sdf_buf, key_buf), m| {
+                    // x' = Rᵀ·R_gt·x⁰.
+                    let r = Matrix3::from_row_slice(m);
+                    let map = r.transpose() * gt;
+                    for (i, x) in x0.iter().enumerate() {
+                        let moved = map * x;
+                        self.sdf.sample_into(&moved, &mut sdf_buf[i..i + 1]);
+                        self.keys
+                            .sample_into(&moved, &mut key_buf[i * dim..(i + 1) * dim]);
+                    }
+                    (
+                        -sdf_energy(sdf_buf, &self.params) as f32,
+                        -se_energy(key_buf, &seen, dim, &self.params) as f32,
+                    )
+                },
+            )
+            .collect();
+        LogTargets {
+            log_a_sdf: scored.iter().map(|s| s.0).collect(),
+            log_a_se: scored.iter().map(|s| s.1).collect(),
+        }
+    }
+}
