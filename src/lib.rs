@@ -6,9 +6,9 @@
 #![warn(missing_docs)]
 
 pub mod backend;
+pub mod bundle;
 pub mod cad;
 pub mod data;
 pub mod encoding;
 pub mod experts;
 pub mod so3;
-pub mod bundle;

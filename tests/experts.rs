@@ -20,7 +20,11 @@ use rand_chacha::ChaCha8Rng;
 
 /// Trains the default expert set of `shape` into a temporary folder (kept for the whole run).
 fn trained(shape: Shape) -> PathBuf {
-    let dir = tempfile::Builder::new().prefix("experts").tempdir().unwrap().keep();
+    let dir = tempfile::Builder::new()
+        .prefix("experts")
+        .tempdir()
+        .unwrap()
+        .keep();
     let (mesh, normalisation) = shape.mesh().normalised();
     let started = std::time::Instant::now();
     let mut set = train_expert_set(
@@ -60,7 +64,11 @@ fn sdf_expert_fits_within_two_percent_of_the_radius() {
     assert!(fit.mae_near_surface < 0.02, "{fit:?}");
     assert!(fit.sign_accuracy_off_surface > 0.99, "{fit:?}");
     // The bake stays close to the network.
-    assert!(set.manifest.bake.sdf_mean_error < 0.01, "{:?}", set.manifest.bake);
+    assert!(
+        set.manifest.bake.sdf_mean_error < 0.01,
+        "{:?}",
+        set.manifest.bake
+    );
 }
 
 #[test]
@@ -102,8 +110,18 @@ fn tetx_keys_keep_the_marked_face_apart() {
     assert_eq!(breaking.len(), 9);
     let mut with_identity = vec![Rotation3::identity()];
     with_identity.extend(breaking);
-    let ratio = symmetry_ratio(&set.keys, &set.mesh, &with_identity, Some(&faces), 7, &device);
-    assert!(ratio >= 0.5, "marked face vs its images on other faces: ratio {ratio}");
+    let ratio = symmetry_ratio(
+        &set.keys,
+        &set.mesh,
+        &with_identity,
+        Some(&faces),
+        7,
+        &device,
+    );
+    assert!(
+        ratio >= 0.5,
+        "marked face vs its images on other faces: ratio {ratio}"
+    );
 }
 
 #[test]
@@ -116,27 +134,51 @@ fn cube_targets_rank_every_equivalent_on_top() {
         let r_gt = haar_rotation(&mut ChaCha8Rng::seed_from_u64(seed));
         let x0 = visible_points_at(&set.mesh, &r_gt, seed);
         let t = baked.log_targets(&r_gt, &x0, &cells);
-        let total: Vec<f32> = t.log_a_sdf.iter().zip(&t.log_a_se).map(|(a, b)| a + b).collect();
+        let total: Vec<f32> = t
+            .log_a_sdf
+            .iter()
+            .zip(&t.log_a_se)
+            .map(|(a, b)| a + b)
+            .collect();
         let eq = equivalents(&r_gt, &SymmetryGroup::Octahedral.rotations());
         let mut sorted = total.clone();
         sorted.sort_by(|a, b| b.total_cmp(a));
         let top1 = sorted[grid.len() / 100];
         // The exact equivalents score better than every rotation far from all of them.
-        let at_eq = baked.log_targets(&r_gt, &x0, &eq.iter().map(to_row_major_f32).collect::<Vec<_>>());
-        let eq_scores: Vec<f32> = at_eq.log_a_sdf.iter().zip(&at_eq.log_a_se).map(|(a, b)| a + b).collect();
+        let at_eq = baked.log_targets(
+            &r_gt,
+            &x0,
+            &eq.iter().map(to_row_major_f32).collect::<Vec<_>>(),
+        );
+        let eq_scores: Vec<f32> = at_eq
+            .log_a_sdf
+            .iter()
+            .zip(&at_eq.log_a_se)
+            .map(|(a, b)| a + b)
+            .collect();
         let worst_equivalent = eq_scores.iter().cloned().fold(f32::INFINITY, f32::min);
         for e in &eq {
             let cell = grid.cell_of(e) as usize;
-            assert!(total[cell] >= top1, "seed {seed}: equivalent's cell {} below the top 1 % ({top1})", total[cell]);
+            assert!(
+                total[cell] >= top1,
+                "seed {seed}: equivalent's cell {} below the top 1 % ({top1})",
+                total[cell]
+            );
         }
         let mut far_best = f32::NEG_INFINITY;
         for i in 0..grid.len() as u64 {
             let r = grid.rotation(i);
-            if eq.iter().all(|e| geodesic_angle(e, &r) > 20f64.to_radians()) {
+            if eq
+                .iter()
+                .all(|e| geodesic_angle(e, &r) > 20f64.to_radians())
+            {
                 far_best = far_best.max(total[i as usize]);
             }
         }
-        assert!(far_best < worst_equivalent, "seed {seed}: a far rotation scores {far_best} ≥ {worst_equivalent}");
+        assert!(
+            far_best < worst_equivalent,
+            "seed {seed}: a far rotation scores {far_best} ≥ {worst_equivalent}"
+        );
     }
 }
 
@@ -150,7 +192,10 @@ fn tetx_feature_targets_keep_only_the_marker_equivalents() {
         .filter(|&seed| {
             let r_gt = haar_rotation(&mut ChaCha8Rng::seed_from_u64(seed));
             let x0 = visible_points_at(&set.mesh, &r_gt, seed);
-            let on = x0.iter().filter(|p| (p.x + p.y + p.z) / 3f32.sqrt() < -0.3).count();
+            let on = x0
+                .iter()
+                .filter(|p| (p.x + p.y + p.z) / 3f32.sqrt() < -0.3)
+                .count();
             on * 10 >= x0.len() * 3
         })
         .take(2)
@@ -159,21 +204,42 @@ fn tetx_feature_targets_keep_only_the_marker_equivalents() {
     for seed in showing {
         let r_gt = haar_rotation(&mut ChaCha8Rng::seed_from_u64(seed));
         let x0 = visible_points_at(&set.mesh, &r_gt, seed);
-        let allowed: Vec<[f32; 9]> = equivalents(&r_gt, &set.symmetries()).iter().map(to_row_major_f32).collect();
-        let other: Vec<[f32; 9]> = equivalents(&r_gt, &marker_breaking(&set)).iter().map(to_row_major_f32).collect();
+        let allowed: Vec<[f32; 9]> = equivalents(&r_gt, &set.symmetries())
+            .iter()
+            .map(to_row_major_f32)
+            .collect();
+        let other: Vec<[f32; 9]> = equivalents(&r_gt, &marker_breaking(&set))
+            .iter()
+            .map(to_row_major_f32)
+            .collect();
         let a = baked.log_targets(&r_gt, &x0, &allowed);
         let o = baked.log_targets(&r_gt, &x0, &other);
         // The shape expert cannot tell them apart; the feature expert can.
         let worst_allowed = a.log_a_se.iter().cloned().fold(f32::INFINITY, f32::min);
         let best_other = o.log_a_se.iter().cloned().fold(f32::NEG_INFINITY, f32::max);
-        let spread_sdf = a.log_a_sdf.iter().chain(&o.log_a_sdf).fold(0f32, |m, v| m.max(v.abs()));
-        assert!(spread_sdf < 0.05 * set.manifest.energy.lambda_sdf as f32, "sdf sees all 12 alike");
-        assert!(worst_allowed > best_other, "seed {seed}: allowed {:?} vs other {:?}", a.log_a_se, o.log_a_se);
+        let spread_sdf = a
+            .log_a_sdf
+            .iter()
+            .chain(&o.log_a_sdf)
+            .fold(0f32, |m, v| m.max(v.abs()));
+        assert!(
+            spread_sdf < 0.05 * set.manifest.energy.lambda_sdf as f32,
+            "sdf sees all 12 alike"
+        );
+        assert!(
+            worst_allowed > best_other,
+            "seed {seed}: allowed {:?} vs other {:?}",
+            a.log_a_se,
+            o.log_a_se
+        );
     }
 }
 
 fn train_cli(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_alignist-train")).args(args).output().unwrap()
+    Command::new(env!("CARGO_BIN_EXE_alignist-train"))
+        .args(args)
+        .output()
+        .unwrap()
 }
 
 #[test]
@@ -181,21 +247,56 @@ fn experts_and_score_cli_write_files_that_load_and_refuse_corruption() {
     let dir = tempfile::tempdir().unwrap();
     let set_dir = dir.path().join("cube_experts");
     let out = train_cli(&[
-        "experts", "--shape", "cube", "--steps", "20", "--feature-steps", "5", "--images", "2",
-        "--bake-resolution", "16", "--out", set_dir.to_str().unwrap(),
+        "experts",
+        "--shape",
+        "cube",
+        "--steps",
+        "20",
+        "--feature-steps",
+        "5",
+        "--images",
+        "2",
+        "--bake-resolution",
+        "16",
+        "--out",
+        set_dir.to_str().unwrap(),
     ]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let report = String::from_utf8_lossy(&out.stderr);
-    assert!(report.contains("SDF: MAE") && report.contains("lambda_sdf"), "{report}");
-    for f in ["manifest.json", "mesh.ply", "sdf.safetensors", "keys.safetensors", "query.safetensors"] {
+    assert!(
+        report.contains("SDF: MAE") && report.contains("lambda_sdf"),
+        "{report}"
+    );
+    for f in [
+        "manifest.json",
+        "mesh.ply",
+        "sdf.safetensors",
+        "keys.safetensors",
+        "query.safetensors",
+    ] {
         assert!(set_dir.join(f).exists(), "{f}");
     }
     let csv = dir.path().join("targets.csv");
     let out = train_cli(&[
-        "score", "--experts", set_dir.to_str().unwrap(), "--rotation", "0.5,0.5,-0.5,0.5",
-        "--level", "1", "--out", csv.to_str().unwrap(),
+        "score",
+        "--experts",
+        set_dir.to_str().unwrap(),
+        "--rotation",
+        "0.5,0.5,-0.5,0.5",
+        "--level",
+        "1",
+        "--out",
+        csv.to_str().unwrap(),
     ]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let text = std::fs::read_to_string(&csv).unwrap();
     let rows: Vec<&str> = text.lines().collect();
     assert_eq!(rows[0], "index,log_a_sdf,log_a_se");
@@ -206,8 +307,15 @@ fn experts_and_score_cli_write_files_that_load_and_refuse_corruption() {
         assert!(f[1] <= 0.0 && f[2] <= 0.0 && f[1].is_finite() && f[2].is_finite());
     }
     let bad_rotation = train_cli(&[
-        "score", "--experts", set_dir.to_str().unwrap(), "--rotation", "1,0,0", "--level", "1",
-        "--out", csv.to_str().unwrap(),
+        "score",
+        "--experts",
+        set_dir.to_str().unwrap(),
+        "--rotation",
+        "1,0,0",
+        "--level",
+        "1",
+        "--out",
+        csv.to_str().unwrap(),
     ]);
     assert!(!bad_rotation.status.success());
     assert!(String::from_utf8_lossy(&bad_rotation.stderr).contains("--rotation"));
@@ -218,11 +326,24 @@ fn experts_and_score_cli_write_files_that_load_and_refuse_corruption() {
     let n = bytes.len();
     bytes[n - 5] ^= 0x55;
     std::fs::write(&keys, &bytes).unwrap();
-    let err = ExpertSet::load(&set_dir).err().expect("corrupt keys refused").to_string();
-    assert!(err.contains("keys.safetensors") && err.contains("sha256"), "{err}");
+    let err = ExpertSet::load(&set_dir)
+        .err()
+        .expect("corrupt keys refused")
+        .to_string();
+    assert!(
+        err.contains("keys.safetensors") && err.contains("sha256"),
+        "{err}"
+    );
     let out = train_cli(&[
-        "score", "--experts", set_dir.to_str().unwrap(), "--rotation", "1,0,0,0", "--level", "1",
-        "--out", csv.to_str().unwrap(),
+        "score",
+        "--experts",
+        set_dir.to_str().unwrap(),
+        "--rotation",
+        "1,0,0,0",
+        "--level",
+        "1",
+        "--out",
+        csv.to_str().unwrap(),
     ]);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("keys.safetensors"));
@@ -233,24 +354,48 @@ fn mismatched_manifests_are_refused_naming_the_field() {
     let dir = tempfile::tempdir().unwrap();
     let set_dir = dir.path().join("x");
     let out = train_cli(&[
-        "experts", "--shape", "tet", "--steps", "5", "--feature-steps", "2", "--images", "1",
-        "--bake-resolution", "8", "--out", set_dir.to_str().unwrap(),
+        "experts",
+        "--shape",
+        "tet",
+        "--steps",
+        "5",
+        "--feature-steps",
+        "2",
+        "--images",
+        "1",
+        "--bake-resolution",
+        "8",
+        "--out",
+        set_dir.to_str().unwrap(),
     ]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let manifest = set_dir.join("manifest.json");
     let original = std::fs::read_to_string(&manifest).unwrap();
     let edit = |from: &str, to: &str| {
         assert!(original.contains(from), "{from}");
         std::fs::write(&manifest, original.replacen(from, to, 1)).unwrap();
-        ExpertSet::load(&set_dir).err().expect("refused").to_string()
+        ExpertSet::load(&set_dir)
+            .err()
+            .expect("refused")
+            .to_string()
     };
     // The SDF network described with another width: the weights no longer fit.
     let err = edit("\"hidden\": 256", "\"hidden\": 128");
     assert!(err.contains("sdf.safetensors"), "{err}");
     let err = edit("\"format_version\": 1", "\"format_version\": 9");
-    assert!(err.contains("manifest.json") && err.contains("format_version"), "{err}");
+    assert!(
+        err.contains("manifest.json") && err.contains("format_version"),
+        "{err}"
+    );
     let err = edit("\"sdf\": {", "\"sdf_renamed\": {");
-    assert!(err.contains("manifest.json") && err.contains("sdf"), "{err}");
+    assert!(
+        err.contains("manifest.json") && err.contains("sdf"),
+        "{err}"
+    );
     std::fs::write(&manifest, &original).unwrap();
     assert!(ExpertSet::load(&set_dir).is_ok());
 }

@@ -60,9 +60,10 @@ fn main() -> Result<()> {
     }
 }
 
+/// The object a command works on: a SYMSOL shape or a mesh file.
 #[derive(clap::Args)]
 #[command(group(clap::ArgGroup::new("object").required(true).args(["shape", "mesh"])))]
-struct RenderArgs {
+struct ObjectArgs {
     /// A SYMSOL shape: tet, cube, icosa, cone, cyl, tetX, cylO, sphereX.
     #[arg(long)]
     shape: Option<String>,
@@ -72,6 +73,46 @@ struct RenderArgs {
     /// Symmetry group of --mesh (none, T, O, I, C<n>, D<n>, cone, cylinder).
     #[arg(long, default_value = "none", requires = "mesh")]
     symmetry: String,
+}
+
+impl ObjectArgs {
+    /// The object's name, its mesh in NOCS with the normalisation, and its symmetries.
+    fn resolve(
+        &self,
+    ) -> Result<(
+        String,
+        alignist::cad::Mesh,
+        alignist::cad::Normalisation,
+        Vec<nalgebra::Rotation3<f64>>,
+    )> {
+        use alignist::cad::{Mesh, Shape};
+        use alignist::so3::SymmetryGroup;
+        let (name, mesh, symmetries) = match (&self.shape, &self.mesh) {
+            (Some(name), _) => {
+                let shape: Shape = name.parse().context("--shape")?;
+                (shape.name().to_string(), shape.mesh(), shape.symmetries())
+            }
+            (None, Some(path)) => {
+                let group: SymmetryGroup = self.symmetry.parse().context("--symmetry")?;
+                let mesh =
+                    Mesh::load(path).with_context(|| format!("--mesh {}", path.display()))?;
+                let stem = path
+                    .file_stem()
+                    .and_then(|s| s.to_str())
+                    .unwrap_or("object");
+                (stem.to_string(), mesh, group.rotations())
+            }
+            (None, None) => bail!("give --shape NAME or --mesh FILE"),
+        };
+        let (mesh, normalisation) = mesh.normalised();
+        Ok((name, mesh, normalisation, symmetries))
+    }
+}
+
+#[derive(clap::Args)]
+struct RenderArgs {
+    #[command(flatten)]
+    object: ObjectArgs,
     /// Number of images (ignored with --rotations).
     #[arg(long, default_value_t = 100)]
     count: usize,
@@ -99,9 +140,8 @@ struct RenderArgs {
 }
 
 fn render_cmd(args: &RenderArgs) -> Result<()> {
-    use alignist::cad::{Mesh, Shape};
     use alignist::data::{RenderJob, render_dataset};
-    use alignist::so3::{SymmetryGroup, haar_rotations};
+    use alignist::so3::haar_rotations;
     use rand::SeedableRng;
 
     if args.size < 8 || args.size > 4096 {
@@ -113,18 +153,7 @@ fn render_cmd(args: &RenderArgs) -> Result<()> {
             args.units_mm
         );
     }
-    let (mesh, symmetries) = match (&args.shape, &args.mesh) {
-        (Some(name), _) => {
-            let shape: Shape = name.parse().context("--shape")?;
-            (shape.mesh(), shape.symmetries())
-        }
-        (None, Some(path)) => {
-            let group: SymmetryGroup = args.symmetry.parse().context("--symmetry")?;
-            let mesh = Mesh::load(path).with_context(|| format!("--mesh {}", path.display()))?;
-            (mesh.normalised().0, group.rotations())
-        }
-        (None, None) => bail!("give --shape NAME or --mesh FILE"),
-    };
+    let (_, mesh, _, symmetries) = args.object.resolve()?;
     let rotations = match &args.rotations {
         Some(path) => read_rotations(path)?,
         None => {
@@ -205,17 +234,10 @@ fn read_rotations(path: &Path) -> Result<Vec<nalgebra::Rotation3<f64>>> {
 }
 
 #[derive(clap::Args)]
-#[command(group(clap::ArgGroup::new("object").required(true).args(["shape", "mesh"])))]
 struct ExpertsArgs {
-    /// A SYMSOL shape: tet, cube, icosa, cone, cyl, tetX, cylO, sphereX.
-    #[arg(long)]
-    shape: Option<String>,
-    /// A closed mesh file (.obj, .ply, .stl); it is normalised to NOCS.
-    #[arg(long)]
-    mesh: Option<PathBuf>,
-    /// Symmetry group of --mesh (none, T, O, I, C<n>, D<n>, cone, cylinder), for the λ choice.
-    #[arg(long, default_value = "none", requires = "mesh")]
-    symmetry: String,
+    /// The object (its mesh must be closed).
+    #[command(flatten)]
+    object: ObjectArgs,
     /// Output folder of the expert set.
     #[arg(long)]
     out: PathBuf,
@@ -250,16 +272,20 @@ struct ExpertsArgs {
 
 fn experts_cmd(args: &ExpertsArgs) -> Result<()> {
     use alignist::bundle::experts::{ExpertsJob, train_expert_set};
-    use alignist::cad::{Mesh, Shape};
     use alignist::experts::feature::FeatureTrainConfig;
     use alignist::experts::sdf::SdfTrainConfig;
-    use alignist::so3::SymmetryGroup;
 
-    if args.image_size < 8 || args.image_size % 4 != 0 {
-        bail!("--image-size must be a multiple of 4 and at least 8, got {}", args.image_size);
+    if args.image_size < 8 || !args.image_size.is_multiple_of(4) {
+        bail!(
+            "--image-size must be a multiple of 4 and at least 8, got {}",
+            args.image_size
+        );
     }
     if !(8..=256).contains(&args.bake_resolution) {
-        bail!("--bake-resolution must be in 8 ..= 256, got {}", args.bake_resolution);
+        bail!(
+            "--bake-resolution must be in 8 ..= 256, got {}",
+            args.bake_resolution
+        );
     }
     for (flag, v) in [
         ("--steps", args.steps),
@@ -273,20 +299,7 @@ fn experts_cmd(args: &ExpertsArgs) -> Result<()> {
             bail!("{flag} must be at least 1");
         }
     }
-    let (name, source_mesh, symmetries) = match (&args.shape, &args.mesh) {
-        (Some(name), _) => {
-            let shape: Shape = name.parse().context("--shape")?;
-            (shape.name().to_string(), shape.mesh(), shape.symmetries())
-        }
-        (None, Some(path)) => {
-            let group: SymmetryGroup = args.symmetry.parse().context("--symmetry")?;
-            let mesh = Mesh::load(path).with_context(|| format!("--mesh {}", path.display()))?;
-            let stem = path.file_stem().and_then(|s| s.to_str()).unwrap_or("object");
-            (stem.to_string(), mesh, group.rotations())
-        }
-        (None, None) => bail!("give --shape NAME or --mesh FILE"),
-    };
-    let (mesh, normalisation) = source_mesh.normalised();
+    let (name, mesh, normalisation, symmetries) = args.object.resolve()?;
     alignist::cad::SignedDistance::new(&mesh).context("the SDF expert needs a closed mesh")?;
     let job = ExpertsJob {
         name,
@@ -338,7 +351,12 @@ fn experts_cmd(args: &ExpertsArgs) -> Result<()> {
     set.save(&args.out)
         .with_context(|| format!("writing the expert set to {}", args.out.display()))?;
     let m = &set.manifest;
-    eprintln!("expert set for {} written to {} in {:.0} s", m.object.name, args.out.display(), started.elapsed().as_secs_f64());
+    eprintln!(
+        "expert set for {} written to {} in {:.0} s",
+        m.object.name,
+        args.out.display(),
+        started.elapsed().as_secs_f64()
+    );
     eprintln!(
         "  SDF: MAE near surface {:.4} (radius units), sign accuracy {:.4}, {:.0} s",
         m.sdf.fit.mae_near_surface, m.sdf.fit.sign_accuracy_off_surface, m.sdf.fit.train_seconds
@@ -391,14 +409,22 @@ fn score_cmd(args: &ScoreArgs) -> Result<()> {
     use alignist::experts::select::visible_points_at;
 
     if args.level > 5 {
-        bail!("--level {} is above 5 (level 5 already has 2 359 296 cells)", args.level);
+        bail!(
+            "--level {} is above 5 (level 5 already has 2 359 296 cells)",
+            args.level
+        );
     }
     let q: Vec<f64> = args
         .rotation
         .split(',')
         .map(|v| v.trim().parse::<f64>())
         .collect::<Result<_, _>>()
-        .with_context(|| format!("--rotation '{}' is not four numbers qw,qx,qy,qz", args.rotation))?;
+        .with_context(|| {
+            format!(
+                "--rotation '{}' is not four numbers qw,qx,qy,qz",
+                args.rotation
+            )
+        })?;
     if q.len() != 4 {
         bail!("--rotation needs 4 values qw,qx,qy,qz, got {}", q.len());
     }
@@ -421,10 +447,17 @@ fn score_cmd(args: &ScoreArgs) -> Result<()> {
     for (i, (s, f)) in targets.log_a_sdf.iter().zip(&targets.log_a_se).enumerate() {
         writeln!(w, "{i},{s},{f}").with_context(write_err)?;
     }
-    w.into_inner().map_err(|e| e.into_error()).with_context(write_err)?;
+    w.into_inner()
+        .map_err(|e| e.into_error())
+        .with_context(write_err)?;
     std::fs::rename(&tmp, &args.out)
         .with_context(|| format!("renaming {} to {}", tmp.display(), args.out.display()))?;
-    eprintln!("wrote {} cells of level {} to {}", grid.len(), args.level, args.out.display());
+    eprintln!(
+        "wrote {} cells of level {} to {}",
+        grid.len(),
+        args.level,
+        args.out.display()
+    );
     Ok(())
 }
 

@@ -133,9 +133,18 @@ impl ExpertSet {
         write_ply(&self.mesh, &mesh_path)?;
         let mut files = BTreeMap::new();
         files.insert(MESH_FILE.to_string(), sha256_file(&mesh_path)?);
-        files.insert(SDF_FILE.into(), save_weights(&self.sdf, &dir.join(SDF_FILE))?);
-        files.insert(KEYS_FILE.into(), save_weights(&self.keys, &dir.join(KEYS_FILE))?);
-        files.insert(QUERY_FILE.into(), save_weights(&self.query, &dir.join(QUERY_FILE))?);
+        files.insert(
+            SDF_FILE.into(),
+            save_weights(&self.sdf, &dir.join(SDF_FILE))?,
+        );
+        files.insert(
+            KEYS_FILE.into(),
+            save_weights(&self.keys, &dir.join(KEYS_FILE))?,
+        );
+        files.insert(
+            QUERY_FILE.into(),
+            save_weights(&self.query, &dir.join(QUERY_FILE))?,
+        );
         self.manifest.object.mesh_sha256 = files[MESH_FILE].sha256.clone();
         self.manifest.files = files;
         super::write_manifest(&dir.join(MANIFEST_FILE), &self.manifest)
@@ -164,7 +173,9 @@ impl ExpertSet {
             }
         }
         if manifest.object.mesh_sha256 != manifest.files[MESH_FILE].sha256 {
-            return Err(field("object.mesh_sha256 differs from files.\"mesh.ply\".sha256".into()));
+            return Err(field(
+                "object.mesh_sha256 differs from files.\"mesh.ply\".sha256".into(),
+            ));
         }
         for (i, m) in manifest.object.symmetries.iter().enumerate() {
             from_row_major(*m).map_err(|e| field(format!("object.symmetries[{i}]: {e}")))?;
@@ -273,16 +284,17 @@ pub fn train_expert_set(
     use crate::experts::energy::EnergyParams;
     use crate::experts::feature::train_features;
     use crate::experts::sdf::{eval_sdf, sample_near_surface, train_sdf};
-    use crate::experts::select::select_lambdas;
+    use crate::experts::select::{LambdaSweep, select_lambdas};
     use rand::SeedableRng;
 
     let device = crate::backend::device();
     let sdf_steps = job.sdf.steps;
     let (sdf, sdf_fit) = train_sdf(&job.mesh, &job.sdf, |s, l| progress("sdf", s, sdf_steps, l))?;
     let feat_steps = job.features.steps;
-    let (features, feature_fit) = train_features(&job.mesh, &job.symmetries, &job.features, |s, l| {
-        progress("features", s, feat_steps, l)
-    })?;
+    let (features, feature_fit) =
+        train_features(&job.mesh, &job.symmetries, &job.features, |s, l| {
+            progress("features", s, feat_steps, l)
+        })?;
     progress("bake", 0, 1, 0.0);
     let bound = 1.05f32;
     let baked = bake_experts(
@@ -304,15 +316,31 @@ pub fn train_expert_set(
         .map(|(a, b)| (a - b).abs() as f64)
         .sum::<f64>()
         / near.len() as f64;
-    let surface: Vec<_> = job.mesh.sample_surface(5000, &mut rng).iter().map(|s| s.point).collect();
-    let others: Vec<_> = job.mesh.sample_surface(5000, &mut rng).iter().map(|s| s.point).collect();
+    let surface: Vec<_> = job
+        .mesh
+        .sample_surface(5000, &mut rng)
+        .iter()
+        .map(|s| s.point)
+        .collect();
+    let others: Vec<_> = job
+        .mesh
+        .sample_surface(5000, &mut rng)
+        .iter()
+        .map(|s| s.point)
+        .collect();
     let key_net = run_batched(&features.keys, &surface, FEATURE_DIM, &device);
     let key_other = run_batched(&features.keys, &others, FEATURE_DIM, &device);
     let key_baked = baked.keys.sample(&surface);
     let mean_dist = |a: &[f32], b: &[f32]| {
         a.chunks(FEATURE_DIM)
             .zip(b.chunks(FEATURE_DIM))
-            .map(|(u, v)| u.iter().zip(v).map(|(p, q)| (p - q).powi(2)).sum::<f32>().sqrt() as f64)
+            .map(|(u, v)| {
+                u.iter()
+                    .zip(v)
+                    .map(|(p, q)| (p - q).powi(2))
+                    .sum::<f32>()
+                    .sqrt() as f64
+            })
             .sum::<f64>()
             / (a.len() / FEATURE_DIM).max(1) as f64
     };
@@ -320,17 +348,18 @@ pub fn train_expert_set(
     let keys_relative_error = mean_dist(&key_net, &key_baked) / key_scale;
 
     progress("select", 0, 1, 0.0);
-    let se_values: Vec<f64> = [2.0, 5.0, 10.0, 20.0, 40.0].iter().map(|c| c / key_scale).collect();
-    let (energy, selection) = select_lambdas(
-        &baked,
-        &job.mesh,
-        &job.symmetries,
-        &[5.0, 10.0, 20.0, 40.0, 80.0],
-        &se_values,
-        3,
-        4,
-        job.sdf.seed,
-    );
+    let se_values: Vec<f64> = [5.0, 10.0, 20.0, 40.0, 80.0, 160.0]
+        .iter()
+        .map(|c| c / key_scale)
+        .collect();
+    let sweep = LambdaSweep {
+        sdf: vec![5.0, 10.0, 20.0, 40.0, 80.0],
+        se: se_values,
+        level: 3,
+        poses: 4,
+        seed: job.sdf.seed,
+    };
+    let (energy, selection) = select_lambdas(&baked, &job.mesh, &job.symmetries, &sweep);
     Ok(ExpertSet {
         manifest: ExpertsManifest {
             format_version: EXPERTS_FORMAT_VERSION,

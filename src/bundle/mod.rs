@@ -33,7 +33,9 @@ pub enum BundleError {
         message: String,
     },
     /// A file whose checksum differs from the manifest's.
-    #[error("{path}: sha256 is {actual} but the manifest records {expected} (file changed or corrupt)")]
+    #[error(
+        "{path}: sha256 is {actual} but the manifest records {expected} (file changed or corrupt)"
+    )]
     Checksum {
         /// The file.
         path: String,
@@ -106,10 +108,12 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), BundleError> {
 pub fn save_weights<M: Module>(module: &M, path: &Path) -> Result<FileEntry, BundleError> {
     let tmp = path.with_extension("safetensors.partial");
     let mut store = SafetensorsStore::from_file(&tmp).overwrite(true);
-    module.save_into(&mut store).map_err(|e| BundleError::Weights {
-        path: path.display().to_string(),
-        message: e.to_string(),
-    })?;
+    module
+        .save_into(&mut store)
+        .map_err(|e| BundleError::Weights {
+            path: path.display().to_string(),
+            message: e.to_string(),
+        })?;
     fs::File::open(&tmp)
         .and_then(|f| f.sync_all())
         .map_err(|e| io_err(&tmp, e))?;
@@ -126,13 +130,19 @@ pub fn load_weights<M: Module>(
 ) -> Result<M, BundleError> {
     verify_file(path, expected)?;
     let mut store = SafetensorsStore::from_file(path);
-    let result = module.load_from(&mut store).map_err(|e| BundleError::Weights {
-        path: path.display().to_string(),
-        message: e.to_string(),
-    })?;
+    let result = module
+        .load_from(&mut store)
+        .map_err(|e| BundleError::Weights {
+            path: path.display().to_string(),
+            message: e.to_string(),
+        })?;
     let mut problems = Vec::new();
     if !result.errors.is_empty() {
-        problems.push(format!("{} tensors do not fit: {:?}", result.errors.len(), result.errors));
+        problems.push(format!(
+            "{} tensors do not fit: {:?}",
+            result.errors.len(),
+            result.errors
+        ));
     }
     if !result.missing.is_empty() {
         let names: Vec<&str> = result.missing.iter().map(|(n, _)| n.as_str()).collect();

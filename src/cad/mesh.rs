@@ -136,8 +136,8 @@ impl Mesh {
         }
     }
 
-    /// The NOCS normalisation of this mesh (bounding-box centre, bounding-sphere radius).
-    pub fn normalisation(&self) -> Normalisation {
+    /// Axis-aligned bounding box `(min, max)` of the vertices.
+    pub fn bounds(&self) -> (Vector3<f64>, Vector3<f64>) {
         let mut lo = Vector3::repeat(f64::INFINITY);
         let mut hi = Vector3::repeat(f64::NEG_INFINITY);
         for v in &self.vertices {
@@ -145,6 +145,12 @@ impl Mesh {
             lo = lo.inf(&v);
             hi = hi.sup(&v);
         }
+        (lo, hi)
+    }
+
+    /// The NOCS normalisation of this mesh (bounding-box centre, bounding-sphere radius).
+    pub fn normalisation(&self) -> Normalisation {
+        let (lo, hi) = self.bounds();
         let centre = (lo + hi) / 2.0;
         let scale = self
             .vertices

@@ -165,18 +165,8 @@ impl BopWriter {
             .join("models")
             .join(format!("obj_{obj_id:06}.ply"));
         write_ply(&scaled, &path)?;
-        let mut lo = Vector3::repeat(f64::INFINITY);
-        let mut hi = Vector3::repeat(f64::NEG_INFINITY);
-        for v in &scaled.vertices {
-            lo = lo.inf(&v.cast());
-            hi = hi.sup(&v.cast());
-        }
-        let centre = (lo + hi) / 2.0;
-        let radius = scaled
-            .vertices
-            .iter()
-            .map(|v| (v.cast::<f64>() - centre).norm())
-            .fold(0.0, f64::max);
+        let (lo, hi) = scaled.bounds();
+        let radius = scaled.normalisation().scale;
         let discrete: Vec<[f64; 16]> = symmetries
             .iter()
             .filter(|s| s.angle() > 1e-9)

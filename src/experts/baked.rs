@@ -33,7 +33,11 @@ impl VoxelGrid {
             }
         }
         let data = f(&points);
-        assert_eq!(data.len(), points.len() * channels, "baked function output size");
+        assert_eq!(
+            data.len(),
+            points.len() * channels,
+            "baked function output size"
+        );
         VoxelGrid {
             res,
             bound,

@@ -78,7 +78,11 @@ pub fn se_energy(keys_moved: &[f32], keys_seen: &[f32], dim: usize, params: &Ene
 }
 
 /// Up to `n` visible canonical points: NOCS values of pixels drawn uniformly inside the mask.
-pub fn visible_points<R: Rng + ?Sized>(render: &Render, n: usize, rng: &mut R) -> Vec<Vector3<f32>> {
+pub fn visible_points<R: Rng + ?Sized>(
+    render: &Render,
+    n: usize,
+    rng: &mut R,
+) -> Vec<Vector3<f32>> {
     let fg: Vec<usize> = (0..render.mask.len()).filter(|&k| render.mask[k]).collect();
     if fg.is_empty() {
         return Vec::new();

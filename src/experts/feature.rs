@@ -11,9 +11,9 @@ use std::time::Instant;
 
 use burn::config::Config;
 use burn::module::Module;
+use burn::nn::PaddingConfig2d;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::pool::{MaxPool2d, MaxPool2dConfig};
-use burn::nn::PaddingConfig2d;
 use burn::optim::{AdamConfig, GradientsParams};
 use burn::tensor::activation::{log_softmax, relu};
 use burn::tensor::module::interpolate;
@@ -237,8 +237,7 @@ pub fn train_features(
             .map(|s| s.point)
             .collect();
 
-        let x: Tensor<4> =
-            Tensor::from_data(TensorData::new(images, [b, 3, size, size]), &device);
+        let x: Tensor<4> = Tensor::from_data(TensorData::new(images, [b, 3, size, size]), &device);
         let out = query.forward(x);
         let mask_logits = out.clone().narrow(1, 0, 1);
         let mask_t: Tensor<4> =
@@ -250,8 +249,7 @@ pub fn train_features(
             .narrow(1, 1, FEATURE_DIM)
             .permute([0, 2, 3, 1])
             .reshape([b * size * size, FEATURE_DIM]);
-        let idx: Tensor<1, Int> =
-            Tensor::from_data(TensorData::new(pixel_index, [b * p]), &device);
+        let idx: Tensor<1, Int> = Tensor::from_data(TensorData::new(pixel_index, [b * p]), &device);
         let queries = q_map.select(0, idx);
         let mut all_points = positives;
         all_points.extend(negatives);
@@ -349,7 +347,13 @@ pub fn symmetry_ratio(
     let dist = |a: &[f32], b: &[f32]| {
         a.chunks(FEATURE_DIM)
             .zip(b.chunks(FEATURE_DIM))
-            .map(|(u, v)| u.iter().zip(v).map(|(p, q)| (p - q).powi(2)).sum::<f32>().sqrt() as f64)
+            .map(|(u, v)| {
+                u.iter()
+                    .zip(v)
+                    .map(|(p, q)| (p - q).powi(2))
+                    .sum::<f32>()
+                    .sqrt() as f64
+            })
             .sum::<f64>()
             / xs.len().max(1) as f64
     };

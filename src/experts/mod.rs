@@ -36,7 +36,12 @@ pub enum ExpertError {
 }
 
 /// Evaluates a SIREN with `d_out` outputs at many points, 8192 at a time; row-major `n × d_out`.
-pub fn run_batched(model: &Siren, points: &[Vector3<f32>], d_out: usize, device: &Device) -> Vec<f32> {
+pub fn run_batched(
+    model: &Siren,
+    points: &[Vector3<f32>],
+    d_out: usize,
+    device: &Device,
+) -> Vec<f32> {
     let mut out = Vec::with_capacity(points.len() * d_out);
     for chunk in points.chunks(8192) {
         let y: Tensor<2> = model.forward(sdf::points_tensor(chunk, device));

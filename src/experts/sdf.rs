@@ -85,7 +85,11 @@ pub fn sample_training_points<R: Rng + ?Sized>(
 }
 
 /// Held-out evaluation points: surface + N(0, 0.02²) per axis.
-pub fn sample_near_surface<R: Rng + ?Sized>(mesh: &Mesh, n: usize, rng: &mut R) -> Vec<Vector3<f32>> {
+pub fn sample_near_surface<R: Rng + ?Sized>(
+    mesh: &Mesh,
+    n: usize,
+    rng: &mut R,
+) -> Vec<Vector3<f32>> {
     mesh.sample_surface(n, rng)
         .iter()
         .map(|s| s.point + gaussian3(rng) * 0.02)
@@ -118,7 +122,11 @@ pub fn train_sdf(
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
     let pool = sample_training_points(mesh, config.pool, &mut rng);
     let pool_sdf = sdf.distances(&pool);
-    let held_out = sample_near_surface(mesh, 5000, &mut ChaCha8Rng::seed_from_u64(config.seed ^ 0x5eed));
+    let held_out = sample_near_surface(
+        mesh,
+        5000,
+        &mut ChaCha8Rng::seed_from_u64(config.seed ^ 0x5eed),
+    );
     let held_out_sdf = sdf.distances(&held_out);
 
     let plain = crate::backend::device();
@@ -137,11 +145,15 @@ pub fn train_sdf(
             targets.push(pool_sdf[i]);
         }
         let x = points_tensor(&points, &device);
-        let y: Tensor<2> = Tensor::from_data(TensorData::new(targets.clone(), [config.batch, 1]), &device);
+        let y: Tensor<2> =
+            Tensor::from_data(TensorData::new(targets.clone(), [config.batch, 1]), &device);
         let loss = (model.forward(x) - y).abs().mean();
         let loss_value = loss.clone().into_scalar::<f32>() as f64;
         if !loss_value.is_finite() {
-            return Err(ExpertError::Diverged { step, loss: loss_value });
+            return Err(ExpertError::Diverged {
+                step,
+                loss: loss_value,
+            });
         }
         let grads = GradientsParams::from_grads(loss.backward(), &model);
         model = optim.step(cosine_lr(config.lr, step, config.steps), model, grads);

@@ -33,18 +33,36 @@ pub fn visible_points_at(mesh: &Mesh, r_gt: &Rotation3<f64>, seed: u64) -> Vec<V
     visible_points(&image, VISIBLE_POINTS, &mut ChaCha8Rng::seed_from_u64(seed))
 }
 
-/// Sweeps λ_SDF over `sdf_values` and λ_SE over `se_values` (other parameters from `base`) on
-/// `poses` random poses at grid `level`; returns the chosen parameters and the sweep.
+/// The values tried and where they are measured.
+#[derive(Debug, Clone)]
+pub struct LambdaSweep {
+    /// λ_SDF values.
+    pub sdf: Vec<f64>,
+    /// λ_SE values.
+    pub se: Vec<f64>,
+    /// Grid level of the LL.
+    pub level: u8,
+    /// Random poses per value.
+    pub poses: usize,
+    /// Seed of the poses.
+    pub seed: u64,
+}
+
+/// Sweeps λ_SDF and λ_SE (other parameters from `experts.params`); returns the chosen
+/// parameters and the sweep's LLs.
 pub fn select_lambdas(
     experts: &BakedExperts,
     mesh: &Mesh,
     symmetries: &[Rotation3<f64>],
-    sdf_values: &[f64],
-    se_values: &[f64],
-    level: u8,
-    poses: usize,
-    seed: u64,
+    sweep_values: &LambdaSweep,
 ) -> (EnergyParams, EnergySelection) {
+    let LambdaSweep {
+        sdf: sdf_values,
+        se: se_values,
+        level,
+        poses,
+        seed,
+    } = sweep_values.clone();
     let grid = GridLevel::new(level).expect("selection level is a valid grid level");
     let cells = grid.matrices_f32();
     let unit = EnergyParams {
@@ -80,8 +98,8 @@ pub fn select_lambdas(
     let sweep = |pick: &dyn Fn(&LogTargets) -> &Vec<f32>, values: &[f64]| -> Vec<(f64, f64)> {
         values.iter().map(|&l| (l, mean_ll(pick, l))).collect()
     };
-    let sdf_sweep = sweep(&|t| &t.log_a_sdf, sdf_values);
-    let se_sweep = sweep(&|t| &t.log_a_se, se_values);
+    let sdf_sweep = sweep(&|t| &t.log_a_sdf, &sdf_values);
+    let se_sweep = sweep(&|t| &t.log_a_se, &se_values);
     let best = |s: &[(f64, f64)], fallback: f64| {
         s.iter()
             .max_by(|a, b| a.1.total_cmp(&b.1))
@@ -115,4 +133,3 @@ pub struct EnergySelection {
     /// Number of random poses per value.
     pub poses: usize,
 }
-
