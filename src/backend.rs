@@ -45,3 +45,28 @@ pub fn device_for(workload: Workload) -> Device {
 pub fn device() -> Device {
     device_for(Workload::Dense)
 }
+
+/// Serialises seeded initialisations: burn's backends keep one global RNG and initialise
+/// parameters lazily, so two trainings started at once in one process would interleave draws.
+static INIT_LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+/// Builds a module with `init` from burn's RNG seeded with `seed`, and materialises every
+/// parameter before releasing the RNG, so the weights depend on the seed alone.
+pub fn seeded_init<M: burn::module::Module>(
+    device: &Device,
+    seed: u64,
+    init: impl FnOnce() -> M,
+) -> M {
+    use burn::store::{ModuleSnapshot, SafetensorsStore};
+    let _guard = INIT_LOCK
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner());
+    device.seed(seed);
+    let module = init();
+    // Reading every tensor forces the lazy initialisers to run now, under the lock.
+    let mut sink = SafetensorsStore::from_bytes(None);
+    module
+        .save_into(&mut sink)
+        .expect("an in-memory store accepts any module");
+    module
+}

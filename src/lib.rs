@@ -11,4 +11,6 @@ pub mod cad;
 pub mod data;
 pub mod encoding;
 pub mod experts;
+pub mod net;
 pub mod so3;
+pub mod train;

@@ -167,6 +167,19 @@ pub struct FeatureFit {
     pub train_seconds: f64,
 }
 
+/// Both networks of the feature expert as one module (for seeded initialisation).
+#[derive(Module, Debug)]
+struct FeatureNets {
+    keys: Siren,
+    query: QueryNet,
+}
+
+impl FeatureNets {
+    fn into_parts(self) -> (Siren, QueryNet) {
+        (self.keys, self.query)
+    }
+}
+
 /// The two trained networks of the feature expert.
 pub struct FeatureExpert {
     /// Keys `f_SE`.
@@ -198,11 +211,12 @@ pub fn train_features(
 ) -> Result<(FeatureExpert, FeatureFit), ExpertError> {
     let started = Instant::now();
     let size = config.image_size as usize;
-    let plain = crate::backend::device_for(crate::backend::Workload::Conv);
-    plain.seed(config.seed);
-    let device = plain.clone().autodiff();
-    let mut keys = SirenConfig::new(3, 256, 2, FEATURE_DIM).init(&device);
-    let mut query = QueryNetConfig::new().with_width(config.width).init(&device);
+    let device = crate::backend::device_for(crate::backend::Workload::Conv).autodiff();
+    let (mut keys, mut query) = crate::backend::seeded_init(&device, config.seed, || FeatureNets {
+        keys: SirenConfig::new(3, 256, 2, FEATURE_DIM).init(&device),
+        query: QueryNetConfig::new().with_width(config.width).init(&device),
+    })
+    .into_parts();
     let mut opt_keys = AdamConfig::new().init();
     let mut opt_query = AdamConfig::new().init();
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed);

@@ -130,9 +130,10 @@ pub fn train_sdf(
     let held_out_sdf = sdf.distances(&held_out);
 
     let plain = crate::backend::device();
-    plain.seed(config.seed);
     let device = plain.clone().autodiff();
-    let mut model = SirenConfig::new(3, config.hidden, config.layers, 1).init(&device);
+    let mut model = crate::backend::seeded_init(&device, config.seed, || {
+        SirenConfig::new(3, config.hidden, config.layers, 1).init(&device)
+    });
     let mut optim = AdamConfig::new().init();
     let mut points = Vec::with_capacity(config.batch);
     let mut targets = Vec::with_capacity(config.batch);

@@ -1,0 +1,224 @@
+//! Image encoders of the ResNet family (He et al. 2016): a configurable stack of basic or
+//! bottleneck residual blocks with BatchNorm, global average pooling, and a feature vector.
+//!
+//! Layouts: `tiny` (the CPU default: basic blocks [1, 1, 1, 1], widths 16…128, a 3×3 stem for
+//! 64×64 crops), `resnet18` (basic [2, 2, 2, 2], 64…512) and `resnet50` (bottleneck
+//! [3, 4, 6, 3], 64…512 × 4 = 2048 features) with the 7×7/2 stem and max-pool for 224×224 crops.
+
+use burn::config::Config;
+use burn::module::Module;
+use burn::nn::conv::{Conv2d, Conv2dConfig};
+use burn::nn::pool::{AdaptiveAvgPool2d, AdaptiveAvgPool2dConfig, MaxPool2d, MaxPool2dConfig};
+use burn::nn::{BatchNorm, BatchNormConfig, PaddingConfig2d};
+use burn::tensor::activation::relu;
+use burn::tensor::{Device, Tensor};
+use serde::{Deserialize, Serialize};
+
+/// A ResNet layout.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ResNetLayout {
+    /// Basic blocks [1, 1, 1, 1], widths 16, 32, 64, 128, 3×3 stem (CPU default).
+    Tiny,
+    /// ResNet-18: basic blocks [2, 2, 2, 2], widths 64 … 512.
+    Resnet18,
+    /// ResNet-50: bottleneck blocks [3, 4, 6, 3], widths 64 … 512, expansion 4.
+    Resnet50,
+}
+
+impl ResNetLayout {
+    fn blocks(&self) -> [usize; 4] {
+        match self {
+            ResNetLayout::Tiny => [1, 1, 1, 1],
+            ResNetLayout::Resnet18 => [2, 2, 2, 2],
+            ResNetLayout::Resnet50 => [3, 4, 6, 3],
+        }
+    }
+
+    fn base_width(&self) -> usize {
+        match self {
+            ResNetLayout::Tiny => 16,
+            _ => 64,
+        }
+    }
+
+    fn bottleneck(&self) -> bool {
+        matches!(self, ResNetLayout::Resnet50)
+    }
+
+    /// Length of the feature vector.
+    pub fn feature_dim(&self) -> usize {
+        self.base_width() * 8 * if self.bottleneck() { 4 } else { 1 }
+    }
+}
+
+/// Encoder configuration.
+#[derive(Config, Debug)]
+pub struct EncoderConfig {
+    /// The layout.
+    pub layout: ResNetLayout,
+}
+
+fn conv(c_in: usize, c_out: usize, k: usize, stride: usize, device: &Device) -> Conv2d {
+    let p = k / 2;
+    Conv2dConfig::new([c_in, c_out], [k, k])
+        .with_stride([stride, stride])
+        .with_padding(PaddingConfig2d::Explicit(p, p, p, p))
+        .with_bias(false)
+        .init(device)
+}
+
+/// A conv + BatchNorm pair.
+#[derive(Module, Debug)]
+pub struct ConvBn {
+    conv: Conv2d,
+    bn: BatchNorm,
+}
+
+impl ConvBn {
+    fn new(c_in: usize, c_out: usize, k: usize, stride: usize, device: &Device) -> Self {
+        ConvBn {
+            conv: conv(c_in, c_out, k, stride, device),
+            bn: BatchNormConfig::new(c_out).init(device),
+        }
+    }
+
+    fn forward(&self, x: Tensor<4>) -> Tensor<4> {
+        self.bn.forward(self.conv.forward(x))
+    }
+
+    fn sync_running_stats(&self) {
+        let _ = self.bn.running_mean.value_sync();
+        let _ = self.bn.running_var.value_sync();
+    }
+}
+
+/// A residual block: basic (3×3, 3×3) or bottleneck (1×1, 3×3, 1×1), with a projection
+/// shortcut when the shape changes.
+#[derive(Module, Debug)]
+pub struct Block {
+    layers: Vec<ConvBn>,
+    shortcut: Option<ConvBn>,
+}
+
+impl Block {
+    fn new(c_in: usize, width: usize, stride: usize, bottleneck: bool, device: &Device) -> Self {
+        let (layers, c_out) = if bottleneck {
+            let out = width * 4;
+            (
+                vec![
+                    ConvBn::new(c_in, width, 1, 1, device),
+                    ConvBn::new(width, width, 3, stride, device),
+                    ConvBn::new(width, out, 1, 1, device),
+                ],
+                out,
+            )
+        } else {
+            (
+                vec![
+                    ConvBn::new(c_in, width, 3, stride, device),
+                    ConvBn::new(width, width, 3, 1, device),
+                ],
+                width,
+            )
+        };
+        let shortcut =
+            (stride != 1 || c_in != c_out).then(|| ConvBn::new(c_in, c_out, 1, stride, device));
+        Block { layers, shortcut }
+    }
+
+    fn forward(&self, x: Tensor<4>) -> Tensor<4> {
+        let identity = match &self.shortcut {
+            Some(s) => s.forward(x.clone()),
+            None => x.clone(),
+        };
+        let last = self.layers.len() - 1;
+        let mut h = x;
+        for (i, layer) in self.layers.iter().enumerate() {
+            h = layer.forward(h);
+            if i < last {
+                h = relu(h);
+            }
+        }
+        relu(h + identity)
+    }
+}
+
+/// A ResNet image encoder: `[B, 3, H, W]` in `[0, 1]` → `[B, feature_dim]`.
+#[derive(Module, Debug)]
+pub struct Encoder {
+    stem: ConvBn,
+    stem_pool: Option<MaxPool2d>,
+    blocks: Vec<Block>,
+    pool: AdaptiveAvgPool2d,
+}
+
+impl EncoderConfig {
+    /// Builds the encoder on `device`.
+    pub fn init(&self, device: &Device) -> Encoder {
+        let layout = self.layout;
+        let base = layout.base_width();
+        let (stem, stem_pool) = if layout == ResNetLayout::Tiny {
+            (ConvBn::new(3, base, 3, 1, device), None)
+        } else {
+            (
+                ConvBn::new(3, base, 7, 2, device),
+                Some(
+                    MaxPool2dConfig::new([3, 3])
+                        .with_strides([2, 2])
+                        .with_padding(PaddingConfig2d::Explicit(1, 1, 1, 1))
+                        .init(),
+                ),
+            )
+        };
+        let mut blocks = Vec::new();
+        let mut c_in = base;
+        for (stage, &n) in layout.blocks().iter().enumerate() {
+            let width = base << stage;
+            for i in 0..n {
+                let stride = if i == 0 && stage > 0 { 2 } else { 1 };
+                let block = Block::new(c_in, width, stride, layout.bottleneck(), device);
+                c_in = if layout.bottleneck() {
+                    width * 4
+                } else {
+                    width
+                };
+                blocks.push(block);
+            }
+        }
+        Encoder {
+            stem,
+            stem_pool,
+            blocks,
+            pool: AdaptiveAvgPool2dConfig::new([1, 1]).init(),
+        }
+    }
+}
+
+impl Encoder {
+    /// Folds the BatchNorm running statistics of the last training steps into their stored
+    /// values. burn keeps each step's update pending until read with `value_sync`, and saving
+    /// reads the stored value: call this before saving or evaluating a trained encoder.
+    pub fn sync_running_stats(&self) {
+        self.stem.sync_running_stats();
+        for block in &self.blocks {
+            block.layers.iter().for_each(ConvBn::sync_running_stats);
+            if let Some(s) = &block.shortcut {
+                s.sync_running_stats();
+            }
+        }
+    }
+
+    /// `[B, 3, H, W]` → `[B, feature_dim]`.
+    pub fn forward(&self, images: Tensor<4>) -> Tensor<2> {
+        let mut h = relu(self.stem.forward(images));
+        if let Some(pool) = &self.stem_pool {
+            h = pool.forward(h);
+        }
+        for block in &self.blocks {
+            h = block.forward(h);
+        }
+        let [b, c, _, _] = h.dims();
+        self.pool.forward(h).reshape([b, c])
+    }
+}

@@ -1,0 +1,128 @@
+//! The dual-branch head (paper Sec. 3.3 and supplementary; DESIGN.md §2): the image feature and
+//! the rotation's positional encoding are each projected to 256, summed, and passed through two
+//! ReLU MLPs (4 linear layers, 256 wide) that give the log-weights `s_θ(I, R)` (shape branch,
+//! learns the SDF expert's measure) and `s_φ(I, R)` (feature branch, the SurfEmb expert's).
+
+use burn::config::Config;
+use burn::module::Module;
+use burn::nn::{Linear, LinearConfig};
+use burn::tensor::activation::relu;
+use burn::tensor::{Device, Tensor};
+
+/// Head configuration.
+#[derive(Config, Debug)]
+pub struct HeadConfig {
+    /// Length of the image feature.
+    pub image_dim: usize,
+    /// Length of the rotation encoding (144 for the cube encoding).
+    pub rotation_dim: usize,
+    /// Width of every hidden layer.
+    #[config(default = 256)]
+    pub hidden: usize,
+    /// Linear layers per branch (the last one outputs the log-weight).
+    #[config(default = 4)]
+    pub layers: usize,
+}
+
+/// One branch: `layers − 1` hidden ReLU layers and a linear output.
+#[derive(Module, Debug)]
+pub struct Branch {
+    hidden: Vec<Linear>,
+    output: Linear,
+}
+
+impl Branch {
+    fn new(width: usize, layers: usize, device: &Device) -> Self {
+        Branch {
+            hidden: (0..layers.saturating_sub(1))
+                .map(|_| LinearConfig::new(width, width).init(device))
+                .collect(),
+            output: LinearConfig::new(width, 1).init(device),
+        }
+    }
+
+    /// `[n, width]` (already ReLU'd) → `[n]`.
+    fn forward(&self, x: Tensor<2>) -> Tensor<1> {
+        let mut h = x;
+        for layer in &self.hidden {
+            h = relu(layer.forward(h));
+        }
+        let n = h.dims()[0];
+        self.output.forward(h).reshape([n])
+    }
+}
+
+/// The dual-branch head.
+#[derive(Module, Debug)]
+pub struct DualHead {
+    image_proj: Linear,
+    rotation_proj: Linear,
+    shape_branch: Branch,
+    feature_branch: Branch,
+}
+
+/// Log-weights of both branches, `[B, K]` each.
+#[derive(Debug, Clone)]
+pub struct BranchScores {
+    /// `s_θ`, the shape (SDF) branch.
+    pub shape: Tensor<2>,
+    /// `s_φ`, the feature (SurfEmb) branch.
+    pub feature: Tensor<2>,
+}
+
+impl BranchScores {
+    /// `s_θ + s_φ`: the unnormalised log-density of the product of the two measures.
+    pub fn combined(&self) -> Tensor<2> {
+        self.shape.clone() + self.feature.clone()
+    }
+}
+
+impl HeadConfig {
+    /// Builds the head on `device`.
+    pub fn init(&self, device: &Device) -> DualHead {
+        DualHead {
+            image_proj: LinearConfig::new(self.image_dim, self.hidden).init(device),
+            rotation_proj: LinearConfig::new(self.rotation_dim, self.hidden).init(device),
+            shape_branch: Branch::new(self.hidden, self.layers, device),
+            feature_branch: Branch::new(self.hidden, self.layers, device),
+        }
+    }
+}
+
+impl DualHead {
+    /// The rotation half of the first layer, `W_R · enc(R) + b_R`: `[K, E] → [K, hidden]`. It
+    /// depends only on the rotations, so inference precomputes it once per grid level.
+    pub fn project_rotations(&self, encodings: Tensor<2>) -> Tensor<2> {
+        self.rotation_proj.forward(encodings)
+    }
+
+    /// Scores from image features `[B, D]` and per-image projected rotations `[B, K, hidden]`
+    /// (or `[1, K, hidden]`, shared by every image).
+    pub fn forward_projected(
+        &self,
+        image_features: Tensor<2>,
+        rotations: Tensor<3>,
+    ) -> BranchScores {
+        let [b, _] = image_features.dims();
+        let [rb, k, h] = rotations.dims();
+        let img = self.image_proj.forward(image_features).reshape([b, 1, h]);
+        let rotations = if rb == b {
+            rotations
+        } else {
+            rotations.expand([b, k, h])
+        };
+        let x = relu(img + rotations).reshape([b * k, h]);
+        BranchScores {
+            shape: self.shape_branch.forward(x.clone()).reshape([b, k]),
+            feature: self.feature_branch.forward(x).reshape([b, k]),
+        }
+    }
+
+    /// Scores from image features `[B, D]` and rotation encodings `[B, K, E]`.
+    pub fn forward(&self, image_features: Tensor<2>, encodings: Tensor<3>) -> BranchScores {
+        let [b, k, e] = encodings.dims();
+        let projected = self.project_rotations(encodings.reshape([b * k, e]));
+        let h = projected.dims()[1];
+        self.forward_projected(image_features, projected.reshape([b, k, h]))
+    }
+}

@@ -1,0 +1,10 @@
+//! The distribution network: a ResNet image encoder, the rotation encoding, the dual-branch
+//! head, and the losses that train it.
+
+pub mod encoder;
+pub mod head;
+pub mod loss;
+
+pub use encoder::{Encoder, EncoderConfig, ResNetLayout};
+pub use head::{BranchScores, DualHead, HeadConfig};
+pub use loss::{gkl_loss, ipdf_loss, l1_measure_loss};

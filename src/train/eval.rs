@@ -1,0 +1,145 @@
+//! Evaluation over a full grid level (DESIGN.md §2 metrics): the network's combined log-density
+//! `s_θ + s_φ` on every cell centre, then LL (all equivalents), spread, and the argmax's error.
+//! The rotation half of the head's first layer is computed once per level and shared.
+
+use std::time::Instant;
+
+use burn::tensor::{Device, Tensor};
+use nalgebra::Rotation3;
+use serde::{Deserialize, Serialize};
+
+use super::trainer::{Network, NetworkConfig, images_tensor};
+use crate::so3::metrics::{ImageMetrics, MetricsSummary, image_metrics, summarize};
+use crate::so3::{GridLevel, So3Error};
+
+/// Rotations scored per chunk (bounds the activations' memory).
+const CHUNK: usize = 16_384;
+
+/// A test image: crop and every equivalent ground truth.
+#[derive(Debug, Clone)]
+pub struct EvalImage {
+    /// Object name, for per-object tables.
+    pub object: String,
+    /// RGB8 crop.
+    pub rgb: Vec<u8>,
+    /// Every equivalent ground truth.
+    pub equivalents: Vec<Rotation3<f64>>,
+}
+
+/// The grid's rotation projections, computed once: `[1, N, hidden]` in chunks.
+pub struct ProjectedGrid {
+    /// The level.
+    pub grid: GridLevel,
+    chunks: Vec<Tensor<3>>,
+}
+
+impl ProjectedGrid {
+    /// Projects every cell centre of `level` through the head's rotation layer.
+    pub fn new(
+        network: &Network,
+        config: &NetworkConfig,
+        level: u8,
+        device: &Device,
+    ) -> Result<Self, So3Error> {
+        let grid = GridLevel::new(level)?;
+        let mats = grid.matrices_f32();
+        let chunks = mats
+            .chunks(CHUNK)
+            .map(|c| {
+                network
+                    .head
+                    .project_rotations(config.encoding.encode_tensor(c, device))
+                    .unsqueeze::<3>()
+            })
+            .collect();
+        Ok(Self { grid, chunks })
+    }
+
+    /// Combined log-weights of every cell for each image of a batch (row per image).
+    pub fn log_weights(&self, network: &Network, images: Tensor<4>) -> Vec<Vec<f32>> {
+        let b = images.dims()[0];
+        let features = network.encoder.forward(images);
+        let mut out = vec![Vec::with_capacity(self.grid.len()); b];
+        for chunk in &self.chunks {
+            let scores = network
+                .head
+                .forward_projected(features.clone(), chunk.clone());
+            let k = chunk.dims()[1];
+            let flat: Vec<f32> = scores
+                .combined()
+                .into_data()
+                .try_to_vec::<f32>()
+                .expect("float scores");
+            for (i, row) in out.iter_mut().enumerate() {
+                row.extend_from_slice(&flat[i * k..(i + 1) * k]);
+            }
+        }
+        out
+    }
+}
+
+/// Metrics of one evaluation, per object and over all images.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct EvalReport {
+    /// Grid level of the evaluation.
+    pub level: u8,
+    /// The LL a perfect distribution would reach on these images at this level (mean).
+    pub ll_ceiling: f64,
+    /// Per object.
+    pub per_object: Vec<(String, MetricsSummary)>,
+    /// All images.
+    pub overall: MetricsSummary,
+    /// Images per second (encoder + head over the full grid + metrics).
+    pub images_per_second: f64,
+}
+
+/// Evaluates `network` on `images` at grid `level`.
+pub fn evaluate(
+    network: &Network,
+    config: &NetworkConfig,
+    images: &[EvalImage],
+    level: u8,
+    mut progress: impl FnMut(usize),
+) -> Result<EvalReport, So3Error> {
+    let device = crate::backend::device_for(crate::backend::Workload::Conv);
+    let started = Instant::now();
+    let projected = ProjectedGrid::new(network, config, level, &device)?;
+    let centres = projected.grid.quaternions();
+    let mut per_image: Vec<(String, ImageMetrics)> = Vec::with_capacity(images.len());
+    let mut ceiling = 0.0;
+    for (n, batch) in images.chunks(4).enumerate() {
+        let crops: Vec<&[u8]> = batch.iter().map(|i| i.rgb.as_slice()).collect();
+        let tensor = images_tensor(&crops, config.image_size as usize, &device);
+        for (im, w) in batch.iter().zip(projected.log_weights(network, tensor)) {
+            per_image.push((
+                im.object.clone(),
+                image_metrics(&projected.grid, &centres, &w, &im.equivalents)?,
+            ));
+            ceiling += crate::so3::metrics::ll_ceiling(&projected.grid, &im.equivalents);
+        }
+        progress((n + 1) * 4);
+    }
+    let thresholds = [30.0];
+    let mut objects: Vec<String> = per_image.iter().map(|(o, _)| o.clone()).collect();
+    objects.sort();
+    objects.dedup();
+    let per_object = objects
+        .into_iter()
+        .map(|o| {
+            let m: Vec<ImageMetrics> = per_image
+                .iter()
+                .filter(|(p, _)| *p == o)
+                .map(|(_, m)| *m)
+                .collect();
+            (o, summarize(&m, &thresholds))
+        })
+        .collect();
+    let all: Vec<ImageMetrics> = per_image.iter().map(|(_, m)| *m).collect();
+    Ok(EvalReport {
+        level,
+        ll_ceiling: ceiling / images.len().max(1) as f64,
+        per_object,
+        overall: summarize(&all, &thresholds),
+        images_per_second: images.len() as f64 / started.elapsed().as_secs_f64(),
+    })
+}

@@ -1,0 +1,37 @@
+//! Training the distribution network: sampling, the Alignist (GKL from the experts) and IPDF
+//! objectives, Adam with warm-up and cosine decay, atomic checkpoints and resume.
+
+pub mod checkpoint;
+pub mod eval;
+pub mod sampling;
+pub mod trainer;
+
+pub use sampling::{SamplingStrategy, sample_rotations};
+pub use trainer::{
+    MeasureLoss, Method, Network, NetworkConfig, TrainConfig, TrainReport, TrainingImage,
+    TrainingSet, train,
+};
+
+/// Errors of training.
+#[derive(Debug, thiserror::Error)]
+pub enum TrainError {
+    /// A checkpoint could not be written or read.
+    #[error("{path}: {message}")]
+    Checkpoint {
+        /// The file or folder.
+        path: String,
+        /// What went wrong.
+        message: String,
+    },
+    /// The loss became NaN or infinite.
+    #[error("training diverged at step {step} (loss {loss})")]
+    Diverged {
+        /// The step.
+        step: usize,
+        /// The loss.
+        loss: f64,
+    },
+    /// A training set that cannot be trained on.
+    #[error("{0}")]
+    Data(String),
+}

@@ -1,0 +1,345 @@
+//! The training loop. One step: `batch` images drawn from the set, K rotations sampled per image,
+//! targets from the baked experts (Alignist) or the ground truth's index (IPDF), one Adam step.
+//! Every step's randomness is derived from `(seed, step)`, so a run is deterministic for a seed and
+//! a resumed run continues exactly where the interrupted one would have gone.
+
+use std::ops::ControlFlow;
+use std::path::Path;
+use std::time::Instant;
+
+use burn::config::Config;
+use burn::module::Module;
+use burn::optim::{AdamConfig, GradientsParams};
+use burn::tensor::{Device, Tensor, TensorData};
+use nalgebra::{Rotation3, Vector3};
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use super::TrainError;
+use super::checkpoint::{CheckpointState, latest_checkpoint, load_checkpoint, save_checkpoint};
+use super::sampling::{SamplingStrategy, sample_rotations};
+use crate::encoding::RotationEncoding;
+use crate::experts::energy::BakedExperts;
+use crate::net::{BranchScores, DualHead, Encoder, EncoderConfig, HeadConfig, ResNetLayout};
+use crate::net::{gkl_loss, ipdf_loss, l1_measure_loss};
+use crate::so3::{GridLevel, to_row_major_f32};
+
+/// Shape of the distribution network (recorded in bundles).
+#[derive(Config, Debug, PartialEq)]
+pub struct NetworkConfig {
+    /// Encoder layout.
+    pub layout: ResNetLayout,
+    /// Rotation encoding.
+    pub encoding: RotationEncoding,
+    /// Side of the input crops.
+    #[config(default = 64)]
+    pub image_size: u32,
+    /// Head width.
+    #[config(default = 256)]
+    pub hidden: usize,
+    /// Linear layers per branch.
+    #[config(default = 4)]
+    pub layers: usize,
+}
+
+/// Encoder + dual-branch head.
+#[derive(Module, Debug)]
+pub struct Network {
+    /// The image encoder.
+    pub encoder: Encoder,
+    /// The dual-branch head.
+    pub head: DualHead,
+}
+
+impl NetworkConfig {
+    /// Builds the network on `device`.
+    pub fn init(&self, device: &Device) -> Network {
+        Network {
+            encoder: EncoderConfig::new(self.layout).init(device),
+            head: HeadConfig::new(self.layout.feature_dim(), self.encoding.dim())
+                .with_hidden(self.hidden)
+                .with_layers(self.layers)
+                .init(device),
+        }
+    }
+}
+
+impl Network {
+    /// Scores per image: `images` `[B, 3, S, S]` in `[0, 1]`, `rotations[b]` the K rotations of
+    /// image `b` (row-major matrices).
+    pub fn scores(
+        &self,
+        images: Tensor<4>,
+        rotations: &[Vec<[f32; 9]>],
+        encoding: &RotationEncoding,
+    ) -> BranchScores {
+        let device = images.device();
+        let b = rotations.len();
+        let k = rotations.first().map_or(0, |r| r.len());
+        let flat: Vec<[f32; 9]> = rotations.iter().flatten().copied().collect();
+        let enc = encoding
+            .encode_tensor(&flat, &device)
+            .reshape([b, k, encoding.dim()]);
+        self.head.forward(self.encoder.forward(images), enc)
+    }
+}
+
+/// Images as `[B, 3, S, S]` in `[0, 1]` from RGB8 crops.
+pub fn images_tensor(crops: &[&[u8]], size: usize, device: &Device) -> Tensor<4> {
+    let mut data = Vec::with_capacity(crops.len() * 3 * size * size);
+    for rgb in crops {
+        for c in 0..3 {
+            data.extend(rgb.chunks_exact(3).map(|p| p[c] as f32 / 255.0));
+        }
+    }
+    Tensor::from_data(TensorData::new(data, [crops.len(), 3, size, size]), device)
+}
+
+/// The measure loss of the Alignist objective.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MeasureLoss {
+    /// Generalised KL (paper Eq. 5).
+    Gkl,
+    /// L1 between measures (ablation).
+    L1,
+}
+
+/// What the network is trained to do.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum Method {
+    /// Both branches fit the experts' measures.
+    Alignist {
+        /// The loss per branch.
+        loss: MeasureLoss,
+        /// How the K rotations are drawn.
+        sampling: SamplingStrategy,
+    },
+    /// IPDF: one score (both branches summed), `−log softmax` of the GT among uniform samples.
+    Ipdf,
+}
+
+/// How to train.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainConfig {
+    /// The network.
+    pub network: NetworkConfig,
+    /// The objective.
+    pub method: Method,
+    /// Adam steps.
+    pub steps: usize,
+    /// Images per step.
+    pub batch: usize,
+    /// Rotations per image.
+    pub k: usize,
+    /// Peak learning rate.
+    pub lr: f64,
+    /// Linear warm-up steps.
+    pub warmup: usize,
+    /// Seed of everything.
+    pub seed: u64,
+    /// Steps between checkpoints.
+    pub checkpoint_every: usize,
+}
+
+/// Learning rate at `step`: linear warm-up, then cosine decay to 1 % of the peak.
+pub fn learning_rate(config: &TrainConfig, step: usize) -> f64 {
+    if step < config.warmup {
+        return config.lr * (step + 1) as f64 / config.warmup as f64;
+    }
+    let t = (step - config.warmup) as f64 / (config.steps - config.warmup).max(1) as f64;
+    config.lr * (0.01 + 0.99 * 0.5 * (1.0 + (std::f64::consts::PI * t.min(1.0)).cos()))
+}
+
+/// One training image: its crop, ground truth, object, and visible canonical points.
+#[derive(Debug, Clone)]
+pub struct TrainingImage {
+    /// Index of the object in [`TrainingSet::objects`].
+    pub object: usize,
+    /// RGB8 crop, `image_size² × 3`.
+    pub rgb: Vec<u8>,
+    /// Ground-truth rotation.
+    pub rotation: Rotation3<f64>,
+    /// Visible canonical points `x⁰` (from a NOCS render at the ground truth).
+    pub visible: Vec<Vector3<f32>>,
+}
+
+/// Images and the baked experts of their objects.
+pub struct TrainingSet {
+    /// Baked experts per object.
+    pub objects: Vec<BakedExperts>,
+    /// The images.
+    pub images: Vec<TrainingImage>,
+}
+
+/// What a run did.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainReport {
+    /// Steps run in this call (a resumed run counts only its own).
+    pub steps_run: usize,
+    /// The step the run started from (0, or the checkpoint's).
+    pub resumed_from: usize,
+    /// Mean loss over the last 10 % of steps.
+    pub final_loss: f64,
+    /// Wall time of this call.
+    pub seconds: f64,
+}
+
+/// Trains (or resumes, when `checkpoints` holds one and `resume` is set) and returns the network
+/// on the plain (non-autodiff) device. `progress(step, steps, loss)` runs after every step (and
+/// its checkpoint); returning `ControlFlow::Break` stops the run there, as an interruption would.
+pub fn train(
+    config: &TrainConfig,
+    set: &TrainingSet,
+    checkpoints: Option<&Path>,
+    resume: bool,
+    mut progress: impl FnMut(usize, usize, f64) -> ControlFlow<()>,
+) -> Result<(Network, TrainReport), TrainError> {
+    if set.images.is_empty() {
+        return Err(TrainError::Data("the training set has no images".into()));
+    }
+    let started = Instant::now();
+    let device = crate::backend::device_for(crate::backend::Workload::Conv).autodiff();
+    let mut network =
+        crate::backend::seeded_init(&device, config.seed, || config.network.init(&device));
+    let mut optim = AdamConfig::new().init();
+    let mut start = 0;
+    if let (Some(dir), true) = (checkpoints, resume)
+        && let Some(latest) = latest_checkpoint(dir)?
+    {
+        let (net, opt, state) = load_checkpoint(&latest, network, optim, &device)?;
+        network = net;
+        optim = opt;
+        start = state.step;
+    }
+    let coarse = match config.method {
+        Method::Alignist {
+            sampling: SamplingStrategy::ModeFocused { level, .. },
+            ..
+        } => Some(GridLevel::new(level).map_err(|e| TrainError::Data(e.to_string()))?),
+        _ => None,
+    };
+    let coarse_cells = coarse.as_ref().map(|g| g.matrices_f32());
+    let size = config.network.image_size as usize;
+    let tail_from = config.steps - config.steps.div_ceil(10);
+    let (mut tail_sum, mut tail_n) = (0.0, 0usize);
+    let mut steps_run = 0;
+
+    for step in start..config.steps {
+        let mut rng = ChaCha8Rng::seed_from_u64(
+            config
+                .seed
+                .wrapping_mul(1_000_003)
+                .wrapping_add(step as u64),
+        );
+        let picks: Vec<&TrainingImage> = (0..config.batch)
+            .map(|_| &set.images[rng.random_range(0..set.images.len())])
+            .collect();
+        let crops: Vec<&[u8]> = picks.iter().map(|im| im.rgb.as_slice()).collect();
+        let images = images_tensor(&crops, size, &device);
+        let mut rotations = Vec::with_capacity(picks.len());
+        let mut log_sdf = Vec::with_capacity(picks.len() * config.k);
+        let mut log_se = Vec::with_capacity(picks.len() * config.k);
+        for im in &picks {
+            let experts = &set.objects[im.object];
+            let samples = match &config.method {
+                Method::Alignist { sampling, .. } => {
+                    let coarse_scores =
+                        coarse
+                            .as_ref()
+                            .zip(coarse_cells.as_ref())
+                            .map(|(g, cells)| {
+                                let t = experts.log_targets(&im.rotation, &im.visible, cells);
+                                let combined: Vec<f32> = t
+                                    .log_a_sdf
+                                    .iter()
+                                    .zip(&t.log_a_se)
+                                    .map(|(a, b)| a + b)
+                                    .collect();
+                                (g, combined)
+                            });
+                    sample_rotations(
+                        sampling,
+                        config.k,
+                        &im.rotation,
+                        coarse_scores.as_ref().map(|(g, c)| (*g, c.as_slice())),
+                        &mut rng,
+                    )
+                }
+                Method::Ipdf => sample_rotations(
+                    &SamplingStrategy::Uniform,
+                    config.k,
+                    &im.rotation,
+                    None,
+                    &mut rng,
+                ),
+            };
+            let mats: Vec<[f32; 9]> = samples.iter().map(to_row_major_f32).collect();
+            if let Method::Alignist { .. } = config.method {
+                let t = experts.log_targets(&im.rotation, &im.visible, &mats);
+                log_sdf.extend(t.log_a_sdf);
+                log_se.extend(t.log_a_se);
+            }
+            rotations.push(mats);
+        }
+        let scores = network.scores(images, &rotations, &config.network.encoding);
+        let b = picks.len();
+        let loss = match &config.method {
+            Method::Alignist { loss, .. } => {
+                let target = |v: Vec<f32>| -> Tensor<2> {
+                    Tensor::from_data(TensorData::new(v, [b, config.k]), &device)
+                };
+                let f = match loss {
+                    MeasureLoss::Gkl => gkl_loss,
+                    MeasureLoss::L1 => l1_measure_loss,
+                };
+                f(target(log_sdf), scores.shape) + f(target(log_se), scores.feature)
+            }
+            Method::Ipdf => ipdf_loss(scores.combined()),
+        };
+        let loss_value = loss.clone().into_scalar::<f32>() as f64;
+        if !loss_value.is_finite() {
+            return Err(TrainError::Diverged {
+                step,
+                loss: loss_value,
+            });
+        }
+        if step >= tail_from {
+            tail_sum += loss_value;
+            tail_n += 1;
+        }
+        let grads = GradientsParams::from_grads(loss.backward(), &network);
+        network = optim.step(learning_rate(config, step), network, grads);
+        let done = step + 1;
+        if let Some(dir) = checkpoints
+            && (done % config.checkpoint_every.max(1) == 0 || done == config.steps)
+        {
+            network.encoder.sync_running_stats();
+            save_checkpoint(
+                dir,
+                &network,
+                &optim,
+                &CheckpointState {
+                    step: done,
+                    config: config.clone(),
+                },
+            )?;
+        }
+        steps_run += 1;
+        if progress(done, config.steps, loss_value).is_break() {
+            break;
+        }
+    }
+    network.encoder.sync_running_stats();
+    Ok((
+        network.valid(),
+        TrainReport {
+            steps_run,
+            resumed_from: start,
+            final_loss: tail_sum / tail_n.max(1) as f64,
+            seconds: started.elapsed().as_secs_f64(),
+        },
+    ))
+}

@@ -1,0 +1,129 @@
+//! The network's parts: encoder and head shapes, the losses' values and gradients.
+
+use alignist::encoding::RotationEncoding;
+use alignist::net::{
+    EncoderConfig, HeadConfig, ResNetLayout, gkl_loss, ipdf_loss, l1_measure_loss,
+};
+use burn::tensor::{Device, Distribution, Tensor, TensorData};
+
+fn device() -> Device {
+    alignist::backend::device()
+}
+
+fn t2(values: Vec<f32>, shape: [usize; 2], device: &Device) -> Tensor<2> {
+    Tensor::from_data(TensorData::new(values, shape), device)
+}
+
+fn scalar(t: Tensor<1>) -> f64 {
+    t.into_scalar::<f32>() as f64
+}
+
+#[test]
+fn gkl_is_zero_at_the_target_and_positive_elsewhere() {
+    let d = device();
+    let log_a = t2(vec![-3.0, -0.5, 0.0, -10.0, 1.0, -2.0], [2, 3], &d);
+    assert!(scalar(gkl_loss(log_a.clone(), log_a.clone())).abs() < 1e-5);
+    for shift in [-1.0f32, -0.1, 0.1, 2.0] {
+        let s = log_a.clone().add_scalar(shift);
+        let v = scalar(gkl_loss(log_a.clone(), s));
+        assert!(v > 1e-4, "shift {shift}: {v}");
+    }
+    // A single wrong entry is enough.
+    let mut bent = vec![-3.0, -0.5, 0.0, -10.0, 1.0, -2.0];
+    bent[4] = 0.5;
+    assert!(scalar(gkl_loss(log_a.clone(), t2(bent, [2, 3], &d))) > 1e-3);
+    assert!(scalar(l1_measure_loss(log_a.clone(), log_a.clone())).abs() < 1e-6);
+}
+
+#[test]
+fn gkl_gradient_matches_finite_differences() {
+    let plain = device();
+    let ad = plain.clone().autodiff();
+    let log_a = vec![-1.0f32, -0.2, -3.0, 0.4];
+    let s0 = vec![-0.5f32, 0.1, -2.0, 0.0];
+    let s = t2(s0.clone(), [1, 4], &ad).require_grad();
+    let loss = gkl_loss(t2(log_a.clone(), [1, 4], &ad), s.clone());
+    let grads = loss.backward();
+    let g: Vec<f32> = s
+        .grad(&grads)
+        .unwrap()
+        .into_data()
+        .try_to_vec::<f32>()
+        .unwrap();
+    let f = |s: &[f32]| -> f64 {
+        log_a
+            .iter()
+            .zip(s)
+            .map(|(&la, &sk)| {
+                let (la, sk) = (la as f64, sk as f64);
+                la.exp() * (la - sk) + sk.exp() - la.exp()
+            })
+            .sum()
+    };
+    for k in 0..4 {
+        let h = 1e-3f32;
+        let mut up = s0.clone();
+        up[k] += h;
+        let mut down = s0.clone();
+        down[k] -= h;
+        let numeric = (f(&up) - f(&down)) / (2.0 * h as f64);
+        // Analytic: exp(s) − a.
+        let analytic = (s0[k] as f64).exp() - (log_a[k] as f64).exp();
+        assert!(
+            (numeric - analytic).abs() < 1e-3,
+            "{k}: {numeric} vs {analytic}"
+        );
+        assert!(
+            (g[k] as f64 - numeric).abs() < 1e-3,
+            "{k}: autodiff {} vs numeric {numeric}",
+            g[k]
+        );
+    }
+}
+
+#[test]
+fn ipdf_loss_is_the_negative_log_softmax_of_column_zero() {
+    let d = device();
+    let s = vec![2.0f32, 0.0, -1.0, 0.5, 0.5, 0.5];
+    let v = scalar(ipdf_loss(t2(s.clone(), [2, 3], &d)));
+    let row = |r: &[f32]| {
+        let z: f64 = r.iter().map(|&x| (x as f64).exp()).sum();
+        -(r[0] as f64) + z.ln()
+    };
+    let expected = (row(&s[..3]) + row(&s[3..])) / 2.0;
+    assert!((v - expected).abs() < 1e-5, "{v} vs {expected}");
+}
+
+#[test]
+fn encoder_and_head_give_one_score_per_image_and_rotation() {
+    let d = alignist::backend::device_for(alignist::backend::Workload::Conv);
+    let encoder = EncoderConfig::new(ResNetLayout::Tiny).init(&d);
+    let images: Tensor<4> = Tensor::random([2, 3, 64, 64], Distribution::Default, &d);
+    let features = encoder.forward(images);
+    assert_eq!(features.dims(), [2, ResNetLayout::Tiny.feature_dim()]);
+    let enc = RotationEncoding::Cube;
+    let head = HeadConfig::new(ResNetLayout::Tiny.feature_dim(), enc.dim()).init(&d);
+    let grid = alignist::so3::GridLevel::new(0).unwrap().matrices_f32();
+    let rotations = enc.encode_tensor(&grid, &d);
+    // Per-image rotation sets [B, K, E].
+    let per_image = Tensor::cat(
+        vec![
+            rotations.clone().unsqueeze::<3>(),
+            rotations.clone().unsqueeze::<3>(),
+        ],
+        0,
+    );
+    let scores = head.forward(features.clone(), per_image);
+    assert_eq!(scores.shape.dims(), [2, 72]);
+    assert_eq!(scores.feature.dims(), [2, 72]);
+    // Precomputed rotation projections shared by every image give the same scores.
+    let shared = head.project_rotations(rotations).unsqueeze::<3>();
+    let again = head.forward_projected(features, shared);
+    let a: Vec<f32> = scores.combined().into_data().try_to_vec::<f32>().unwrap();
+    let b: Vec<f32> = again.combined().into_data().try_to_vec::<f32>().unwrap();
+    for (x, y) in a.iter().zip(&b) {
+        assert!((x - y).abs() < 1e-4);
+    }
+    assert_eq!(ResNetLayout::Resnet18.feature_dim(), 512);
+    assert_eq!(ResNetLayout::Resnet50.feature_dim(), 2048);
+}
