@@ -39,10 +39,11 @@ enum Command {
     /// Write the target distribution the experts give for one rotation on every cell of a grid
     /// level (`index,log_a_sdf,log_a_se`).
     Score(ScoreArgs),
-    /// Train a distribution network and write a model bundle (not yet implemented).
-    Fit,
-    /// Evaluate a model bundle on a dataset (not yet implemented).
-    Eval,
+    /// Train the distribution network on BOP datasets (one per object, with its expert set),
+    /// evaluate it on their test splits, and write a model bundle.
+    Fit(FitArgs),
+    /// Evaluate a model bundle on the test split of BOP datasets.
+    Eval(EvalArgs),
     /// Print performance figures (not yet implemented).
     Bench,
 }
@@ -54,8 +55,8 @@ fn main() -> Result<()> {
         Command::Render(args) => render_cmd(&args),
         Command::Experts(args) => experts_cmd(&args),
         Command::Score(args) => score_cmd(&args),
-        Command::Fit => not_yet("fit"),
-        Command::Eval => not_yet("eval"),
+        Command::Fit(args) => fit_cmd(&args),
+        Command::Eval(args) => eval_cmd(&args),
         Command::Bench => not_yet("bench"),
     }
 }
@@ -458,6 +459,356 @@ fn score_cmd(args: &ScoreArgs) -> Result<()> {
         args.level,
         args.out.display()
     );
+    Ok(())
+}
+
+#[derive(clap::Args)]
+struct FitArgs {
+    /// A BOP dataset of one object (with `train` and `test` splits); repeat per object.
+    #[arg(long, required = true)]
+    data: Vec<PathBuf>,
+    /// The expert set of the object of the `--data` at the same position; repeat per object.
+    #[arg(long, required = true)]
+    experts: Vec<PathBuf>,
+    /// Output bundle folder (e.g. models/symsol1).
+    #[arg(long)]
+    out: PathBuf,
+    /// alignist (GKL from the experts, both branches) or ipdf (the baseline).
+    #[arg(long, default_value = "alignist")]
+    method: String,
+    /// Measure loss of the alignist method: gkl or l1.
+    #[arg(long, default_value = "gkl")]
+    loss: String,
+    /// Sampling of the alignist method: modes (mode-focused) or random (uniform).
+    #[arg(long, default_value = "modes")]
+    sampling: String,
+    /// Encoder layout: tiny, resnet18, resnet50.
+    #[arg(long, default_value = "tiny")]
+    layout: String,
+    /// Rotation encoding: cube or ipdf.
+    #[arg(long, default_value = "cube")]
+    encoding: String,
+    /// Crop side in pixels.
+    #[arg(long, default_value_t = 64)]
+    image_size: u32,
+    /// Adam steps.
+    #[arg(long, default_value_t = 1000)]
+    steps: usize,
+    /// Images per step.
+    #[arg(long, default_value_t = 8)]
+    batch: usize,
+    /// Rotations per image (the paper: 4096).
+    #[arg(long, default_value_t = 256)]
+    k: usize,
+    /// Peak learning rate.
+    #[arg(long, default_value_t = 1e-3)]
+    lr: f64,
+    /// Fraction of each training split used (the paper's low-data regime: 0.1).
+    #[arg(long, default_value_t = 1.0)]
+    fraction: f64,
+    /// Seed.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Checkpoint folder (default: <out>.checkpoints).
+    #[arg(long)]
+    checkpoints: Option<PathBuf>,
+    /// Steps between checkpoints.
+    #[arg(long, default_value_t = 100)]
+    checkpoint_every: usize,
+    /// Continue from the last checkpoint.
+    #[arg(long)]
+    resume: bool,
+    /// Grid level of the evaluation.
+    #[arg(long, default_value_t = 4)]
+    eval_level: u8,
+    /// Test images per object in the evaluation (0 skips it).
+    #[arg(long, default_value_t = 50)]
+    eval_images: usize,
+}
+
+fn parse_layout(s: &str) -> Result<alignist::net::ResNetLayout> {
+    use alignist::net::ResNetLayout;
+    Ok(match s {
+        "tiny" => ResNetLayout::Tiny,
+        "resnet18" => ResNetLayout::Resnet18,
+        "resnet50" => ResNetLayout::Resnet50,
+        _ => bail!("--layout must be tiny, resnet18 or resnet50, got '{s}'"),
+    })
+}
+
+fn fit_cmd(args: &FitArgs) -> Result<()> {
+    use alignist::bundle::experts::ExpertSet;
+    use alignist::bundle::model::{
+        BundleObject, GridLevels, MODEL_FORMAT_VERSION, ModelBundle, ModelManifest, Provenance,
+    };
+    use alignist::data::BopDataset;
+    use alignist::encoding::RotationEncoding;
+    use alignist::train::data::{eval_images, training_images};
+    use alignist::train::eval::evaluate;
+    use alignist::train::{
+        MeasureLoss, Method, NetworkConfig, SamplingStrategy, TrainConfig, TrainingSet, train,
+    };
+
+    if args.data.len() != args.experts.len() {
+        bail!(
+            "give one --experts per --data ({} --data, {} --experts)",
+            args.data.len(),
+            args.experts.len()
+        );
+    }
+    if !(args.fraction > 0.0 && args.fraction <= 1.0) {
+        bail!("--fraction must be in (0, 1], got {}", args.fraction);
+    }
+    if args.image_size < 16 || !args.image_size.is_multiple_of(8) {
+        bail!(
+            "--image-size must be a multiple of 8 and at least 16, got {}",
+            args.image_size
+        );
+    }
+    if args.eval_level > 5 {
+        bail!("--eval-level {} is above 5", args.eval_level);
+    }
+    for (flag, v) in [
+        ("--steps", args.steps),
+        ("--batch", args.batch),
+        ("--k", args.k),
+    ] {
+        if v == 0 {
+            bail!("{flag} must be at least 1");
+        }
+    }
+    let method = match args.method.as_str() {
+        "alignist" => Method::Alignist {
+            loss: match args.loss.as_str() {
+                "gkl" => MeasureLoss::Gkl,
+                "l1" => MeasureLoss::L1,
+                other => bail!("--loss must be gkl or l1, got '{other}'"),
+            },
+            sampling: match args.sampling.as_str() {
+                "modes" => SamplingStrategy::ModeFocused {
+                    focused: args.k * 3 / 4,
+                    level: 2,
+                },
+                "random" => SamplingStrategy::Uniform,
+                other => bail!("--sampling must be modes or random, got '{other}'"),
+            },
+        },
+        "ipdf" => Method::Ipdf,
+        other => bail!("--method must be alignist or ipdf, got '{other}'"),
+    };
+    let encoding = match args.encoding.as_str() {
+        "cube" => RotationEncoding::Cube,
+        "ipdf" => RotationEncoding::Ipdf { frequencies: 3 },
+        other => bail!("--encoding must be cube or ipdf, got '{other}'"),
+    };
+    let network =
+        NetworkConfig::new(parse_layout(&args.layout)?, encoding).with_image_size(args.image_size);
+    let mut objects = Vec::new();
+    let mut sets = Vec::new();
+    let mut images = Vec::new();
+    let mut tests = Vec::new();
+    for (i, (data, experts)) in args.data.iter().zip(&args.experts).enumerate() {
+        let set =
+            ExpertSet::load(experts).with_context(|| format!("--experts {}", experts.display()))?;
+        let train_ds = BopDataset::open(data, "train")
+            .with_context(|| format!("--data {}", data.display()))?;
+        let imgs = training_images(&train_ds, i, &set.mesh, args.image_size, args.fraction)
+            .with_context(|| format!("reading --data {}", data.display()))?;
+        let name = set.manifest.object.name.clone();
+        eprintln!(
+            "{name}: {} training images from {}",
+            imgs.len(),
+            data.display()
+        );
+        objects.push(BundleObject {
+            name: name.clone(),
+            experts: format!("experts/{name}"),
+            data: data.display().to_string(),
+            train_images: imgs.len(),
+        });
+        images.extend(imgs);
+        if args.eval_images > 0 {
+            let test_ds = BopDataset::open(data, "test")
+                .with_context(|| format!("--data {} (test split)", data.display()))?;
+            tests.extend(eval_images(
+                &test_ds,
+                &name,
+                args.image_size,
+                args.eval_images,
+            )?);
+        }
+        sets.push(set);
+    }
+    let training = TrainingSet {
+        objects: sets.iter().map(|s| s.bake()).collect(),
+        images,
+    };
+    let config = TrainConfig {
+        network: network.clone(),
+        method,
+        steps: args.steps,
+        batch: args.batch,
+        k: args.k,
+        lr: args.lr,
+        warmup: (args.steps / 20).max(1),
+        seed: args.seed,
+        checkpoint_every: args.checkpoint_every,
+    };
+    let checkpoints = args
+        .checkpoints
+        .clone()
+        .unwrap_or_else(|| args.out.with_extension("checkpoints"));
+    std::fs::create_dir_all(&checkpoints)
+        .with_context(|| format!("creating {}", checkpoints.display()))?;
+    let bar = ProgressBar::new(args.steps as u64).with_style(
+        ProgressStyle::with_template("train {bar:40} {pos}/{len}  {msg}  {per_sec}  eta {eta}")
+            .expect("static progress template"),
+    );
+    let (trained, report) = train(
+        &config,
+        &training,
+        Some(&checkpoints),
+        args.resume,
+        |step, _, loss| {
+            bar.set_position(step as u64);
+            bar.set_message(format!("loss {loss:.4}"));
+            std::ops::ControlFlow::Continue(())
+        },
+    )
+    .context("training")?;
+    bar.finish();
+    let evaluation = if tests.is_empty() {
+        None
+    } else {
+        let bar = ProgressBar::new(tests.len() as u64);
+        let r = evaluate(&trained, &network, &tests, args.eval_level, |n| {
+            bar.set_position(n as u64)
+        })?;
+        bar.finish_and_clear();
+        Some(r)
+    };
+    let mut manifest = ModelManifest {
+        format_version: MODEL_FORMAT_VERSION,
+        name: args
+            .out
+            .file_name()
+            .and_then(|n| n.to_str())
+            .unwrap_or("model")
+            .to_string(),
+        network,
+        input: "RGB crop centred on the object, side image_size, values / 255".into(),
+        objects,
+        levels: GridLevels {
+            full_max: 4,
+            search_max: 5,
+        },
+        provenance: Provenance {
+            command: std::env::args().collect::<Vec<_>>().join(" "),
+            train: config,
+            report: report.clone(),
+        },
+        evaluation: evaluation.clone(),
+        files: Default::default(),
+    };
+    let dirs: Vec<&Path> = args.experts.iter().map(|p| p.as_path()).collect();
+    ModelBundle::save(&mut manifest, &trained, &dirs, &args.out)
+        .with_context(|| format!("writing the bundle to {}", args.out.display()))?;
+    eprintln!(
+        "trained {} steps in {:.0} s (final loss {:.4}); bundle written to {}",
+        report.steps_run,
+        report.seconds,
+        report.final_loss,
+        args.out.display()
+    );
+    if let Some(e) = evaluation {
+        print_eval(&e);
+    }
+    Ok(())
+}
+
+fn print_eval(e: &alignist::train::eval::EvalReport) {
+    eprintln!(
+        "evaluation at level {} (LL ceiling {:.2}), {:.1} images/s:",
+        e.level, e.ll_ceiling, e.images_per_second
+    );
+    for (name, m) in e
+        .per_object
+        .iter()
+        .map(|(n, m)| (n.as_str(), m))
+        .chain([("all", &e.overall)])
+    {
+        eprintln!(
+            "  {name:8} LL {:6.2}  spread {:6.1}°  AR@30 {:.3}  median {:6.1}°  ({} images)",
+            m.log_likelihood,
+            m.spread_deg,
+            m.accuracy_at.first().map_or(f64::NAN, |a| a.1),
+            m.median_error_deg,
+            m.images
+        );
+    }
+}
+
+#[derive(clap::Args)]
+struct EvalArgs {
+    /// A model bundle folder.
+    #[arg(long)]
+    model: PathBuf,
+    /// OBJECT=DIR: a BOP dataset of one of the bundle's objects; repeat per object.
+    #[arg(long, required = true)]
+    data: Vec<String>,
+    /// Grid level.
+    #[arg(long, default_value_t = 4)]
+    level: u8,
+    /// Test images per object.
+    #[arg(long, default_value_t = 50)]
+    images: usize,
+    /// Output JSON report.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+fn eval_cmd(args: &EvalArgs) -> Result<()> {
+    use alignist::bundle::model::ModelBundle;
+    use alignist::data::BopDataset;
+    use alignist::train::data::eval_images;
+    use alignist::train::eval::evaluate;
+
+    if args.level > 5 {
+        bail!("--level {} is above 5", args.level);
+    }
+    let bundle = ModelBundle::load(&args.model)
+        .with_context(|| format!("loading --model {}", args.model.display()))?;
+    let size = bundle.manifest.network.image_size;
+    let mut tests = Vec::new();
+    for spec in &args.data {
+        let (name, dir) = spec
+            .split_once('=')
+            .with_context(|| format!("--data '{spec}' is not OBJECT=DIR"))?;
+        if !bundle.manifest.objects.iter().any(|o| o.name == name) {
+            let known: Vec<&str> = bundle
+                .manifest
+                .objects
+                .iter()
+                .map(|o| o.name.as_str())
+                .collect();
+            bail!("--data '{spec}': the bundle has no object '{name}' (it has {known:?})");
+        }
+        let ds =
+            BopDataset::open(Path::new(dir), "test").with_context(|| format!("--data {spec}"))?;
+        tests.extend(eval_images(&ds, name, size, args.images)?);
+    }
+    let bar = ProgressBar::new(tests.len() as u64);
+    let report = evaluate(
+        &bundle.network,
+        &bundle.manifest.network,
+        &tests,
+        args.level,
+        |n| bar.set_position(n as u64),
+    )?;
+    bar.finish_and_clear();
+    let text = serde_json::to_string_pretty(&report)?;
+    std::fs::write(&args.out, text).with_context(|| format!("writing {}", args.out.display()))?;
+    print_eval(&report);
     Ok(())
 }
 

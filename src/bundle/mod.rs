@@ -2,6 +2,7 @@
 //! validation that names the file and the field that is wrong.
 
 pub mod experts;
+pub mod model;
 
 use std::fs;
 use std::io::Write;

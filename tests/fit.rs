@@ -1,0 +1,180 @@
+//! The whole offline pipeline through the CLI, at tiny sizes: render → experts → fit (train,
+//! checkpoint, evaluate, bundle) → eval → load, and a corrupt bundle refused.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+use alignist::bundle::model::ModelBundle;
+
+fn run(args: &[&str]) -> Output {
+    let out = Command::new(env!("CARGO_BIN_EXE_alignist-train"))
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+#[test]
+fn render_experts_fit_eval_and_load_a_bundle() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("cube_data");
+    let experts = dir.path().join("cube_experts");
+    let bundle = dir.path().join("models/tiny");
+    run(&[
+        "render",
+        "--shape",
+        "cube",
+        "--count",
+        "12",
+        "--size",
+        "64",
+        "--seed",
+        "1",
+        "--out",
+        s(&data),
+    ]);
+    run(&[
+        "render",
+        "--shape",
+        "cube",
+        "--count",
+        "3",
+        "--size",
+        "64",
+        "--seed",
+        "2",
+        "--split",
+        "test",
+        "--out",
+        s(&data),
+    ]);
+    run(&[
+        "experts",
+        "--shape",
+        "cube",
+        "--steps",
+        "20",
+        "--feature-steps",
+        "4",
+        "--images",
+        "2",
+        "--bake-resolution",
+        "16",
+        "--out",
+        s(&experts),
+    ]);
+    let fit = |extra: &[&str]| {
+        let mut args = vec![
+            "fit",
+            "--data",
+            s(&data),
+            "--experts",
+            s(&experts),
+            "--out",
+            s(&bundle),
+            "--steps",
+            "4",
+            "--batch",
+            "2",
+            "--k",
+            "32",
+            "--image-size",
+            "32",
+            "--checkpoint-every",
+            "2",
+            "--eval-level",
+            "1",
+            "--eval-images",
+            "3",
+        ];
+        args.extend_from_slice(extra);
+        run(&args)
+    };
+    let out = fit(&["--fraction", "0.5"]);
+    let report = String::from_utf8_lossy(&out.stderr);
+    assert!(report.contains("6 training images"), "{report}");
+    assert!(
+        report.contains("evaluation at level 1") && report.contains("AR@30"),
+        "{report}"
+    );
+
+    let loaded = ModelBundle::load(&bundle).unwrap();
+    let m = &loaded.manifest;
+    assert_eq!(m.objects.len(), 1);
+    assert_eq!(m.objects[0].name, "cube");
+    assert_eq!(m.provenance.report.steps_run, 4);
+    assert!(m.provenance.command.contains("--fraction 0.5"));
+    let eval = m.evaluation.as_ref().unwrap();
+    assert_eq!(eval.overall.images, 3);
+    assert!(eval.overall.log_likelihood.is_finite());
+    assert!(bundle.with_extension("checkpoints").join("latest").exists());
+
+    // Resuming a finished run trains no more steps.
+    fit(&["--fraction", "0.5", "--resume"]);
+    assert_eq!(
+        ModelBundle::load(&bundle)
+            .unwrap()
+            .manifest
+            .provenance
+            .report
+            .steps_run,
+        0
+    );
+
+    // eval on the bundle.
+    let report = dir.path().join("report.json");
+    run(&[
+        "eval",
+        "--model",
+        s(&bundle),
+        "--data",
+        &format!("cube={}", s(&data)),
+        "--level",
+        "1",
+        "--images",
+        "2",
+        "--out",
+        s(&report),
+    ]);
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    assert_eq!(json["overall"]["images"], 2);
+    let bad = Command::new(env!("CARGO_BIN_EXE_alignist-train"))
+        .args([
+            "eval",
+            "--model",
+            s(&bundle),
+            "--data",
+            &format!("tet={}", s(&data)),
+            "--out",
+            s(&report),
+        ])
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("no object 'tet'"));
+
+    // A corrupt network file is refused, naming it.
+    let weights = bundle.join("network.safetensors");
+    let mut bytes = std::fs::read(&weights).unwrap();
+    let n = bytes.len();
+    bytes[n - 3] ^= 0x11;
+    std::fs::write(&weights, bytes).unwrap();
+    let err = ModelBundle::load(&bundle)
+        .err()
+        .expect("refused")
+        .to_string();
+    assert!(
+        err.contains("network.safetensors") && err.contains("sha256"),
+        "{err}"
+    );
+}
