@@ -203,3 +203,106 @@ fn ipdf_baseline_trains_on_the_same_network() {
     // −log softmax over 64 rotations starts near log 64.
     assert!((losses[0] - (64f64).ln()).abs() < 1.0, "{losses:?}");
 }
+
+#[test]
+fn a_few_hundred_real_steps_lower_the_loss() {
+    use alignist::bundle::experts::{ExpertsJob, train_expert_set};
+    use alignist::experts::feature::FeatureTrainConfig;
+    use alignist::experts::sdf::SdfTrainConfig;
+    use alignist::train::eval::{EvalImage, evaluate};
+
+    // Real (small) experts for the cube.
+    let shape = Shape::Cube;
+    let (mesh, normalisation) = shape.mesh().normalised();
+    let experts = train_expert_set(
+        ExpertsJob {
+            name: "cube".into(),
+            mesh: mesh.clone(),
+            normalisation,
+            symmetries: shape.symmetries(),
+            sdf: SdfTrainConfig {
+                steps: 200,
+                ..Default::default()
+            },
+            features: FeatureTrainConfig {
+                steps: 200,
+                ..Default::default()
+            },
+            bake_resolution: 32,
+            command: "test".into(),
+        },
+        &mut |_, _, _, _| {},
+    )
+    .unwrap();
+    let device = alignist::backend::device();
+    let baked = alignist::bundle::experts::bake_experts(
+        &experts.sdf,
+        &experts.keys,
+        32,
+        1.05,
+        experts.manifest.energy,
+        &device,
+    );
+    let camera = alignist::cad::Camera::square(SIZE);
+    let render_at = |r| {
+        alignist::cad::render(
+            &mesh,
+            &camera,
+            &alignist::data::symsol_pose(r),
+            &alignist::cad::RenderOptions::default(),
+        )
+        .rgb
+    };
+    let images = haar_rotations(&mut ChaCha8Rng::seed_from_u64(21), 300)
+        .into_iter()
+        .enumerate()
+        .map(|(i, r)| TrainingImage {
+            object: 0,
+            rgb: render_at(r),
+            rotation: r,
+            visible: visible_points_at(&mesh, &r, i as u64),
+        })
+        .collect();
+    let set = TrainingSet {
+        objects: vec![baked],
+        images,
+    };
+    let cfg = TrainConfig {
+        steps: 300,
+        batch: 4,
+        k: 128,
+        lr: 2e-3,
+        warmup: 10,
+        ..config(Method::Alignist {
+            loss: MeasureLoss::Gkl,
+            sampling: SamplingStrategy::ModeFocused {
+                focused: 96,
+                level: 2,
+            },
+        })
+    };
+    let mut losses = Vec::new();
+    let (network, _) = train(&cfg, &set, None, false, |_, _, l| {
+        losses.push(l);
+        ControlFlow::Continue(())
+    })
+    .unwrap();
+    let first: f64 = losses[..30].iter().sum::<f64>() / 30.0;
+    let last: f64 = losses[losses.len() - 30..].iter().sum::<f64>() / 30.0;
+    assert!(last < 0.8 * first, "loss {first} → {last}");
+    let held_out: Vec<EvalImage> = haar_rotations(&mut ChaCha8Rng::seed_from_u64(77), 20)
+        .into_iter()
+        .map(|r| EvalImage {
+            object: "cube".into(),
+            rgb: render_at(r),
+            equivalents: alignist::so3::equivalents(&r, &shape.symmetries()),
+        })
+        .collect();
+    let report = evaluate(&network, &cfg.network, &held_out, 2, |_| {}).unwrap();
+    eprintln!("loss {first:.3} → {last:.3}; held-out {:?}", report.overall);
+    // Measured, not yet asserted: after 300 steps of this tiny setup the held-out LL is still
+    // about that of the uniform distribution (−0.06 at level 2 when last run); the issue's
+    // "LL above 0 after a few hundred steps" is open work (see the closing note of issue 5).
+    assert!(report.overall.log_likelihood.is_finite());
+    assert_eq!(report.overall.images, 20);
+}
