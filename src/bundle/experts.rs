@@ -161,12 +161,11 @@ impl ExpertSet {
             path: manifest_path.display().to_string(),
             message,
         };
-        if manifest.format_version != EXPERTS_FORMAT_VERSION {
-            return Err(field(format!(
-                "format_version is {} but this build reads {EXPERTS_FORMAT_VERSION}",
-                manifest.format_version
-            )));
-        }
+        super::check_format_version(
+            &manifest_path,
+            manifest.format_version,
+            EXPERTS_FORMAT_VERSION,
+        )?;
         for name in [MESH_FILE, SDF_FILE, KEYS_FILE, QUERY_FILE] {
             if !manifest.files.contains_key(name) {
                 return Err(field(format!("files: no entry for {name}")));
@@ -331,19 +330,8 @@ pub fn train_expert_set(
     let key_net = run_batched(&features.keys, &surface, FEATURE_DIM, &device);
     let key_other = run_batched(&features.keys, &others, FEATURE_DIM, &device);
     let key_baked = baked.keys.sample(&surface);
-    let mean_dist = |a: &[f32], b: &[f32]| {
-        a.chunks(FEATURE_DIM)
-            .zip(b.chunks(FEATURE_DIM))
-            .map(|(u, v)| {
-                u.iter()
-                    .zip(v)
-                    .map(|(p, q)| (p - q).powi(2))
-                    .sum::<f32>()
-                    .sqrt() as f64
-            })
-            .sum::<f64>()
-            / (a.len() / FEATURE_DIM).max(1) as f64
-    };
+    let mean_dist =
+        |a: &[f32], b: &[f32]| crate::experts::energy::mean_key_distance(a, b, FEATURE_DIM);
     let key_scale = mean_dist(&key_net, &key_other).max(1e-9);
     let keys_relative_error = mean_dist(&key_net, &key_baked) / key_scale;
 

@@ -170,6 +170,17 @@ pub fn read_manifest<T: for<'de> Deserialize<'de>>(path: &Path) -> Result<T, Bun
     })
 }
 
+/// Refuses a manifest whose `format_version` this build does not read, naming the file.
+pub fn check_format_version(path: &Path, found: u32, expected: u32) -> Result<(), BundleError> {
+    if found != expected {
+        return Err(BundleError::Manifest {
+            path: path.display().to_string(),
+            message: format!("format_version is {found} but this build reads {expected}"),
+        });
+    }
+    Ok(())
+}
+
 /// Writes a JSON manifest atomically.
 pub fn write_manifest<T: Serialize>(path: &Path, manifest: &T) -> Result<(), BundleError> {
     let text = serde_json::to_string_pretty(manifest).map_err(|e| BundleError::Manifest {

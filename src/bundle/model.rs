@@ -140,12 +140,11 @@ impl ModelBundle {
             path: manifest_path.display().to_string(),
             message,
         };
-        if manifest.format_version != MODEL_FORMAT_VERSION {
-            return Err(field(format!(
-                "format_version is {} but this build reads {MODEL_FORMAT_VERSION}",
-                manifest.format_version
-            )));
-        }
+        super::check_format_version(
+            &manifest_path,
+            manifest.format_version,
+            MODEL_FORMAT_VERSION,
+        )?;
         if manifest.objects.is_empty() {
             return Err(field("objects: the bundle names no object".into()));
         }

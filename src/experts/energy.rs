@@ -60,21 +60,25 @@ pub fn sdf_energy(sdf_values: &[f32], params: &EnergyParams) -> f64 {
     params.lambda_sdf * norm
 }
 
-/// `U_SE = λ_SE · mean_i ‖f_SE(x'_i) − f_SE(x⁰_i)‖₂`; keys are row-major `n × d`.
-pub fn se_energy(keys_moved: &[f32], keys_seen: &[f32], dim: usize, params: &EnergyParams) -> f64 {
-    let n = (keys_seen.len() / dim).max(1) as f64;
-    let total: f64 = keys_moved
-        .chunks(dim)
-        .zip(keys_seen.chunks(dim))
-        .map(|(a, b)| {
-            a.iter()
-                .zip(b)
+/// `mean_i ‖a_i − b_i‖₂` over keys given row-major as `n × dim`.
+pub fn mean_key_distance(a: &[f32], b: &[f32], dim: usize) -> f64 {
+    let n = (a.len() / dim).max(1) as f64;
+    a.chunks(dim)
+        .zip(b.chunks(dim))
+        .map(|(u, v)| {
+            u.iter()
+                .zip(v)
                 .map(|(p, q)| (p - q).powi(2))
                 .sum::<f32>()
                 .sqrt() as f64
         })
-        .sum();
-    params.lambda_se * total / n
+        .sum::<f64>()
+        / n
+}
+
+/// `U_SE = λ_SE · mean_i ‖f_SE(x'_i) − f_SE(x⁰_i)‖₂`; keys are row-major `n × d`.
+pub fn se_energy(keys_moved: &[f32], keys_seen: &[f32], dim: usize, params: &EnergyParams) -> f64 {
+    params.lambda_se * mean_key_distance(keys_moved, keys_seen, dim)
 }
 
 /// Up to `n` visible canonical points: NOCS values of pixels drawn uniformly inside the mask.

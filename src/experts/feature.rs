@@ -358,18 +358,6 @@ pub fn symmetry_ratio(
         .collect();
     let f = |pts: &[Vector3<f32>]| run_batched(keys, pts, FEATURE_DIM, device);
     let (fx, fsx, fy) = (f(&xs), f(&sx), f(&ys));
-    let dist = |a: &[f32], b: &[f32]| {
-        a.chunks(FEATURE_DIM)
-            .zip(b.chunks(FEATURE_DIM))
-            .map(|(u, v)| {
-                u.iter()
-                    .zip(v)
-                    .map(|(p, q)| (p - q).powi(2))
-                    .sum::<f32>()
-                    .sqrt() as f64
-            })
-            .sum::<f64>()
-            / xs.len().max(1) as f64
-    };
+    let dist = |a: &[f32], b: &[f32]| super::energy::mean_key_distance(a, b, FEATURE_DIM);
     dist(&fx, &fsx) / dist(&fx, &fy).max(1e-12)
 }
