@@ -27,10 +27,20 @@ fn main() {
     let mesh = Shape::Cube.mesh();
     // With a third argument (an expert set folder), train the Alignist objective instead.
     let experts = std::env::args().nth(3);
+    // A fourth argument scales both λ (softer targets for training when below 1).
+    let lambda_scale: f64 = std::env::args()
+        .nth(4)
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(1.0);
     let baked = match &experts {
-        Some(dir) => alignist::bundle::experts::ExpertSet::load(std::path::Path::new(dir))
-            .unwrap()
-            .bake(),
+        Some(dir) => {
+            let mut b = alignist::bundle::experts::ExpertSet::load(std::path::Path::new(dir))
+                .unwrap()
+                .bake();
+            b.params.lambda_sdf *= lambda_scale;
+            b.params.lambda_se *= lambda_scale;
+            b
+        }
         None => bake_experts(
             &SirenConfig::new(3, 8, 1, 1).init(&device),
             &key_siren_config().init(&device),
@@ -105,7 +115,7 @@ fn main() {
         .collect();
     let e = evaluate(&network, &cfg.network, &held, 2, |_| {}).unwrap();
     println!(
-        "{steps} steps lr {lr}: final loss {:.3}, held-out {:?}",
+        "lambda x{lambda_scale}, {steps} steps lr {lr}: final loss {:.3}, held-out {:?}",
         report.final_loss, e.overall
     );
 }
