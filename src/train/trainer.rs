@@ -187,6 +187,23 @@ pub struct TrainReport {
     pub seconds: f64,
 }
 
+/// Most floats the per-image cache of coarse expert scores may hold (256 MiB).
+const COARSE_CACHE_FLOATS: usize = 64 << 20;
+
+/// `log a^SDF + log a^SE` of every cell centre, for one image.
+fn combined_log_targets(
+    experts: &BakedExperts,
+    im: &TrainingImage,
+    cells: &[[f32; 9]],
+) -> Vec<f32> {
+    let t = experts.log_targets(&im.rotation, &im.visible, cells);
+    t.log_a_sdf
+        .iter()
+        .zip(&t.log_a_se)
+        .map(|(a, b)| a + b)
+        .collect()
+}
+
 /// Trains (or resumes, when `checkpoints` holds one and `resume` is set) and returns the network
 /// on the plain (non-autodiff) device. `progress(step, steps, loss)` runs after every step (and
 /// its checkpoint); returning `ControlFlow::Break` stops the run there, as an interruption would.
@@ -222,6 +239,11 @@ pub fn train(
         _ => None,
     };
     let coarse_cells = coarse.as_ref().map(|g| g.matrices_f32());
+    let cache_enabled = coarse_cells
+        .as_ref()
+        .is_some_and(|c| c.len().saturating_mul(set.images.len()) <= COARSE_CACHE_FLOATS);
+    let mut coarse_cache: Vec<Option<Vec<f32>>> =
+        vec![None; if cache_enabled { set.images.len() } else { 0 }];
     let size = config.network.image_size as usize;
     let tail_from = config.steps - config.steps.div_ceil(10);
     let (mut tail_sum, mut tail_n) = (0.0, 0usize);
@@ -234,37 +256,38 @@ pub fn train(
                 .wrapping_mul(1_000_003)
                 .wrapping_add(step as u64),
         );
-        let picks: Vec<&TrainingImage> = (0..config.batch)
-            .map(|_| &set.images[rng.random_range(0..set.images.len())])
+        let pick_ids: Vec<usize> = (0..config.batch)
+            .map(|_| rng.random_range(0..set.images.len()))
             .collect();
+        let picks: Vec<&TrainingImage> = pick_ids.iter().map(|&i| &set.images[i]).collect();
         let crops: Vec<&[u8]> = picks.iter().map(|im| im.rgb.as_slice()).collect();
         let images = images_tensor(&crops, size, &device);
         let mut rotations = Vec::with_capacity(picks.len());
         let mut log_sdf = Vec::with_capacity(picks.len() * config.k);
         let mut log_se = Vec::with_capacity(picks.len() * config.k);
-        for im in &picks {
+        for (&id, im) in pick_ids.iter().zip(&picks) {
             let experts = &set.objects[im.object];
             let samples = match &config.method {
                 Method::Alignist { sampling, .. } => {
-                    let coarse_scores =
-                        coarse
-                            .as_ref()
-                            .zip(coarse_cells.as_ref())
-                            .map(|(g, cells)| {
-                                let t = experts.log_targets(&im.rotation, &im.visible, cells);
-                                let combined: Vec<f32> = t
-                                    .log_a_sdf
-                                    .iter()
-                                    .zip(&t.log_a_se)
-                                    .map(|(a, b)| a + b)
-                                    .collect();
-                                (g, combined)
-                            });
+                    // The experts' distribution on the coarse grid depends only on the image:
+                    // computed once per image (when the cache fits), identical either way.
+                    let computed;
+                    let scores: Option<&[f32]> = match &coarse_cells {
+                        Some(cells) if cache_enabled => Some(
+                            coarse_cache[id]
+                                .get_or_insert_with(|| combined_log_targets(experts, im, cells)),
+                        ),
+                        Some(cells) => {
+                            computed = combined_log_targets(experts, im, cells);
+                            Some(&computed)
+                        }
+                        None => None,
+                    };
                     sample_rotations(
                         sampling,
                         config.k,
                         &im.rotation,
-                        coarse_scores.as_ref().map(|(g, c)| (*g, c.as_slice())),
+                        coarse.as_ref().zip(scores),
                         &mut rng,
                     )
                 }
