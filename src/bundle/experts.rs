@@ -9,7 +9,7 @@ use burn::tensor::Device;
 use nalgebra::Rotation3;
 use serde::{Deserialize, Serialize};
 
-use super::{BundleError, FileEntry, load_weights, read_manifest, save_weights, sha256_file};
+use super::{BundleError, FileEntry, load_weights, save_weights, sha256_file};
 use crate::cad::{Mesh, Normalisation, write_ply};
 use crate::experts::baked::VoxelGrid;
 use crate::experts::energy::{BakedExperts, EnergyParams};
@@ -156,16 +156,15 @@ impl ExpertSet {
         let device = &crate::backend::device();
         let conv_device = &crate::backend::device_for(crate::backend::Workload::Conv);
         let manifest_path = dir.join(MANIFEST_FILE);
-        let manifest: ExpertsManifest = read_manifest(&manifest_path)?;
+        let manifest: ExpertsManifest = super::read_versioned_manifest(
+            &manifest_path,
+            EXPERTS_FORMAT_VERSION,
+            |m: &ExpertsManifest| m.format_version,
+        )?;
         let field = |message: String| BundleError::Manifest {
             path: manifest_path.display().to_string(),
             message,
         };
-        super::check_format_version(
-            &manifest_path,
-            manifest.format_version,
-            EXPERTS_FORMAT_VERSION,
-        )?;
         for name in [MESH_FILE, SDF_FILE, KEYS_FILE, QUERY_FILE] {
             if !manifest.files.contains_key(name) {
                 return Err(field(format!("files: no entry for {name}")));
@@ -307,26 +306,12 @@ pub fn train_expert_set(
     // Bake error against the networks.
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(job.sdf.seed ^ 0xba4e);
     let near = sample_near_surface(&job.mesh, 5000, &mut rng);
-    let sdf_net = eval_sdf(&sdf, &near, &device);
-    let sdf_baked = baked.sdf.sample(&near);
-    let sdf_mean_error = sdf_net
-        .iter()
-        .zip(&sdf_baked)
-        .map(|(a, b)| (a - b).abs() as f64)
-        .sum::<f64>()
-        / near.len() as f64;
-    let surface: Vec<_> = job
-        .mesh
-        .sample_surface(5000, &mut rng)
-        .iter()
-        .map(|s| s.point)
-        .collect();
-    let others: Vec<_> = job
-        .mesh
-        .sample_surface(5000, &mut rng)
-        .iter()
-        .map(|s| s.point)
-        .collect();
+    let sdf_mean_error = crate::experts::mean_abs_difference(
+        &eval_sdf(&sdf, &near, &device),
+        &baked.sdf.sample(&near),
+    );
+    let surface = job.mesh.sample_surface_points(5000, &mut rng);
+    let others = job.mesh.sample_surface_points(5000, &mut rng);
     let key_net = run_batched(&features.keys, &surface, FEATURE_DIM, &device);
     let key_other = run_batched(&features.keys, &others, FEATURE_DIM, &device);
     let key_baked = baked.keys.sample(&surface);

@@ -170,15 +170,21 @@ pub fn read_manifest<T: for<'de> Deserialize<'de>>(path: &Path) -> Result<T, Bun
     })
 }
 
-/// Refuses a manifest whose `format_version` this build does not read, naming the file.
-pub fn check_format_version(path: &Path, found: u32, expected: u32) -> Result<(), BundleError> {
+/// Reads a manifest and refuses it unless `version_of(manifest)` is `expected`, naming the file.
+pub fn read_versioned_manifest<T: for<'de> Deserialize<'de>>(
+    path: &Path,
+    expected: u32,
+    version_of: impl Fn(&T) -> u32,
+) -> Result<T, BundleError> {
+    let manifest: T = read_manifest(path)?;
+    let found = version_of(&manifest);
     if found != expected {
         return Err(BundleError::Manifest {
             path: path.display().to_string(),
             message: format!("format_version is {found} but this build reads {expected}"),
         });
     }
-    Ok(())
+    Ok(manifest)
 }
 
 /// Writes a JSON manifest atomically.

@@ -10,8 +10,7 @@ use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 
 use super::experts::ExpertSet;
-use super::{BundleError, FileEntry, load_weights, read_manifest, save_weights, sha256_file};
-use crate::so3::from_row_major;
+use super::{BundleError, FileEntry, load_weights, save_weights, sha256_file};
 use crate::train::eval::EvalReport;
 use crate::train::{Network, NetworkConfig, TrainConfig, TrainReport};
 
@@ -132,19 +131,18 @@ impl ModelBundle {
     }
 
     /// Loads and validates a bundle: format version, every file's checksum, every tensor's shape,
-    /// every expert set.
+    /// every expert set (each validated by [`ExpertSet::load`]).
     pub fn load(dir: &Path) -> Result<ModelBundle, BundleError> {
         let manifest_path = dir.join(MANIFEST_FILE);
-        let manifest: ModelManifest = read_manifest(&manifest_path)?;
+        let manifest: ModelManifest = super::read_versioned_manifest(
+            &manifest_path,
+            MODEL_FORMAT_VERSION,
+            |m: &ModelManifest| m.format_version,
+        )?;
         let field = |message: String| BundleError::Manifest {
             path: manifest_path.display().to_string(),
             message,
         };
-        super::check_format_version(
-            &manifest_path,
-            manifest.format_version,
-            MODEL_FORMAT_VERSION,
-        )?;
         if manifest.objects.is_empty() {
             return Err(field("objects: the bundle names no object".into()));
         }
@@ -166,12 +164,6 @@ impl ModelBundle {
             .iter()
             .map(|o| ExpertSet::load(&dir.join(&o.experts)))
             .collect::<Result<Vec<_>, _>>()?;
-        for (i, set) in experts.iter().enumerate() {
-            for (k, m) in set.manifest.object.symmetries.iter().enumerate() {
-                from_row_major(*m)
-                    .map_err(|e| field(format!("objects[{i}] symmetries[{k}]: {e}")))?;
-            }
-        }
         Ok(ModelBundle {
             manifest,
             network,

@@ -271,6 +271,18 @@ impl Mesh {
         }
     }
 
+    /// `n` points uniform over the surface, without their triangles.
+    pub fn sample_surface_points<R: Rng + ?Sized>(
+        &self,
+        n: usize,
+        rng: &mut R,
+    ) -> Vec<Vector3<f32>> {
+        self.sample_surface(n, rng)
+            .iter()
+            .map(|s| s.point)
+            .collect()
+    }
+
     /// `n` points uniform over the surface (area-weighted choice of triangle, then uniform
     /// barycentric coordinates by the square-root trick).
     pub fn sample_surface<R: Rng + ?Sized>(&self, n: usize, rng: &mut R) -> Vec<SurfacePoint> {

@@ -245,11 +245,7 @@ pub fn train_features(
                 positives.push(Vector3::from(r.nocs[k]));
             }
         }
-        let negatives: Vec<Vector3<f32>> = mesh
-            .sample_surface(config.negatives, &mut rng)
-            .iter()
-            .map(|s| s.point)
-            .collect();
+        let negatives = mesh.sample_surface_points(config.negatives, &mut rng);
 
         let x: Tensor<4> = Tensor::from_data(TensorData::new(images, [b, 3, size, size]), &device);
         let out = query.forward(x);
@@ -344,11 +340,7 @@ pub fn symmetry_ratio(
         .take(2000)
         .map(|s| s.point)
         .collect();
-    let ys: Vec<Vector3<f32>> = mesh
-        .sample_surface(xs.len(), &mut rng)
-        .iter()
-        .map(|s| s.point)
-        .collect();
+    let ys = mesh.sample_surface_points(xs.len(), &mut rng);
     let sx: Vec<Vector3<f32>> = xs
         .iter()
         .map(|x| {

@@ -35,6 +35,15 @@ pub enum ExpertError {
     },
 }
 
+/// `mean_i |a_i − b_i|`.
+pub fn mean_abs_difference(a: &[f32], b: &[f32]) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(p, q)| (p - q).abs() as f64)
+        .sum::<f64>()
+        / a.len().max(1) as f64
+}
+
 /// Evaluates a SIREN with `d_out` outputs at many points, 8192 at a time; row-major `n × d_out`.
 pub fn run_batched(
     model: &Siren,

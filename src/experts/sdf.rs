@@ -162,12 +162,7 @@ pub fn train_sdf(
     }
     let model = model.valid();
     let predicted = eval_sdf(&model, &held_out, &plain);
-    let mae = predicted
-        .iter()
-        .zip(&held_out_sdf)
-        .map(|(p, t)| (p - t).abs() as f64)
-        .sum::<f64>()
-        / held_out.len() as f64;
+    let mae = super::mean_abs_difference(&predicted, &held_out_sdf);
     let off: Vec<(f32, f32)> = predicted
         .iter()
         .zip(&held_out_sdf)
