@@ -81,10 +81,7 @@ fn main() {
         method: if experts.is_some() {
             Method::Alignist {
                 loss: alignist::train::MeasureLoss::Gkl,
-                sampling: alignist::train::SamplingStrategy::ModeFocused {
-                    focused: 192,
-                    level: 2,
-                },
+                sampling: alignist::train::SamplingStrategy::mode_focused(256),
             }
         } else {
             Method::Ipdf

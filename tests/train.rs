@@ -11,7 +11,7 @@ use alignist::experts::energy::EnergyParams;
 use alignist::experts::select::visible_points_at;
 use alignist::net::ResNetLayout;
 use alignist::so3::{GridLevel, haar_rotations};
-use alignist::train::trainer::images_tensor;
+use alignist::net::images_tensor;
 use alignist::train::{
     MeasureLoss, Method, Network, NetworkConfig, SamplingStrategy, TrainConfig, TrainingImage,
     TrainingSet, train,
@@ -81,6 +81,8 @@ fn alignist_method() -> Method {
         sampling: SamplingStrategy::ModeFocused {
             focused: 40,
             level: 1,
+            fine_level: 2,
+            keep: 64,
         },
     }
 }
@@ -275,10 +277,7 @@ fn a_few_hundred_real_steps_lower_the_loss() {
         warmup: 10,
         ..config(Method::Alignist {
             loss: MeasureLoss::Gkl,
-            sampling: SamplingStrategy::ModeFocused {
-                focused: 96,
-                level: 2,
-            },
+            sampling: SamplingStrategy::mode_focused(128),
         })
     };
     let mut losses = Vec::new();

@@ -1,34 +1,104 @@
-//! `alignist-server`: the gRPC service (its engine and transport land with a later issue).
+//! `alignist-server`: serves orientation distributions over gRPC (see `proto/alignist/v1`).
 
-use anyhow::{Result, bail};
-use clap::Parser;
+use std::net::SocketAddr;
 use std::path::PathBuf;
+use std::time::Duration;
 
-/// Serves orientation distributions over gRPC.
+use alignist::engine::{EngineConfig, ImageLimits};
+use alignist::serve::BatchConfig;
+use alignist::serve::server::{ServerConfig, run, shutdown_signal};
+use anyhow::{Context, Result, bail};
+use clap::Parser;
+
+/// Serves orientation distributions of known objects over gRPC, with health, reflection and
+/// Prometheus metrics. SIGTERM or SIGINT stops accepting calls, drains the ones in flight, and
+/// exits 0.
 #[derive(Parser)]
 #[command(name = "alignist-server", version, about, long_about = None)]
 struct Cli {
-    /// Directory of model bundles to serve.
+    /// Directory of model bundles to serve (each subfolder with a manifest.json).
     #[arg(long, env = "ALIGNIST_MODELS", default_value = "models")]
     models: PathBuf,
-    /// gRPC listen address.
+    /// gRPC listen address (port 0 picks a free port; the bound address is printed).
     #[arg(long, env = "ALIGNIST_LISTEN", default_value = "127.0.0.1:50051")]
-    listen: String,
-    /// Prometheus metrics listen address.
-    #[arg(
-        long,
-        env = "ALIGNIST_METRICS_LISTEN",
-        default_value = "127.0.0.1:9100"
-    )]
+    listen: SocketAddr,
+    /// Prometheus metrics listen address ("off" to disable).
+    #[arg(long, env = "ALIGNIST_METRICS_LISTEN", default_value = "127.0.0.1:9100")]
     metrics_listen: String,
+    /// Highest grid level served in full by PredictDistribution.
+    #[arg(long, env = "ALIGNIST_MAX_LEVEL", default_value_t = 4)]
+    max_level: u8,
+    /// Highest level a Predict search may reach (default 5 per call).
+    #[arg(long, env = "ALIGNIST_MAX_SEARCH_LEVEL", default_value_t = 6)]
+    max_search_level: u8,
+    /// Most images per encoder batch.
+    #[arg(long, env = "ALIGNIST_MAX_BATCH", default_value_t = 16)]
+    max_batch: usize,
+    /// Longest a request waits for a batch to fill, in milliseconds.
+    #[arg(long, env = "ALIGNIST_MAX_DELAY_MS", default_value_t = 5)]
+    max_delay_ms: u64,
+    /// Most requests queued per model before UNAVAILABLE.
+    #[arg(long, env = "ALIGNIST_QUEUE", default_value_t = 256)]
+    queue: usize,
+    /// Largest request image, in bytes.
+    #[arg(long, env = "ALIGNIST_MAX_IMAGE_BYTES", default_value_t = 8 << 20)]
+    max_image_bytes: usize,
+    /// Largest request image, in pixels.
+    #[arg(long, env = "ALIGNIST_MAX_IMAGE_PIXELS", default_value_t = 4096 * 4096)]
+    max_image_pixels: u64,
+    /// Seconds to wait for in-flight calls after SIGTERM/SIGINT.
+    #[arg(long, env = "ALIGNIST_DRAIN_TIMEOUT_S", default_value_t = 20)]
+    drain_timeout_s: u64,
 }
 
 fn main() -> Result<()> {
     let cli = Cli::parse();
-    bail!(
-        "serving is not implemented yet (would serve {} on {}, metrics on {})",
-        cli.models.display(),
-        cli.listen,
-        cli.metrics_listen
-    )
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_env("ALIGNIST_LOG")
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    if cli.max_batch == 0 || cli.queue == 0 {
+        bail!("--max-batch and --queue must be at least 1");
+    }
+    if !cli.models.is_dir() {
+        bail!(
+            "--models {}: not a directory (train a bundle with `alignist-train fit`, or point at \
+             the shipped models/)",
+            cli.models.display()
+        );
+    }
+    let metrics_listen = match cli.metrics_listen.as_str() {
+        "off" | "" => None,
+        s => Some(
+            s.parse()
+                .with_context(|| format!("--metrics-listen '{s}' is not an address or 'off'"))?,
+        ),
+    };
+    let config = ServerConfig {
+        models: cli.models,
+        listen: cli.listen,
+        metrics_listen,
+        engine: EngineConfig {
+            max_full_level: cli.max_level,
+            search_max_level: cli.max_search_level,
+            image_limits: ImageLimits {
+                max_bytes: cli.max_image_bytes,
+                max_pixels: cli.max_image_pixels,
+            },
+            ..EngineConfig::default()
+        },
+        batch: BatchConfig {
+            max_batch: cli.max_batch,
+            max_delay: Duration::from_millis(cli.max_delay_ms),
+            queue_capacity: cli.queue,
+        },
+        drain_timeout: Duration::from_secs(cli.drain_timeout_s),
+        max_concurrent_streams: 1024,
+    };
+    let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
+    runtime.block_on(run(config, shutdown_signal()))?;
+    Ok(())
 }

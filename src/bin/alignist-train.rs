@@ -585,10 +585,7 @@ fn fit_cmd(args: &FitArgs) -> Result<()> {
                 other => bail!("--loss must be gkl or l1, got '{other}'"),
             },
             sampling: match args.sampling.as_str() {
-                "modes" => SamplingStrategy::ModeFocused {
-                    focused: args.k * 3 / 4,
-                    level: 2,
-                },
+                "modes" => SamplingStrategy::mode_focused(args.k),
                 "random" => SamplingStrategy::Uniform,
                 other => bail!("--sampling must be modes or random, got '{other}'"),
             },

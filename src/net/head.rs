@@ -89,7 +89,30 @@ impl HeadConfig {
     }
 }
 
+impl Branch {
+    fn with_output_bias(mut self, value: f32) -> Self {
+        self.output.bias = self.output.bias.map(|b| {
+            b.map(|t| {
+                let is_tracked = t.is_require_grad();
+                let t = t.zeros_like().add_scalar(value);
+                if is_tracked { t.require_grad() } else { t }
+            })
+        });
+        self
+    }
+}
+
 impl DualHead {
+    /// Sets the output bias of each branch: the log-weight every rotation starts from. The
+    /// Alignist trainer starts it at the log of the targets' mean, so that the first steps fit
+    /// the rotations' relative weights instead of dragging every output down to the targets'
+    /// scale (which, measured, left every ReLU of the branches dead and the output constant).
+    pub fn with_output_biases(mut self, shape: f32, feature: f32) -> Self {
+        self.shape_branch = self.shape_branch.with_output_bias(shape);
+        self.feature_branch = self.feature_branch.with_output_bias(feature);
+        self
+    }
+
     /// The rotation half of the first layer, `W_R · enc(R) + b_R`: `[K, E] → [K, hidden]`. It
     /// depends only on the rotations, so inference precomputes it once per grid level.
     pub fn project_rotations(&self, encodings: Tensor<2>) -> Tensor<2> {

@@ -4,7 +4,9 @@
 pub mod encoder;
 pub mod head;
 pub mod loss;
+pub mod network;
 
 pub use encoder::{Encoder, EncoderConfig, ResNetLayout};
 pub use head::{BranchScores, DualHead, HeadConfig};
 pub use loss::{gkl_loss, ipdf_loss, l1_measure_loss};
+pub use network::{Network, NetworkConfig, ProjectedGrid, images_tensor};

@@ -17,7 +17,8 @@ use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 
 use super::TrainError;
-use super::trainer::{Network, TrainConfig};
+use super::trainer::TrainConfig;
+use crate::net::Network;
 
 /// What a checkpoint records besides the weights.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -4,16 +4,13 @@
 
 use std::time::Instant;
 
-use burn::tensor::{Device, Tensor};
 use nalgebra::Rotation3;
 use serde::{Deserialize, Serialize};
 
-use super::trainer::{Network, NetworkConfig, images_tensor};
+use crate::net::{Network, NetworkConfig, ProjectedGrid, images_tensor};
 use crate::so3::metrics::{ImageMetrics, MetricsSummary, image_metrics, summarize};
-use crate::so3::{GridLevel, So3Error};
+use crate::so3::So3Error;
 
-/// Rotations scored per chunk (bounds the activations' memory).
-const CHUNK: usize = 16_384;
 
 /// A test image: crop and every equivalent ground truth.
 #[derive(Debug, Clone)]
@@ -24,58 +21,6 @@ pub struct EvalImage {
     pub rgb: Vec<u8>,
     /// Every equivalent ground truth.
     pub equivalents: Vec<Rotation3<f64>>,
-}
-
-/// The grid's rotation projections, computed once: `[1, N, hidden]` in chunks.
-pub struct ProjectedGrid {
-    /// The level.
-    pub grid: GridLevel,
-    chunks: Vec<Tensor<3>>,
-}
-
-impl ProjectedGrid {
-    /// Projects every cell centre of `level` through the head's rotation layer.
-    pub fn new(
-        network: &Network,
-        config: &NetworkConfig,
-        level: u8,
-        device: &Device,
-    ) -> Result<Self, So3Error> {
-        let grid = GridLevel::new(level)?;
-        let mats = grid.matrices_f32();
-        let chunks = mats
-            .chunks(CHUNK)
-            .map(|c| {
-                network
-                    .head
-                    .project_rotations(config.encoding.encode_tensor(c, device))
-                    .unsqueeze::<3>()
-            })
-            .collect();
-        Ok(Self { grid, chunks })
-    }
-
-    /// Combined log-weights of every cell for each image of a batch (row per image).
-    pub fn log_weights(&self, network: &Network, images: Tensor<4>) -> Vec<Vec<f32>> {
-        let b = images.dims()[0];
-        let features = network.encoder.forward(images);
-        let mut out = vec![Vec::with_capacity(self.grid.len()); b];
-        for chunk in &self.chunks {
-            let scores = network
-                .head
-                .forward_projected(features.clone(), chunk.clone());
-            let k = chunk.dims()[1];
-            let flat: Vec<f32> = scores
-                .combined()
-                .into_data()
-                .try_to_vec::<f32>()
-                .expect("float scores");
-            for (i, row) in out.iter_mut().enumerate() {
-                row.extend_from_slice(&flat[i * k..(i + 1) * k]);
-            }
-        }
-        out
-    }
 }
 
 /// Metrics of one evaluation, per object and over all images.

@@ -7,10 +7,10 @@ pub mod eval;
 pub mod sampling;
 pub mod trainer;
 
-pub use sampling::{SamplingStrategy, sample_rotations};
+pub use sampling::{ExpertModes, ModeSearch, SamplingStrategy, sample_rotations};
+pub use crate::net::{Network, NetworkConfig};
 pub use trainer::{
-    MeasureLoss, Method, Network, NetworkConfig, TrainConfig, TrainReport, TrainingImage,
-    TrainingSet, train,
+    MeasureLoss, Method, TrainConfig, TrainReport, TrainingImage, TrainingSet, train,
 };
 
 /// Errors of training.

@@ -7,10 +7,9 @@ use std::ops::ControlFlow;
 use std::path::Path;
 use std::time::Instant;
 
-use burn::config::Config;
 use burn::module::Module;
 use burn::optim::{AdamConfig, GradientsParams};
-use burn::tensor::{Device, Tensor, TensorData};
+use burn::tensor::{Tensor, TensorData};
 use nalgebra::{Rotation3, Vector3};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -18,83 +17,11 @@ use serde::{Deserialize, Serialize};
 
 use super::TrainError;
 use super::checkpoint::{CheckpointState, latest_checkpoint, load_checkpoint, save_checkpoint};
-use super::sampling::{SamplingStrategy, sample_rotations};
-use crate::encoding::RotationEncoding;
-use crate::experts::energy::BakedExperts;
-use crate::net::{BranchScores, DualHead, Encoder, EncoderConfig, HeadConfig, ResNetLayout};
+use super::sampling::{ExpertModes, ModeSearch, SamplingStrategy, sample_rotations};
+use crate::experts::energy::{BakedExperts, LogTargets};
+use crate::net::{Network, NetworkConfig, images_tensor};
 use crate::net::{gkl_loss, ipdf_loss, l1_measure_loss};
-use crate::so3::{GridLevel, to_row_major_f32};
-
-/// Shape of the distribution network (recorded in bundles).
-#[derive(Config, Debug, PartialEq)]
-pub struct NetworkConfig {
-    /// Encoder layout.
-    pub layout: ResNetLayout,
-    /// Rotation encoding.
-    pub encoding: RotationEncoding,
-    /// Side of the input crops.
-    #[config(default = 64)]
-    pub image_size: u32,
-    /// Head width.
-    #[config(default = 256)]
-    pub hidden: usize,
-    /// Linear layers per branch.
-    #[config(default = 4)]
-    pub layers: usize,
-}
-
-/// Encoder + dual-branch head.
-#[derive(Module, Debug)]
-pub struct Network {
-    /// The image encoder.
-    pub encoder: Encoder,
-    /// The dual-branch head.
-    pub head: DualHead,
-}
-
-impl NetworkConfig {
-    /// Builds the network on `device`.
-    pub fn init(&self, device: &Device) -> Network {
-        Network {
-            encoder: EncoderConfig::new(self.layout).init(device),
-            head: HeadConfig::new(self.layout.feature_dim(), self.encoding.dim())
-                .with_hidden(self.hidden)
-                .with_layers(self.layers)
-                .init(device),
-        }
-    }
-}
-
-impl Network {
-    /// Scores per image: `images` `[B, 3, S, S]` in `[0, 1]`, `rotations[b]` the K rotations of
-    /// image `b` (row-major matrices).
-    pub fn scores(
-        &self,
-        images: Tensor<4>,
-        rotations: &[Vec<[f32; 9]>],
-        encoding: &RotationEncoding,
-    ) -> BranchScores {
-        let device = images.device();
-        let b = rotations.len();
-        let k = rotations.first().map_or(0, |r| r.len());
-        let flat: Vec<[f32; 9]> = rotations.iter().flatten().copied().collect();
-        let enc = encoding
-            .encode_tensor(&flat, &device)
-            .reshape([b, k, encoding.dim()]);
-        self.head.forward(self.encoder.forward(images), enc)
-    }
-}
-
-/// Images as `[B, 3, S, S]` in `[0, 1]` from RGB8 crops.
-pub fn images_tensor(crops: &[&[u8]], size: usize, device: &Device) -> Tensor<4> {
-    let mut data = Vec::with_capacity(crops.len() * 3 * size * size);
-    for rgb in crops {
-        for c in 0..3 {
-            data.extend(rgb.chunks_exact(3).map(|p| p[c] as f32 / 255.0));
-        }
-    }
-    Tensor::from_data(TensorData::new(data, [crops.len(), 3, size, size]), device)
-}
+use crate::so3::to_row_major_f32;
 
 /// The measure loss of the Alignist objective.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -187,21 +114,75 @@ pub struct TrainReport {
     pub seconds: f64,
 }
 
-/// Most floats the per-image cache of coarse expert scores may hold (256 MiB).
-const COARSE_CACHE_FLOATS: usize = 64 << 20;
-
-/// `log a^SDF + log a^SE` of every cell centre, for one image.
+/// `log a^SDF + log a^SE` of `rotations` for one image.
 fn combined_log_targets(
     experts: &BakedExperts,
     im: &TrainingImage,
-    cells: &[[f32; 9]],
+    rotations: &[[f32; 9]],
 ) -> Vec<f32> {
-    let t = experts.log_targets(&im.rotation, &im.visible, cells);
+    let t = experts.log_targets(&im.rotation, &im.visible, rotations);
     t.log_a_sdf
         .iter()
         .zip(&t.log_a_se)
         .map(|(a, b)| a + b)
         .collect()
+}
+
+/// The K rotations of image `id` for one step, and (Alignist) their expert targets.
+fn sample_image(
+    config: &TrainConfig,
+    set: &TrainingSet,
+    id: usize,
+    search: Option<&ModeSearch>,
+    modes_cache: &mut [Option<ExpertModes>],
+    rng: &mut ChaCha8Rng,
+) -> (Vec<[f32; 9]>, Option<LogTargets>) {
+    let im = &set.images[id];
+    let experts = &set.objects[im.object];
+    let samples = match &config.method {
+        Method::Alignist { sampling, .. } => {
+            // The experts' modes depend only on the image: searched once per image, on first use.
+            let modes = search.map(|search| {
+                let modes = modes_cache[id].get_or_insert_with(|| {
+                    search.expert_modes(|r| combined_log_targets(experts, im, r))
+                });
+                (search.fine_grid(), &*modes)
+            });
+            sample_rotations(sampling, config.k, &im.rotation, modes, rng)
+        }
+        Method::Ipdf => {
+            sample_rotations(&SamplingStrategy::Uniform, config.k, &im.rotation, None, rng)
+        }
+    };
+    let mats: Vec<[f32; 9]> = samples.iter().map(to_row_major_f32).collect();
+    let targets = match config.method {
+        Method::Alignist { .. } => Some(experts.log_targets(&im.rotation, &im.visible, &mats)),
+        Method::Ipdf => None,
+    };
+    (mats, targets)
+}
+
+/// Log of the mean target of each branch over the samples of up to `n` images (the seed's
+/// first ones): where the Alignist branches' output biases start.
+fn mean_log_targets(
+    config: &TrainConfig,
+    set: &TrainingSet,
+    n: usize,
+    search: Option<&ModeSearch>,
+    modes_cache: &mut [Option<ExpertModes>],
+) -> (f32, f32) {
+    let mut rng = ChaCha8Rng::seed_from_u64(config.seed ^ 0xB1A5);
+    let (mut sdf, mut se, mut count) = (0.0f64, 0.0f64, 0usize);
+    for _ in 0..n {
+        let id = rng.random_range(0..set.images.len());
+        if let (_, Some(t)) = sample_image(config, set, id, search, modes_cache, &mut rng) {
+            sdf += t.log_a_sdf.iter().map(|&l| (l as f64).exp()).sum::<f64>();
+            se += t.log_a_se.iter().map(|&l| (l as f64).exp()).sum::<f64>();
+            count += t.log_a_sdf.len();
+        }
+    }
+    let mean_log = |total: f64| (total / count.max(1) as f64).max(1e-12).ln() as f32;
+    (mean_log(sdf), mean_log(se))
 }
 
 /// Trains (or resumes, when `checkpoints` holds one and `resume` is set) and returns the network
@@ -231,19 +212,33 @@ pub fn train(
         optim = opt;
         start = state.step;
     }
-    let coarse = match config.method {
+    let search = match config.method {
         Method::Alignist {
-            sampling: SamplingStrategy::ModeFocused { level, .. },
+            sampling:
+                SamplingStrategy::ModeFocused {
+                    level,
+                    fine_level,
+                    keep,
+                    ..
+                },
             ..
-        } => Some(GridLevel::new(level).map_err(|e| TrainError::Data(e.to_string()))?),
+        } => Some(
+            ModeSearch::new(level, fine_level, keep)
+                .map_err(|e| TrainError::Data(e.to_string()))?,
+        ),
         _ => None,
     };
-    let coarse_cells = coarse.as_ref().map(|g| g.matrices_f32());
-    let cache_enabled = coarse_cells
-        .as_ref()
-        .is_some_and(|c| c.len().saturating_mul(set.images.len()) <= COARSE_CACHE_FLOATS);
-    let mut coarse_cache: Vec<Option<Vec<f32>>> =
-        vec![None; if cache_enabled { set.images.len() } else { 0 }];
+    let mut modes_cache: Vec<Option<ExpertModes>> = vec![None; set.images.len()];
+    if start == 0 && matches!(config.method, Method::Alignist { .. }) {
+        let (sdf, se) = mean_log_targets(
+            config,
+            set,
+            config.batch,
+            search.as_ref(),
+            &mut modes_cache,
+        );
+        network.head = network.head.with_output_biases(sdf, se);
+    }
     let size = config.network.image_size as usize;
     let tail_from = config.steps - config.steps.div_ceil(10);
     let (mut tail_sum, mut tail_n) = (0.0, 0usize);
@@ -265,43 +260,10 @@ pub fn train(
         let mut rotations = Vec::with_capacity(picks.len());
         let mut log_sdf = Vec::with_capacity(picks.len() * config.k);
         let mut log_se = Vec::with_capacity(picks.len() * config.k);
-        for (&id, im) in pick_ids.iter().zip(&picks) {
-            let experts = &set.objects[im.object];
-            let samples = match &config.method {
-                Method::Alignist { sampling, .. } => {
-                    // The experts' distribution on the coarse grid depends only on the image:
-                    // computed once per image (when the cache fits), identical either way.
-                    let computed;
-                    let scores: Option<&[f32]> = match &coarse_cells {
-                        Some(cells) if cache_enabled => Some(
-                            coarse_cache[id]
-                                .get_or_insert_with(|| combined_log_targets(experts, im, cells)),
-                        ),
-                        Some(cells) => {
-                            computed = combined_log_targets(experts, im, cells);
-                            Some(&computed)
-                        }
-                        None => None,
-                    };
-                    sample_rotations(
-                        sampling,
-                        config.k,
-                        &im.rotation,
-                        coarse.as_ref().zip(scores),
-                        &mut rng,
-                    )
-                }
-                Method::Ipdf => sample_rotations(
-                    &SamplingStrategy::Uniform,
-                    config.k,
-                    &im.rotation,
-                    None,
-                    &mut rng,
-                ),
-            };
-            let mats: Vec<[f32; 9]> = samples.iter().map(to_row_major_f32).collect();
-            if let Method::Alignist { .. } = config.method {
-                let t = experts.log_targets(&im.rotation, &im.visible, &mats);
+        for &id in &pick_ids {
+            let (mats, targets) =
+                sample_image(config, set, id, search.as_ref(), &mut modes_cache, &mut rng);
+            if let Some(t) = targets {
                 log_sdf.extend(t.log_a_sdf);
                 log_se.extend(t.log_a_se);
             }

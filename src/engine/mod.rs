@@ -1,0 +1,536 @@
+//! The inference engine: loaded bundles, request images, full distributions, coarse-to-fine top-k,
+//! modes and RGB-D fusion. No transport here: the gRPC service (src/serve) is a thin layer over
+//! [`Engine`], and everything below is testable without a socket.
+
+pub mod fusion;
+pub mod image;
+pub mod search;
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use burn::tensor::{Device, Tensor};
+
+pub use self::image::{CropBox, ImageLimits, ImageRequest, prepare_image};
+pub use fusion::DepthFusion;
+pub use search::{CellProbability, Mode, SearchResult, coarse_to_fine, group_modes};
+
+use crate::bundle::BundleError;
+use crate::bundle::model::ModelBundle;
+use crate::net::{Network, NetworkConfig, ProjectedGrid, images_tensor};
+use crate::so3::{GridLevel, MAX_LEVEL, to_row_major_f32};
+
+/// Errors of the engine; each maps to one gRPC status code in the service.
+#[derive(Debug, thiserror::Error)]
+pub enum EngineError {
+    /// A request field is malformed.
+    #[error("{field}: {message}")]
+    InvalidArgument {
+        /// The request field.
+        field: String,
+        /// What is wrong with it.
+        message: String,
+    },
+    /// An unknown model or object.
+    #[error("{0}")]
+    NotFound(String),
+    /// A request over a size limit.
+    #[error("{field}: {message}")]
+    ResourceExhausted {
+        /// The request field.
+        field: String,
+        /// The limit.
+        message: String,
+    },
+    /// A bundle that cannot be loaded.
+    #[error("{0}")]
+    Bundle(#[from] BundleError),
+    /// A models directory that cannot be served.
+    #[error("{0}")]
+    Models(String),
+}
+
+fn invalid(field: &str, message: impl Into<String>) -> EngineError {
+    EngineError::InvalidArgument {
+        field: field.into(),
+        message: message.into(),
+    }
+}
+
+/// How the engine serves.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EngineConfig {
+    /// Highest level served in full (its rotation projections are precomputed at load).
+    pub max_full_level: u8,
+    /// Level scored in full at the start of a coarse-to-fine search.
+    pub search_start_level: u8,
+    /// Default finest level of the search.
+    pub search_default_level: u8,
+    /// Highest level a search may reach.
+    pub search_max_level: u8,
+    /// Cells kept per level of the search.
+    pub keep: usize,
+    /// Limits on request images.
+    pub image_limits: ImageLimits,
+    /// Most depth points per request.
+    pub max_depth_points: usize,
+}
+
+impl Default for EngineConfig {
+    fn default() -> Self {
+        Self {
+            max_full_level: 4,
+            search_start_level: 2,
+            search_default_level: 5,
+            search_max_level: 6,
+            keep: 512,
+            image_limits: ImageLimits::default(),
+            max_depth_points: 10_000,
+        }
+    }
+}
+
+/// One object of a model.
+pub struct ModelObject {
+    /// Name.
+    pub name: String,
+    /// Number of proper symmetries recorded for the object (1 = none).
+    pub symmetry_count: usize,
+    /// Training images.
+    pub train_images: usize,
+    /// The SDF expert, for RGB-D fusion.
+    pub fusion: DepthFusion,
+}
+
+/// A loaded, validated model: immutable once built, shared behind an `Arc`.
+pub struct Model {
+    /// Name (the bundle's folder name).
+    pub name: String,
+    /// Where it was loaded from.
+    pub path: PathBuf,
+    /// The bundle's manifest.
+    pub manifest: crate::bundle::model::ModelManifest,
+    /// Objects.
+    pub objects: Vec<ModelObject>,
+    network: Network,
+    device: Device,
+    /// Grids 0 ..= max level, with precomputed projections up to the full level.
+    grids: Vec<GridLevel>,
+    projected: Vec<ProjectedGrid>,
+    config: EngineConfig,
+}
+
+/// The full distribution of one image at one level.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Distribution {
+    /// Level.
+    pub level: u8,
+    /// Probability of each cell (sums to 1).
+    pub probability: Vec<f32>,
+    /// Log-density of each cell (`log p + log(N/π²)`).
+    pub log_density: Vec<f32>,
+}
+
+/// A Predict answer from the engine.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Prediction {
+    /// The top-k cells of the finest level, most probable first.
+    pub top: Vec<CellProbability>,
+    /// Rotation of each top cell's centre.
+    pub rotations: Vec<[f64; 4]>,
+    /// The modes.
+    pub modes: Vec<Mode>,
+    /// Mass the search's finest cells are estimated to cover.
+    pub covered_mass: f64,
+}
+
+/// What a prediction asks for beyond the image.
+#[derive(Debug, Clone, Default)]
+pub struct PredictOptions {
+    /// Top-k (≥ 1).
+    pub top_k: usize,
+    /// Finest search level (`None`: the default).
+    pub level: Option<u8>,
+    /// Mode grouping angle in degrees (`None`: 15°).
+    pub mode_angle_deg: Option<f64>,
+}
+
+impl Model {
+    /// Builds a model from a loaded bundle: precomputes the rotation projections of every level up
+    /// to `config.max_full_level`.
+    pub fn from_bundle(
+        name: &str,
+        path: &Path,
+        bundle: ModelBundle,
+        config: EngineConfig,
+    ) -> Result<Model, EngineError> {
+        let device = crate::backend::device_for(crate::backend::Workload::Conv);
+        let top = config.search_max_level.max(config.max_full_level);
+        if top > MAX_LEVEL {
+            return Err(EngineError::Models(format!(
+                "grid level {top} is above the highest supported level {MAX_LEVEL}"
+            )));
+        }
+        let grids = (0..=top)
+            .map(GridLevel::new)
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| EngineError::Models(e.to_string()))?;
+        let projected = (0..=config.max_full_level)
+            .map(|l| ProjectedGrid::new(&bundle.network, &bundle.manifest.network, l, &device))
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| EngineError::Models(e.to_string()))?;
+        let objects = bundle
+            .manifest
+            .objects
+            .iter()
+            .zip(bundle.experts)
+            .map(|(o, set)| ModelObject {
+                name: o.name.clone(),
+                symmetry_count: set.manifest.object.symmetries.len(),
+                train_images: o.train_images,
+                fusion: DepthFusion::new(set),
+            })
+            .collect();
+        Ok(Model {
+            name: name.to_string(),
+            path: path.to_path_buf(),
+            manifest: bundle.manifest,
+            objects,
+            network: bundle.network,
+            device,
+            grids,
+            projected,
+            config,
+        })
+    }
+
+    /// The network's configuration (input size, encoding, …).
+    pub fn network_config(&self) -> &NetworkConfig {
+        &self.manifest.network
+    }
+
+    /// Side of the input crops.
+    pub fn input_size(&self) -> u32 {
+        self.manifest.network.image_size
+    }
+
+    /// The object named `name` (empty: the only object, when there is one).
+    pub fn object(&self, name: &str) -> Result<&ModelObject, EngineError> {
+        if name.is_empty() {
+            return match self.objects.as_slice() {
+                [only] => Ok(only),
+                _ => Err(invalid(
+                    "object",
+                    format!(
+                        "is required: model '{}' has {} objects ({})",
+                        self.name,
+                        self.objects.len(),
+                        self.object_names()
+                    ),
+                )),
+            };
+        }
+        self.objects.iter().find(|o| o.name == name).ok_or_else(|| {
+            EngineError::NotFound(format!(
+                "object '{name}' is not in model '{}' (objects: {})",
+                self.name,
+                self.object_names()
+            ))
+        })
+    }
+
+    fn object_names(&self) -> String {
+        self.objects
+            .iter()
+            .map(|o| o.name.as_str())
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+
+    /// Decodes, crops and resizes a request image to the model's input.
+    pub fn prepare(&self, image: &ImageRequest<'_>) -> Result<Vec<u8>, EngineError> {
+        prepare_image(image, self.input_size(), &self.config.image_limits)
+    }
+
+    /// Image features `[B, D]` of prepared crops (one encoder pass for the batch).
+    pub fn features(&self, crops: &[&[u8]]) -> Tensor<2> {
+        let images = images_tensor(crops, self.input_size() as usize, &self.device);
+        self.network.encoder.forward(images)
+    }
+
+    /// One image's features (as the batcher hands them over) as a `[1, D]` tensor.
+    pub fn features_tensor(&self, features: &[f32]) -> Tensor<2> {
+        Tensor::from_data(
+            burn::tensor::TensorData::new(features.to_vec(), [1, features.len()]),
+            &self.device,
+        )
+    }
+
+    /// Checks a full-distribution level.
+    pub fn check_full_level(&self, level: u8) -> Result<(), EngineError> {
+        if level > self.config.max_full_level {
+            return Err(invalid(
+                "level",
+                format!(
+                    "{level} is above the highest full level this server computes ({})",
+                    self.config.max_full_level
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Unnormalised log-weights `s_θ + s_φ` of every cell of `level` for one image's features
+    /// `[1, D]`, plus the fused depth term when given.
+    fn full_logits(
+        &self,
+        features: &Tensor<2>,
+        level: u8,
+        depth: Option<(&ModelObject, &[nalgebra::Vector3<f32>])>,
+    ) -> Vec<f32> {
+        let mut logits = self.projected[level as usize]
+            .log_weights_of_features(&self.network, features.clone())
+            .swap_remove(0);
+        if let Some((object, points)) = depth {
+            let mats = self.grids[level as usize].matrices_f32();
+            for (l, d) in logits.iter_mut().zip(object.fusion.log_measure(points, &mats)) {
+                *l += d;
+            }
+        }
+        logits
+    }
+
+    /// The full distribution at `level` (DESIGN.md §2: `log p` per cell, `+ log(N/π²)`).
+    pub fn distribution(
+        &self,
+        features: &Tensor<2>,
+        level: u8,
+        depth: Option<(&ModelObject, &[nalgebra::Vector3<f32>])>,
+    ) -> Result<Distribution, EngineError> {
+        self.check_full_level(level)?;
+        let logits = self.full_logits(features, level, depth);
+        let lse = search::log_sum_exp(&logits);
+        let log_n_over_volume = -self.grids[level as usize].cell_volume().ln();
+        let log_p: Vec<f64> = logits.iter().map(|&l| l as f64 - lse).collect();
+        Ok(Distribution {
+            level,
+            probability: log_p.iter().map(|&l| l.exp() as f32).collect(),
+            log_density: log_p
+                .iter()
+                .map(|&l| (l + log_n_over_volume) as f32)
+                .collect(),
+        })
+    }
+
+    /// Checks the options of a prediction; returns the finest level.
+    pub fn check_predict(&self, options: &PredictOptions) -> Result<u8, EngineError> {
+        let level = options.level.unwrap_or(self.config.search_default_level);
+        if level > self.config.search_max_level {
+            return Err(invalid(
+                "level",
+                format!(
+                    "{level} is above the highest search level this server allows ({})",
+                    self.config.search_max_level
+                ),
+            ));
+        }
+        let start = self.config.search_start_level.min(level);
+        let grid = &self.grids[level as usize];
+        let reachable = if level == start {
+            grid.len()
+        } else {
+            self.config.keep * 8
+        };
+        if options.top_k == 0 {
+            return Err(invalid("top_k", "must be at least 1"));
+        }
+        if options.top_k > grid.len() {
+            return Err(invalid(
+                "top_k",
+                format!(
+                    "{} is above the {} cells of level {level}",
+                    options.top_k,
+                    grid.len()
+                ),
+            ));
+        }
+        if options.top_k > reachable.max(self.config.keep * 8) {
+            return Err(invalid(
+                "top_k",
+                format!(
+                    "{} is above the {} cells a search to level {level} scores",
+                    options.top_k, reachable
+                ),
+            ));
+        }
+        if let Some(a) = options.mode_angle_deg
+            && !(a > 0.0 && a <= 180.0)
+        {
+            return Err(invalid(
+                "mode_angle_deg",
+                format!("{a} must be in (0, 180] degrees"),
+            ));
+        }
+        Ok(level)
+    }
+
+    /// Top-k by coarse-to-fine search from the start level to `options.level`, the modes of the
+    /// result, and the covered mass.
+    pub fn predict(
+        &self,
+        features: &Tensor<2>,
+        options: &PredictOptions,
+        depth: Option<(&ModelObject, &[nalgebra::Vector3<f32>])>,
+    ) -> Result<Prediction, EngineError> {
+        let level = self.check_predict(options)?;
+        let start = self.config.search_start_level.min(level);
+        let grids: Vec<&GridLevel> = self.grids[start as usize..=level as usize].iter().collect();
+        let keep = self.config.keep.max(options.top_k.div_ceil(8));
+        let result = coarse_to_fine(&grids, keep, |grid, cells| {
+            if grid.level() == start && (start as usize) < self.projected.len() {
+                let mut all = self.full_logits(features, start, depth);
+                if cells.len() != all.len() {
+                    all = cells.iter().map(|&c| all[c as usize]).collect();
+                }
+                return all;
+            }
+            let mats: Vec<[f32; 9]> = cells
+                .iter()
+                .map(|&c| to_row_major_f32(&grid.rotation(c)))
+                .collect();
+            let mut logits = self.score_rotations(features, &mats);
+            if let Some((object, points)) = depth {
+                for (l, d) in logits.iter_mut().zip(object.fusion.log_measure(points, &mats)) {
+                    *l += d;
+                }
+            }
+            logits
+        });
+        let grid = &self.grids[level as usize];
+        let angle = options.mode_angle_deg.unwrap_or(15.0).to_radians();
+        let modes = group_modes(grid, &result.cells, angle, 0.9, 0.01);
+        let top: Vec<CellProbability> = result.cells[..options.top_k.min(result.cells.len())].to_vec();
+        Ok(Prediction {
+            rotations: top
+                .iter()
+                .map(|c| crate::so3::to_quaternion(&grid.rotation(c.cell)))
+                .collect(),
+            top,
+            modes,
+            covered_mass: result.covered_mass,
+        })
+    }
+
+    /// `s_θ + s_φ` of arbitrary rotations (row-major) for one image's features `[1, D]`.
+    pub fn score_rotations(&self, features: &Tensor<2>, rotations: &[[f32; 9]]) -> Vec<f32> {
+        let enc = self
+            .manifest
+            .network
+            .encoding
+            .encode_tensor(rotations, &self.device);
+        let projected = self.network.head.project_rotations(enc).unsqueeze::<3>();
+        self.network
+            .head
+            .forward_projected(features.clone(), projected)
+            .combined()
+            .into_data()
+            .try_to_vec::<f32>()
+            .expect("float scores")
+    }
+
+    /// The grid of `level` (up to the highest level this model serves).
+    pub fn grid(&self, level: u8) -> Option<&GridLevel> {
+        self.grids.get(level as usize)
+    }
+
+    /// The engine configuration the model was built with.
+    pub fn config(&self) -> &EngineConfig {
+        &self.config
+    }
+}
+
+/// Every model of a models directory, by name.
+pub struct Engine {
+    models: BTreeMap<String, Arc<Model>>,
+}
+
+impl Engine {
+    /// Loads every bundle in `dir` (each subfolder with a `manifest.json`), validating each. A
+    /// directory with no bundle, or any bundle that fails validation, is an error naming it.
+    pub fn load_dir(dir: &Path, config: EngineConfig) -> Result<Engine, EngineError> {
+        let entries = std::fs::read_dir(dir)
+            .map_err(|e| EngineError::Models(format!("{}: {e}", dir.display())))?;
+        let mut folders: Vec<PathBuf> = entries
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.join("manifest.json").is_file())
+            .collect();
+        folders.sort();
+        if folders.is_empty() {
+            return Err(EngineError::Models(format!(
+                "{}: no model bundle (a folder with manifest.json) found",
+                dir.display()
+            )));
+        }
+        let mut models = BTreeMap::new();
+        for folder in folders {
+            let model = Self::load_model(&folder, config)?;
+            models.insert(model.name.clone(), Arc::new(model));
+        }
+        Ok(Engine { models })
+    }
+
+    /// Loads one bundle folder.
+    pub fn load_model(folder: &Path, config: EngineConfig) -> Result<Model, EngineError> {
+        let name = folder
+            .file_name()
+            .and_then(|n| n.to_str())
+            .unwrap_or_default()
+            .to_string();
+        let bundle = ModelBundle::load(folder)?;
+        Model::from_bundle(&name, folder, bundle, config)
+    }
+
+    /// An engine over already-built models.
+    pub fn from_models(models: Vec<Model>) -> Engine {
+        Engine {
+            models: models
+                .into_iter()
+                .map(|m| (m.name.clone(), Arc::new(m)))
+                .collect(),
+        }
+    }
+
+    /// The model named `name` (empty: the only model, when there is one).
+    pub fn model(&self, name: &str) -> Result<Arc<Model>, EngineError> {
+        if name.is_empty() {
+            if self.models.len() == 1 {
+                return Ok(self.models.values().next().expect("one model").clone());
+            }
+            return Err(invalid(
+                "model",
+                format!(
+                    "is required: this server has {} models ({})",
+                    self.models.len(),
+                    self.names().join(", ")
+                ),
+            ));
+        }
+        self.models.get(name).cloned().ok_or_else(|| {
+            EngineError::NotFound(format!(
+                "model '{name}' is not loaded (models: {})",
+                self.names().join(", ")
+            ))
+        })
+    }
+
+    /// Names of the loaded models.
+    pub fn names(&self) -> Vec<String> {
+        self.models.keys().cloned().collect()
+    }
+
+    /// Every model.
+    pub fn models(&self) -> impl Iterator<Item = &Arc<Model>> {
+        self.models.values()
+    }
+}

@@ -1,0 +1,176 @@
+//! Top-k by coarse-to-fine search (SpyroPose) and the grouping of the top cells into modes.
+//!
+//! A level is scored, the best `keep` cells are kept, their children are scored at the next
+//! level, and so on. A child's probability is its softmax among the expanded cells times the
+//! mass the kept parents held (SpyroPose's estimate); `covered_mass` is the product of the kept
+//! fractions, i.e. the share of the distribution the finest cells are believed to hold.
+
+use nalgebra::{Quaternion, Rotation3, UnitQuaternion};
+
+use crate::so3::{GridLevel, quaternion_angle, quaternion_dot, to_quaternion};
+
+/// One scored cell.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CellProbability {
+    /// Grid level.
+    pub level: u8,
+    /// Cell index at that level.
+    pub cell: u64,
+    /// Probability mass of the cell.
+    pub probability: f64,
+    /// Log-density at the cell (per unit of the π²-normalised Haar measure).
+    pub log_density: f64,
+}
+
+/// What a search found at its finest level, most probable first.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SearchResult {
+    /// Every expanded cell of the finest level, most probable first.
+    pub cells: Vec<CellProbability>,
+    /// The estimated mass the finest cells cover.
+    pub covered_mass: f64,
+}
+
+/// Numerically stable `log Σ exp`.
+pub fn log_sum_exp(v: &[f32]) -> f64 {
+    let max = v.iter().copied().fold(f32::NEG_INFINITY, f32::max) as f64;
+    if !max.is_finite() {
+        return max;
+    }
+    max + v.iter().map(|&x| (x as f64 - max).exp()).sum::<f64>().ln()
+}
+
+/// Indices of the `keep` largest values, largest first (ties by index).
+pub fn top_indices(values: &[f64], keep: usize) -> Vec<usize> {
+    let mut order: Vec<usize> = (0..values.len()).collect();
+    let cmp = |&a: &usize, &b: &usize| values[b].total_cmp(&values[a]).then(a.cmp(&b));
+    if keep > 0 && order.len() > keep {
+        order.select_nth_unstable_by(keep - 1, cmp);
+        order.truncate(keep);
+    }
+    order.sort_by(cmp);
+    order
+}
+
+/// Coarse-to-fine search. `grids` are consecutive levels, coarse first; `score(grid, cells)`
+/// returns the unnormalised log-weights of those cells (every cell of the coarsest level first).
+pub fn coarse_to_fine(
+    grids: &[&GridLevel],
+    keep: usize,
+    mut score: impl FnMut(&GridLevel, &[u64]) -> Vec<f32>,
+) -> SearchResult {
+    let first = grids[0];
+    let mut cells: Vec<u64> = (0..first.len() as u64).collect();
+    let mut covered = 1.0f64;
+    let mut probs = Vec::new();
+    for (i, grid) in grids.iter().enumerate() {
+        if i > 0 {
+            let parent = grids[i - 1];
+            let kept = top_indices(&probs, keep);
+            // `probs` already carry the mass kept so far: the kept ones' sum is the new cover.
+            covered = kept.iter().map(|&j| probs[j]).sum::<f64>();
+            cells = kept.iter().flat_map(|&j| parent.children(cells[j])).collect();
+        }
+        let logits = score(grid, &cells);
+        let lse = log_sum_exp(&logits);
+        probs = logits
+            .iter()
+            .map(|&l| covered * (l as f64 - lse).exp())
+            .collect();
+    }
+    let grid = grids[grids.len() - 1];
+    let log_cell_volume = grid.cell_volume().ln();
+    let order = top_indices(&probs, probs.len());
+    SearchResult {
+        cells: order
+            .into_iter()
+            .map(|j| CellProbability {
+                level: grid.level(),
+                cell: cells[j],
+                probability: probs[j],
+                log_density: probs[j].ln() - log_cell_volume,
+            })
+            .collect(),
+        covered_mass: covered,
+    }
+}
+
+/// A mode: top cells within an angle of its most probable cell.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Mode {
+    /// Mass-weighted mean rotation (unit quaternion `(w, x, y, z)`, `w ≥ 0`).
+    pub quaternion: [f64; 4],
+    /// Mass of the mode's cells.
+    pub probability: f64,
+    /// Mass-weighted mean angle of its cells to the mean, in degrees.
+    pub spread_deg: f64,
+    /// Number of cells.
+    pub cells: usize,
+}
+
+/// Groups cells (most probable first) into modes: each cell joins the first mode whose seed (its
+/// most probable cell) is within `angle_rad`, or starts a new one. Only the cells that make up
+/// `mass_fraction` of the listed mass are grouped, and modes under `min_mass` of it are dropped,
+/// so that stray cells do not count as modes.
+pub fn group_modes(
+    grid: &GridLevel,
+    cells: &[CellProbability],
+    angle_rad: f64,
+    mass_fraction: f64,
+    min_mass: f64,
+) -> Vec<Mode> {
+    let total: f64 = cells.iter().map(|c| c.probability).sum();
+    let mut seeds: Vec<[f64; 4]> = Vec::new();
+    let mut members: Vec<Vec<([f64; 4], f64)>> = Vec::new();
+    let mut so_far = 0.0;
+    for c in cells {
+        if so_far >= mass_fraction * total {
+            break;
+        }
+        so_far += c.probability;
+        let q = to_quaternion(&grid.rotation(c.cell));
+        match seeds
+            .iter()
+            .position(|s| quaternion_angle(s, &q) <= angle_rad)
+        {
+            Some(m) => members[m].push((q, c.probability)),
+            None => {
+                seeds.push(q);
+                members.push(vec![(q, c.probability)]);
+            }
+        }
+    }
+    let mut modes: Vec<Mode> = seeds
+        .iter()
+        .zip(&members)
+        .map(|(seed, cells)| mode_of(seed, cells))
+        .filter(|m| m.probability >= min_mass * total)
+        .collect();
+    modes.sort_by(|a, b| b.probability.total_cmp(&a.probability));
+    modes
+}
+
+fn mode_of(seed: &[f64; 4], cells: &[([f64; 4], f64)]) -> Mode {
+    let mut sum = [0.0f64; 4];
+    let mut mass = 0.0;
+    for (q, p) in cells {
+        let sign = if quaternion_dot(seed, q) < 0.0 { -1.0 } else { 1.0 };
+        for (s, v) in sum.iter_mut().zip(q) {
+            *s += sign * p * v;
+        }
+        mass += p;
+    }
+    let mean = UnitQuaternion::from_quaternion(Quaternion::new(sum[0], sum[1], sum[2], sum[3]));
+    let mean = to_quaternion(&Rotation3::from(mean));
+    let spread = cells
+        .iter()
+        .map(|(q, p)| p * quaternion_angle(&mean, q))
+        .sum::<f64>()
+        / mass.max(f64::MIN_POSITIVE);
+    Mode {
+        quaternion: mean,
+        probability: mass,
+        spread_deg: spread.to_degrees(),
+        cells: cells.len(),
+    }
+}

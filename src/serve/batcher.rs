@@ -1,0 +1,155 @@
+//! Dynamic batching of the image encoder: concurrent requests for one model are collected up to
+//! `max_batch` images or `max_delay`, whichever comes first, and encoded in one pass on a
+//! dedicated thread. The queue is bounded; a full queue is answered at once (UNAVAILABLE) rather
+//! than letting latency grow without limit. Requests whose caller has gone away are dropped
+//! before they are encoded.
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use tokio::sync::{mpsc, oneshot};
+
+use crate::engine::Model;
+
+/// Batching limits.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct BatchConfig {
+    /// Most images per encoder pass.
+    pub max_batch: usize,
+    /// Longest a request waits for others to join its batch.
+    pub max_delay: Duration,
+    /// Most requests waiting per model.
+    pub queue_capacity: usize,
+}
+
+impl Default for BatchConfig {
+    fn default() -> Self {
+        Self {
+            max_batch: 16,
+            max_delay: Duration::from_millis(5),
+            queue_capacity: 256,
+        }
+    }
+}
+
+/// Image features of one request, and how long it waited and ran.
+#[derive(Debug, Clone)]
+pub struct Encoded {
+    /// The feature vector.
+    pub features: Vec<f32>,
+    /// Time in the queue.
+    pub queued: Duration,
+    /// Size of the batch it was encoded in.
+    pub batch_size: usize,
+}
+
+struct Job {
+    crop: Vec<u8>,
+    enqueued: Instant,
+    reply: oneshot::Sender<Encoded>,
+}
+
+/// Why a request could not be batched.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum BatchError {
+    /// The queue is full.
+    #[error("the encoder queue of model '{model}' is full ({capacity} requests); retry later")]
+    QueueFull {
+        /// Model.
+        model: String,
+        /// Queue capacity.
+        capacity: usize,
+    },
+    /// The batcher stopped (shutting down or model replaced).
+    #[error("model '{0}' is not accepting requests (shutting down)")]
+    Stopped(String),
+}
+
+/// The batching front of one model's encoder.
+#[derive(Clone)]
+pub struct Batcher {
+    model: String,
+    capacity: usize,
+    sender: mpsc::Sender<Job>,
+}
+
+impl Batcher {
+    /// Starts the batching thread of `model`.
+    pub fn start(model: Arc<Model>, config: BatchConfig) -> Batcher {
+        let (sender, receiver) = mpsc::channel(config.queue_capacity.max(1));
+        let name = model.name.clone();
+        std::thread::Builder::new()
+            .name(format!("encoder-{name}"))
+            .spawn(move || run(model, config, receiver))
+            .expect("spawn encoder thread");
+        Batcher {
+            model: name,
+            capacity: config.queue_capacity,
+            sender,
+        }
+    }
+
+    /// Queues a prepared crop and waits for its features.
+    pub async fn encode(&self, crop: Vec<u8>) -> Result<Encoded, BatchError> {
+        let (reply, answer) = oneshot::channel();
+        let job = Job {
+            crop,
+            enqueued: Instant::now(),
+            reply,
+        };
+        self.sender.try_send(job).map_err(|e| match e {
+            mpsc::error::TrySendError::Full(_) => BatchError::QueueFull {
+                model: self.model.clone(),
+                capacity: self.capacity,
+            },
+            mpsc::error::TrySendError::Closed(_) => BatchError::Stopped(self.model.clone()),
+        })?;
+        answer
+            .await
+            .map_err(|_| BatchError::Stopped(self.model.clone()))
+    }
+}
+
+fn run(model: Arc<Model>, config: BatchConfig, mut receiver: mpsc::Receiver<Job>) {
+    while let Some(first) = receiver.blocking_recv() {
+        let deadline = Instant::now() + config.max_delay;
+        let mut jobs = vec![first];
+        while jobs.len() < config.max_batch {
+            match receiver.try_recv() {
+                Ok(job) => jobs.push(job),
+                Err(mpsc::error::TryRecvError::Empty) => {
+                    let now = Instant::now();
+                    if now >= deadline {
+                        break;
+                    }
+                    std::thread::sleep((deadline - now).min(Duration::from_micros(200)));
+                }
+                Err(mpsc::error::TryRecvError::Disconnected) => break,
+            }
+        }
+        // A caller that gave up (cancelled, deadline) is not worth encoding.
+        jobs.retain(|j| !j.reply.is_closed());
+        if jobs.is_empty() {
+            continue;
+        }
+        let crops: Vec<&[u8]> = jobs.iter().map(|j| j.crop.as_slice()).collect();
+        let started = Instant::now();
+        let features = model.features(&crops);
+        let [b, d] = features.dims();
+        let flat = features
+            .into_data()
+            .try_to_vec::<f32>()
+            .expect("float features");
+        metrics::histogram!("alignist_batch_size").record(b as f64);
+        metrics::counter!("alignist_batches_total").increment(1);
+        metrics::counter!("alignist_batched_images_total").increment(b as u64);
+        metrics::histogram!("alignist_encoder_seconds").record(started.elapsed().as_secs_f64());
+        for (i, job) in jobs.into_iter().enumerate() {
+            let _ = job.reply.send(Encoded {
+                features: flat[i * d..(i + 1) * d].to_vec(),
+                queued: started.duration_since(job.enqueued),
+                batch_size: b,
+            });
+        }
+    }
+}

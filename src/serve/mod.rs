@@ -1,0 +1,515 @@
+//! The gRPC service: transport only. Requests are validated into engine calls, the image encoder
+//! is batched across concurrent requests, and engine errors become named status codes. The maths
+//! lives in [`crate::engine`].
+
+pub mod batcher;
+pub mod server;
+
+use std::collections::BTreeMap;
+use std::pin::Pin;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, RwLock};
+use std::time::Instant;
+
+use tokio_stream::Stream;
+use tonic::{Request, Response, Status};
+use tracing::{Instrument, info, info_span, warn};
+
+pub use batcher::{BatchConfig, BatchError, Batcher};
+
+use crate::engine::{
+    CropBox, Engine, EngineError, ImageRequest, Model, ModelObject, PredictOptions,
+};
+
+/// Generated protobuf types and the service's file descriptor set (for reflection).
+#[allow(missing_docs, clippy::all)]
+pub mod proto {
+    tonic::include_proto!("alignist.v1");
+    /// The encoded `FileDescriptorSet` of `alignist.proto`.
+    pub const FILE_DESCRIPTOR_SET: &[u8] =
+        include_bytes!(concat!(env!("OUT_DIR"), "/alignist_descriptor.bin"));
+}
+
+use proto::alignist_server::Alignist;
+use proto::*;
+
+/// Most cells per distribution chunk.
+pub const MAX_CHUNK: u32 = 65_536;
+/// Default cells per distribution chunk.
+pub const DEFAULT_CHUNK: u32 = 16_384;
+
+/// An engine with its batchers: what the service answers with. Replaced whole on reload.
+pub struct Served {
+    /// The models.
+    pub engine: Engine,
+    batchers: BTreeMap<String, Batcher>,
+}
+
+impl Served {
+    /// Starts a batcher per model.
+    pub fn new(engine: Engine, batch: BatchConfig) -> Served {
+        let batchers = engine
+            .models()
+            .map(|m| (m.name.clone(), Batcher::start(m.clone(), batch)))
+            .collect();
+        Served { engine, batchers }
+    }
+}
+
+/// The shared, swappable state of the service.
+#[derive(Clone, Default)]
+pub struct ServiceState {
+    served: Arc<RwLock<Option<Arc<Served>>>>,
+}
+
+impl ServiceState {
+    /// Installs (or replaces) what is served.
+    pub fn install(&self, served: Served) {
+        *self.served.write().unwrap_or_else(|e| e.into_inner()) = Some(Arc::new(served));
+    }
+
+    /// What is served now, or UNAVAILABLE while models load.
+    pub fn current(&self) -> Result<Arc<Served>, Status> {
+        self.served
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone()
+            .ok_or_else(|| Status::unavailable("models are still loading; retry shortly"))
+    }
+}
+
+/// The `alignist.v1.Alignist` service.
+pub struct AlignistService {
+    state: ServiceState,
+    next_id: AtomicU64,
+}
+
+impl AlignistService {
+    /// A service over `state`.
+    pub fn new(state: ServiceState) -> Self {
+        Self {
+            state,
+            next_id: AtomicU64::new(1),
+        }
+    }
+
+    fn request_id<T>(&self, request: &Request<T>) -> String {
+        request
+            .metadata()
+            .get("x-request-id")
+            .and_then(|v| v.to_str().ok())
+            .map(|s| s.chars().take(64).collect())
+            .unwrap_or_else(|| format!("r{}", self.next_id.fetch_add(1, Ordering::Relaxed)))
+    }
+}
+
+/// The gRPC status of an engine error.
+pub fn status_of(error: EngineError) -> Status {
+    match error {
+        EngineError::InvalidArgument { .. } => Status::invalid_argument(error.to_string()),
+        EngineError::NotFound(_) => Status::not_found(error.to_string()),
+        EngineError::ResourceExhausted { .. } => Status::resource_exhausted(error.to_string()),
+        EngineError::Bundle(_) | EngineError::Models(_) => Status::internal(error.to_string()),
+    }
+}
+
+fn batch_status(error: BatchError) -> Status {
+    Status::unavailable(error.to_string())
+}
+
+fn code_name(code: tonic::Code) -> &'static str {
+    use tonic::Code::*;
+    match code {
+        Ok => "OK",
+        Cancelled => "CANCELLED",
+        Unknown => "UNKNOWN",
+        InvalidArgument => "INVALID_ARGUMENT",
+        DeadlineExceeded => "DEADLINE_EXCEEDED",
+        NotFound => "NOT_FOUND",
+        AlreadyExists => "ALREADY_EXISTS",
+        PermissionDenied => "PERMISSION_DENIED",
+        ResourceExhausted => "RESOURCE_EXHAUSTED",
+        FailedPrecondition => "FAILED_PRECONDITION",
+        Aborted => "ABORTED",
+        OutOfRange => "OUT_OF_RANGE",
+        Unimplemented => "UNIMPLEMENTED",
+        Internal => "INTERNAL",
+        Unavailable => "UNAVAILABLE",
+        DataLoss => "DATA_LOSS",
+        Unauthenticated => "UNAUTHENTICATED",
+    }
+}
+
+/// Counts a finished call and logs it.
+fn record<T>(method: &'static str, started: Instant, result: &Result<T, Status>) {
+    let code = match result {
+        Ok(_) => tonic::Code::Ok,
+        Err(s) => s.code(),
+    };
+    metrics::counter!("alignist_requests_total", "method" => method, "code" => code_name(code))
+        .increment(1);
+    let ms = started.elapsed().as_secs_f64() * 1e3;
+    match result {
+        Ok(_) => info!(method, code = code_name(code), ms, "done"),
+        Err(s) => warn!(method, code = code_name(code), ms, message = s.message(), "failed"),
+    }
+}
+
+/// Runs CPU work off the async threads; a panic inside becomes INTERNAL, never a crash.
+async fn blocking<T: Send + 'static>(
+    work: impl FnOnce() -> Result<T, Status> + Send + 'static,
+) -> Result<T, Status> {
+    tokio::task::spawn_blocking(work)
+        .await
+        .map_err(|e| Status::internal(format!("computation failed: {e}")))?
+}
+
+/// The validated parts common to Predict and PredictDistribution.
+struct Prepared {
+    model: Arc<Model>,
+    object: Option<usize>,
+    depth: Option<Vec<nalgebra::Vector3<f32>>>,
+    batcher: Batcher,
+    image: ImageInput,
+}
+
+fn required_image(image: Option<ImageInput>) -> Result<ImageInput, Status> {
+    image.ok_or_else(|| Status::invalid_argument("image: is required"))
+}
+
+fn crop_of(image: &ImageInput) -> Option<CropBox> {
+    image.crop.map(|c| CropBox {
+        x: c.x,
+        y: c.y,
+        width: c.width,
+        height: c.height,
+    })
+}
+
+fn raw_size(image: &ImageInput) -> Result<Option<(u32, u32)>, Status> {
+    match (image.width, image.height) {
+        (0, 0) => Ok(None),
+        (w, h) if w > 0 && h > 0 => Ok(Some((w, h))),
+        (w, h) => Err(Status::invalid_argument(format!(
+            "image.width, image.height: both must be set for raw RGB8 or both 0 for PNG/JPEG (got {w}×{h})"
+        ))),
+    }
+}
+
+fn object_index(model: &Model, name: &str) -> Result<usize, Status> {
+    let object: &ModelObject = model.object(name).map_err(status_of)?;
+    Ok(model
+        .objects
+        .iter()
+        .position(|o| std::ptr::eq(o, object))
+        .expect("object of this model"))
+}
+
+fn prepare(
+    served: &Served,
+    model: &str,
+    object: &str,
+    image: Option<ImageInput>,
+    depth: Option<DepthPoints>,
+) -> Result<Prepared, Status> {
+    let model = served.engine.model(model).map_err(status_of)?;
+    let image = required_image(image)?;
+    raw_size(&image)?;
+    let object = match (&depth, object.is_empty()) {
+        (None, true) => None,
+        _ => Some(object_index(&model, object)?),
+    };
+    let depth = match depth {
+        None => None,
+        Some(d) => {
+            let o = &model.objects[object.expect("object resolved when depth is given")];
+            Some(
+                o.fusion
+                    .parse_points(&d.xyz, model.config().max_depth_points)
+                    .map_err(status_of)?,
+            )
+        }
+    };
+    let batcher = served
+        .batchers
+        .get(&model.name)
+        .cloned()
+        .ok_or_else(|| Status::internal(format!("model '{}' has no batcher", model.name)))?;
+    Ok(Prepared {
+        model,
+        object,
+        depth,
+        batcher,
+        image,
+    })
+}
+
+/// Decodes the image off the async threads and encodes it through the batcher.
+async fn encode(p: &Prepared) -> Result<Vec<f32>, Status> {
+    let model = p.model.clone();
+    let image = p.image.clone();
+    let crop = blocking(move || {
+        let request = ImageRequest {
+            data: &image.data,
+            raw_size: raw_size(&image)?,
+            crop: crop_of(&image),
+        };
+        model.prepare(&request).map_err(status_of)
+    })
+    .await?;
+    let encoded = p.batcher.encode(crop).await.map_err(batch_status)?;
+    metrics::histogram!("alignist_queue_seconds").record(encoded.queued.as_secs_f64());
+    Ok(encoded.features)
+}
+
+fn rotation_probability(
+    level: u8,
+    cell: &crate::engine::CellProbability,
+    q: [f64; 4],
+) -> RotationProbability {
+    RotationProbability {
+        quaternion: q.to_vec(),
+        probability: cell.probability,
+        log_density: cell.log_density,
+        level: level as u32,
+        cell: cell.cell,
+    }
+}
+
+fn small_level(value: u32, field: &str) -> Result<u8, Status> {
+    u8::try_from(value)
+        .ok()
+        .filter(|&l| l <= crate::so3::MAX_LEVEL)
+        .ok_or_else(|| {
+            Status::invalid_argument(format!(
+                "{field}: {value} is above the highest grid level {}",
+                crate::so3::MAX_LEVEL
+            ))
+        })
+}
+
+impl AlignistService {
+    async fn do_predict(&self, req: PredictRequest) -> Result<PredictResponse, Status> {
+        let started = Instant::now();
+        let served = self.state.current()?;
+        let p = prepare(&served, &req.model, &req.object, req.image, req.depth)?;
+        if !req.mode_angle_deg.is_finite() {
+            return Err(Status::invalid_argument(
+                "mode_angle_deg: must be a finite number of degrees",
+            ));
+        }
+        let options = PredictOptions {
+            top_k: req.top_k as usize,
+            level: match req.level {
+                0 => None,
+                l => Some(small_level(l, "level")?),
+            },
+            mode_angle_deg: (req.mode_angle_deg != 0.0).then_some(req.mode_angle_deg as f64),
+        };
+        let level = p.model.check_predict(&options).map_err(status_of)?;
+        let features = encode(&p).await?;
+        let model = p.model.clone();
+        let (object, depth) = (p.object, p.depth);
+        let fused = depth.is_some();
+        let compute = Instant::now();
+        let prediction = blocking(move || {
+            let f = model.features_tensor(&features);
+            let fusion = depth
+                .as_deref()
+                .map(|pts| (&model.objects[object.expect("object")], pts));
+            model.predict(&f, &options, fusion).map_err(status_of)
+        })
+        .await?;
+        metrics::histogram!("alignist_compute_seconds", "method" => "Predict")
+            .record(compute.elapsed().as_secs_f64());
+        let top: Vec<RotationProbability> = prediction
+            .top
+            .iter()
+            .zip(&prediction.rotations)
+            .map(|(c, q)| rotation_probability(level, c, *q))
+            .collect();
+        Ok(PredictResponse {
+            model: p.model.name.clone(),
+            object: p
+                .object
+                .map(|i| p.model.objects[i].name.clone())
+                .unwrap_or_default(),
+            map: top.first().cloned(),
+            top,
+            modes: prediction
+                .modes
+                .iter()
+                .map(|m| proto::Mode {
+                    quaternion: m.quaternion.to_vec(),
+                    probability: m.probability,
+                    spread_deg: m.spread_deg,
+                    cells: m.cells as u32,
+                })
+                .collect(),
+            covered_mass: prediction.covered_mass,
+            depth_fused: fused,
+            compute_ms: started.elapsed().as_secs_f64() * 1e3,
+        })
+    }
+}
+
+type ChunkStream = Pin<Box<dyn Stream<Item = Result<DistributionChunk, Status>> + Send>>;
+
+#[tonic::async_trait]
+impl Alignist for AlignistService {
+    async fn predict(
+        &self,
+        request: Request<PredictRequest>,
+    ) -> Result<Response<PredictResponse>, Status> {
+        let id = self.request_id(&request);
+        let started = Instant::now();
+        let result = self
+            .do_predict(request.into_inner())
+            .instrument(info_span!("Predict", request_id = %id))
+            .await;
+        record("Predict", started, &result);
+        result.map(Response::new)
+    }
+
+    type PredictDistributionStream = ChunkStream;
+
+    async fn predict_distribution(
+        &self,
+        request: Request<DistributionRequest>,
+    ) -> Result<Response<Self::PredictDistributionStream>, Status> {
+        let id = self.request_id(&request);
+        let started = Instant::now();
+        let span = info_span!("PredictDistribution", request_id = %id);
+        let result = self
+            .do_distribution(request.into_inner())
+            .instrument(span)
+            .await;
+        record("PredictDistribution", started, &result);
+        result.map(Response::new)
+    }
+
+    async fn list_models(
+        &self,
+        _request: Request<ListModelsRequest>,
+    ) -> Result<Response<ListModelsResponse>, Status> {
+        let started = Instant::now();
+        let result = self.state.current().map(|served| ListModelsResponse {
+            models: served.engine.models().map(|m| model_info(m)).collect(),
+        });
+        record("ListModels", started, &result);
+        result.map(Response::new)
+    }
+
+    async fn get_model(
+        &self,
+        request: Request<GetModelRequest>,
+    ) -> Result<Response<ModelInfo>, Status> {
+        let started = Instant::now();
+        let name = request.into_inner().name;
+        let result = self.state.current().and_then(|served| {
+            if name.is_empty() {
+                return Err(Status::invalid_argument("name: is required"));
+            }
+            served
+                .engine
+                .model(&name)
+                .map(|m| model_info(&m))
+                .map_err(status_of)
+        });
+        record("GetModel", started, &result);
+        result.map(Response::new)
+    }
+}
+
+impl AlignistService {
+    async fn do_distribution(&self, req: DistributionRequest) -> Result<ChunkStream, Status> {
+        let served = self.state.current()?;
+        let p = prepare(&served, &req.model, &req.object, req.image, req.depth)?;
+        let level = small_level(req.level, "level")?;
+        p.model.check_full_level(level).map_err(status_of)?;
+        let chunk = match req.chunk_size {
+            0 => DEFAULT_CHUNK,
+            c if c > MAX_CHUNK => {
+                return Err(Status::invalid_argument(format!(
+                    "chunk_size: {c} is above the limit of {MAX_CHUNK} cells"
+                )));
+            }
+            c => c,
+        } as usize;
+        let features = encode(&p).await?;
+        let model = p.model.clone();
+        let (object, depth) = (p.object, p.depth);
+        let compute = Instant::now();
+        let distribution = blocking(move || {
+            let f = model.features_tensor(&features);
+            let fusion = depth
+                .as_deref()
+                .map(|pts| (&model.objects[object.expect("object")], pts));
+            model.distribution(&f, level, fusion).map_err(status_of)
+        })
+        .await?;
+        metrics::histogram!("alignist_compute_seconds", "method" => "PredictDistribution")
+            .record(compute.elapsed().as_secs_f64());
+        let (tx, rx) = tokio::sync::mpsc::channel(4);
+        tokio::spawn(async move {
+            let total = distribution.probability.len();
+            for start in (0..total).step_by(chunk) {
+                let end = (start + chunk).min(total);
+                let message = DistributionChunk {
+                    level: level as u32,
+                    total_cells: total as u64,
+                    offset: start as u64,
+                    probability: distribution.probability[start..end].to_vec(),
+                    log_density: distribution.log_density[start..end].to_vec(),
+                };
+                // The caller went away: stop producing.
+                if tx.send(Ok(message)).await.is_err() {
+                    break;
+                }
+            }
+        });
+        Ok(Box::pin(tokio_stream::wrappers::ReceiverStream::new(rx)))
+    }
+}
+
+/// What ListModels / GetModel say about a model.
+pub fn model_info(model: &Model) -> ModelInfo {
+    let m = &model.manifest;
+    let eval = m.evaluation.as_ref();
+    let method = match m.provenance.train.method {
+        crate::train::Method::Alignist { .. } => "alignist",
+        crate::train::Method::Ipdf => "ipdf",
+    };
+    ModelInfo {
+        name: model.name.clone(),
+        objects: model
+            .objects
+            .iter()
+            .map(|o| ObjectInfo {
+                name: o.name.clone(),
+                symmetry: format!("{} proper symmetries", o.symmetry_count),
+                train_images: o.train_images as u64,
+            })
+            .collect(),
+        input_size: model.input_size(),
+        full_max_level: model.config().max_full_level as u32,
+        search_max_level: model.config().search_max_level as u32,
+        training: Some(TrainingFigures {
+            method: method.into(),
+            steps: m.provenance.train.steps as u64,
+            command: m.provenance.command.clone(),
+            eval_level: eval.map_or(0, |e| e.level as u32),
+            log_likelihood: eval.map_or(f64::NAN, |e| e.overall.log_likelihood),
+            spread_deg: eval.map_or(f64::NAN, |e| e.overall.spread_deg),
+            accuracy_at_30: eval
+                .and_then(|e| e.overall.accuracy_at.first().map(|a| a.1))
+                .unwrap_or(f64::NAN),
+            median_error_deg: eval.map_or(f64::NAN, |e| e.overall.median_error_deg),
+        }),
+        network_sha256: m
+            .files
+            .get("network.safetensors")
+            .map(|f| f.sha256.clone())
+            .unwrap_or_default(),
+    }
+}
