@@ -8,6 +8,7 @@
 pub mod backend;
 pub mod bundle;
 pub mod cad;
+pub mod client;
 pub mod data;
 pub mod encoding;
 pub mod engine;
@@ -16,3 +17,4 @@ pub mod net;
 pub mod serve;
 pub mod so3;
 pub mod train;
+pub mod viz;

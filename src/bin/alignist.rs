@@ -1,32 +1,221 @@
-//! `alignist`: the command-line client of the gRPC service (lands with a later issue).
+//! `alignist`: the command-line client of the gRPC service.
 
-use anyhow::{Result, bail};
-use clap::{Parser, Subcommand};
+use std::path::PathBuf;
+use std::time::Duration;
+
+use alignist::client::{self, ClientError};
+use alignist::serve::proto::{DistributionRequest, PredictRequest};
+use anyhow::{Context, Result, bail};
+use clap::{Args, Parser, Subcommand};
 
 /// Asks an alignist server how an object is oriented.
 #[derive(Parser)]
 #[command(name = "alignist", version, about, long_about = None)]
 struct Cli {
+    /// Server URL.
+    #[arg(long, global = true, env = "ALIGNIST_SERVER", default_value = "http://127.0.0.1:50051")]
+    server: String,
+    /// Seconds before a call gives up.
+    #[arg(long, global = true, default_value_t = 60)]
+    timeout_s: u64,
     #[command(subcommand)]
     command: Command,
 }
 
-#[derive(Subcommand)]
-enum Command {
-    /// Top-k rotations, MAP and modes for an image (not yet implemented).
-    Predict,
-    /// List the models a server holds (not yet implemented).
-    Models,
-    /// Check a server's health (not yet implemented).
-    Health,
+#[derive(Args)]
+struct ImageArgs {
+    /// Model name (empty: the server's only model).
+    #[arg(long, default_value = "")]
+    model: String,
+    /// Object name (needed with several objects only for depth fusion).
+    #[arg(long, default_value = "")]
+    object: String,
+    /// PNG or JPEG image of the object.
+    #[arg(long)]
+    image: PathBuf,
+    /// Crop box inside the image: x,y,width,height in pixels.
+    #[arg(long, value_parser = parse_crop)]
+    crop: Option<[u32; 4]>,
 }
 
-fn main() -> Result<()> {
+#[derive(Subcommand)]
+enum Command {
+    /// Top-k rotations, MAP and modes for an image.
+    Predict {
+        #[command(flatten)]
+        image: ImageArgs,
+        /// How many rotations.
+        #[arg(long, default_value_t = 10)]
+        top_k: u32,
+        /// Finest search level (0: the server's default).
+        #[arg(long, default_value_t = 0)]
+        level: u32,
+        /// Print JSON instead of a table.
+        #[arg(long)]
+        json: bool,
+        /// Also draw the top rotations (IPDF-style plot) to this PNG.
+        #[arg(long)]
+        plot: Option<PathBuf>,
+    },
+    /// The full distribution at one grid level, written as CSV (index,probability,log_density).
+    Distribution {
+        #[command(flatten)]
+        image: ImageArgs,
+        /// Grid level.
+        #[arg(long, default_value_t = 3)]
+        level: u32,
+        /// Output CSV.
+        #[arg(long)]
+        out: PathBuf,
+        /// Also draw the distribution to this PNG.
+        #[arg(long)]
+        plot: Option<PathBuf>,
+    },
+    /// The models the server holds.
+    Models {
+        /// Print JSON instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
+    /// The server's health (grpc.health.v1); exits 1 unless SERVING.
+    Health {
+        /// Service name ("" for the whole server).
+        #[arg(long, default_value = "")]
+        service: String,
+    },
+}
+
+fn parse_crop(s: &str) -> Result<[u32; 4], String> {
+    let v: Vec<u32> = s
+        .split(',')
+        .map(|p| p.trim().parse::<u32>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| format!("'{s}': {e} (expected x,y,width,height)"))?;
+    v.try_into()
+        .map_err(|_| format!("'{s}': expected 4 numbers x,y,width,height"))
+}
+
+fn read_image(args: &ImageArgs) -> Result<alignist::serve::proto::ImageInput> {
+    let data = std::fs::read(&args.image)
+        .with_context(|| format!("reading --image {}", args.image.display()))?;
+    Ok(client::image_input(data, args.crop))
+}
+
+fn save_plot(path: &PathBuf, rotations: &[[f64; 4]], probs: &[f64]) -> Result<()> {
+    alignist::viz::plot_distribution(rotations, probs, &[], 1200)
+        .save(path)
+        .with_context(|| format!("writing --plot {}", path.display()))
+}
+
+async fn run(cli: Cli) -> Result<()> {
+    let timeout = Duration::from_secs(cli.timeout_s.max(1));
+    let channel = client::connect(&cli.server, timeout).await?;
+    match cli.command {
+        Command::Predict {
+            image,
+            top_k,
+            level,
+            json,
+            plot,
+        } => {
+            let request = PredictRequest {
+                model: image.model.clone(),
+                object: image.object.clone(),
+                image: Some(read_image(&image)?),
+                top_k,
+                level,
+                mode_angle_deg: 0.0,
+                depth: None,
+            };
+            let answer = client::predict(channel, request).await?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&client::predict_json(&answer))?);
+            } else {
+                print!("{}", client::predict_table(&answer));
+            }
+            if let Some(path) = plot {
+                let rotations: Vec<[f64; 4]> = answer
+                    .top
+                    .iter()
+                    .filter_map(|t| t.quaternion.clone().try_into().ok())
+                    .collect();
+                let probs: Vec<f64> = answer.top.iter().map(|t| t.probability).collect();
+                save_plot(&path, &rotations, &probs)?;
+            }
+        }
+        Command::Distribution {
+            image,
+            level,
+            out,
+            plot,
+        } => {
+            let request = DistributionRequest {
+                model: image.model.clone(),
+                object: image.object.clone(),
+                image: Some(read_image(&image)?),
+                level,
+                chunk_size: 0,
+                depth: None,
+            };
+            let (level, probs, logs) = client::distribution(channel, request).await?;
+            let mut csv = String::from("index,probability,log_density\n");
+            for (i, (p, l)) in probs.iter().zip(&logs).enumerate() {
+                csv.push_str(&format!("{i},{p:e},{l}\n"));
+            }
+            std::fs::write(&out, csv).with_context(|| format!("writing --out {}", out.display()))?;
+            let total: f64 = probs.iter().map(|&p| p as f64).sum();
+            println!(
+                "level {level}: {} cells, total probability {total:.6}, written to {}",
+                probs.len(),
+                out.display()
+            );
+            if let Some(path) = plot {
+                let grid = alignist::so3::GridLevel::new(level as u8)?;
+                let rotations: Vec<[f64; 4]> = grid.quaternions();
+                let probs: Vec<f64> = probs.iter().map(|&p| p as f64).collect();
+                save_plot(&path, &rotations, &probs)?;
+            }
+        }
+        Command::Models { json } => {
+            let models = client::models(channel).await?;
+            if json {
+                let v: Vec<serde_json::Value> = models
+                    .iter()
+                    .map(|m| {
+                        serde_json::json!({
+                            "name": m.name, "input_size": m.input_size,
+                            "full_max_level": m.full_max_level,
+                            "search_max_level": m.search_max_level,
+                            "objects": m.objects.iter().map(|o| &o.name).collect::<Vec<_>>(),
+                        })
+                    })
+                    .collect();
+                println!("{}", serde_json::to_string_pretty(&v)?);
+            } else {
+                print!("{}", client::models_table(&models));
+            }
+        }
+        Command::Health { service } => {
+            let status = client::health(channel, &service).await?;
+            println!("{status}");
+            if status != "Serving" {
+                bail!("server is {status}");
+            }
+        }
+    }
+    Ok(())
+}
+
+fn main() {
     let cli = Cli::parse();
-    let name = match cli.command {
-        Command::Predict => "predict",
-        Command::Models => "models",
-        Command::Health => "health",
-    };
-    bail!("`alignist {name}` is not implemented yet")
+    let runtime = tokio::runtime::Runtime::new().expect("async runtime");
+    if let Err(e) = runtime.block_on(run(cli)) {
+        match e.downcast_ref::<ClientError>() {
+            Some(ClientError::Status { .. }) | Some(ClientError::Connect { .. }) => {
+                eprintln!("error: {e}")
+            }
+            None => eprintln!("error: {e:#}"),
+        }
+        std::process::exit(1);
+    }
 }

@@ -1,0 +1,233 @@
+//! The command-line client's calls: connect, send, and turn answers and status codes into
+//! tables (for people), JSON (for programs) or CSV.
+
+use std::fmt::Write as _;
+use std::time::Duration;
+
+use tonic::transport::{Channel, Endpoint};
+
+use crate::serve::proto::alignist_client::AlignistClient;
+use crate::serve::proto::{
+    CropBox, DistributionRequest, ImageInput, ListModelsRequest, ModelInfo, PredictRequest,
+    PredictResponse,
+};
+
+/// Client errors; a server status keeps its code and message.
+#[derive(Debug, thiserror::Error)]
+pub enum ClientError {
+    /// The server could not be reached.
+    #[error("cannot connect to {url}: {message}")]
+    Connect {
+        /// Server URL.
+        url: String,
+        /// Why.
+        message: String,
+    },
+    /// The server answered with an error status.
+    #[error("server answered {code}: {message}")]
+    Status {
+        /// The gRPC status code's name.
+        code: String,
+        /// The server's message.
+        message: String,
+    },
+}
+
+impl From<tonic::Status> for ClientError {
+    fn from(s: tonic::Status) -> Self {
+        ClientError::Status {
+            code: format!("{:?}", s.code()),
+            message: s.message().to_string(),
+        }
+    }
+}
+
+/// Connects to `url` (e.g. `http://127.0.0.1:50051`).
+pub async fn connect(url: &str, timeout: Duration) -> Result<Channel, ClientError> {
+    let err = |message: String| ClientError::Connect {
+        url: url.to_string(),
+        message,
+    };
+    Endpoint::from_shared(url.to_string())
+        .map_err(|e| err(e.to_string()))?
+        .connect_timeout(timeout)
+        .timeout(timeout)
+        .connect()
+        .await
+        .map_err(|e| err(e.to_string()))
+}
+
+/// An image input from file bytes and an optional crop.
+pub fn image_input(data: Vec<u8>, crop: Option<[u32; 4]>) -> ImageInput {
+    ImageInput {
+        data,
+        width: 0,
+        height: 0,
+        crop: crop.map(|[x, y, width, height]| CropBox {
+            x,
+            y,
+            width,
+            height,
+        }),
+    }
+}
+
+/// Predict.
+pub async fn predict(
+    channel: Channel,
+    request: PredictRequest,
+) -> Result<PredictResponse, ClientError> {
+    let mut client = AlignistClient::new(channel).max_decoding_message_size(64 << 20);
+    Ok(client.predict(request).await?.into_inner())
+}
+
+/// The full distribution, reassembled from its chunks: `(level, probabilities, log-densities)`.
+pub async fn distribution(
+    channel: Channel,
+    request: DistributionRequest,
+) -> Result<(u32, Vec<f32>, Vec<f32>), ClientError> {
+    let mut client = AlignistClient::new(channel).max_decoding_message_size(64 << 20);
+    let mut stream = client.predict_distribution(request).await?.into_inner();
+    let (mut level, mut probs, mut logs) = (0, Vec::new(), Vec::new());
+    while let Some(chunk) = stream.message().await? {
+        if chunk.offset as usize != probs.len() {
+            return Err(ClientError::Status {
+                code: "DataLoss".into(),
+                message: format!(
+                    "chunk at offset {} arrived after {} cells",
+                    chunk.offset,
+                    probs.len()
+                ),
+            });
+        }
+        level = chunk.level;
+        probs.extend(chunk.probability);
+        logs.extend(chunk.log_density);
+    }
+    Ok((level, probs, logs))
+}
+
+/// ListModels.
+pub async fn models(channel: Channel) -> Result<Vec<ModelInfo>, ClientError> {
+    let mut client = AlignistClient::new(channel);
+    Ok(client.list_models(ListModelsRequest {}).await?.into_inner().models)
+}
+
+/// `grpc.health.v1` Check of `service` ("" for the whole server): the status's name.
+pub async fn health(channel: Channel, service: &str) -> Result<String, ClientError> {
+    let mut client = tonic_health::pb::health_client::HealthClient::new(channel);
+    let answer = client
+        .check(tonic_health::pb::HealthCheckRequest {
+            service: service.to_string(),
+        })
+        .await?
+        .into_inner();
+    Ok(format!(
+        "{:?}",
+        tonic_health::pb::health_check_response::ServingStatus::try_from(answer.status)
+            .unwrap_or(tonic_health::pb::health_check_response::ServingStatus::Unknown)
+    ))
+}
+
+fn quaternion(q: &[f64]) -> String {
+    let v: Vec<String> = q.iter().map(|x| format!("{x:+.4}")).collect();
+    format!("({})", v.join(", "))
+}
+
+/// A Predict answer as a table.
+pub fn predict_table(r: &PredictResponse) -> String {
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "model {}{}: {} modes, search covered {:.1} % of the mass{} ({:.1} ms)",
+        r.model,
+        if r.object.is_empty() {
+            String::new()
+        } else {
+            format!(" / {}", r.object)
+        },
+        r.modes.len(),
+        r.covered_mass * 100.0,
+        if r.depth_fused { ", depth fused" } else { "" },
+        r.compute_ms
+    );
+    let _ = writeln!(s, "\n rank  probability  log-density  quaternion (w, x, y, z)");
+    for (i, t) in r.top.iter().enumerate() {
+        let _ = writeln!(
+            s,
+            " {:>4}  {:>11.6}  {:>11.3}  {}",
+            i + 1,
+            t.probability,
+            t.log_density,
+            quaternion(&t.quaternion)
+        );
+    }
+    let _ = writeln!(s, "\n mode  probability  spread°  cells  mean quaternion");
+    for (i, m) in r.modes.iter().enumerate() {
+        let _ = writeln!(
+            s,
+            " {:>4}  {:>11.4}  {:>7.2}  {:>5}  {}",
+            i + 1,
+            m.probability,
+            m.spread_deg,
+            m.cells,
+            quaternion(&m.quaternion)
+        );
+    }
+    s
+}
+
+/// A Predict answer as JSON.
+pub fn predict_json(r: &PredictResponse) -> serde_json::Value {
+    let rot = |t: &crate::serve::proto::RotationProbability| {
+        serde_json::json!({
+            "quaternion": t.quaternion, "probability": t.probability,
+            "log_density": t.log_density, "level": t.level, "cell": t.cell,
+        })
+    };
+    serde_json::json!({
+        "model": r.model,
+        "object": r.object,
+        "top": r.top.iter().map(rot).collect::<Vec<_>>(),
+        "map": r.map.as_ref().map(rot),
+        "modes": r.modes.iter().map(|m| serde_json::json!({
+            "quaternion": m.quaternion, "probability": m.probability,
+            "spread_deg": m.spread_deg, "cells": m.cells,
+        })).collect::<Vec<_>>(),
+        "covered_mass": r.covered_mass,
+        "depth_fused": r.depth_fused,
+        "compute_ms": r.compute_ms,
+    })
+}
+
+/// Models as a table.
+pub fn models_table(models: &[ModelInfo]) -> String {
+    let mut s = String::new();
+    for m in models {
+        let t = m.training.clone().unwrap_or_default();
+        let _ = writeln!(
+            s,
+            "{}: input {}², full levels ≤ {}, search ≤ {}, {} ({} steps); eval LL {:.2} at level {}, \
+             spread {:.1}°, AR@30 {:.2}, median {:.1}°",
+            m.name,
+            m.input_size,
+            m.full_max_level,
+            m.search_max_level,
+            t.method,
+            t.steps,
+            t.log_likelihood,
+            t.eval_level,
+            t.spread_deg,
+            t.accuracy_at_30,
+            t.median_error_deg
+        );
+        for o in &m.objects {
+            let _ = writeln!(
+                s,
+                "  {} ({}, {} training images)",
+                o.name, o.symmetry, o.train_images
+            );
+        }
+    }
+    s
+}
