@@ -35,7 +35,11 @@ fn main() {
         let t0 = std::time::Instant::now();
         let modes = search.expert_modes(|r| {
             let t = baked.log_targets(&r_gt, &x0, r);
-            t.log_a_sdf.iter().zip(&t.log_a_se).map(|(a, b)| a + b).collect()
+            t.log_a_sdf
+                .iter()
+                .zip(&t.log_a_se)
+                .map(|(a, b)| a + b)
+                .collect()
         });
         let search_ms = t0.elapsed().as_secs_f64() * 1e3;
         let samples = sample_rotations(

@@ -10,8 +10,8 @@ use alignist::experts::SirenConfig;
 use alignist::experts::energy::EnergyParams;
 use alignist::experts::select::visible_points_at;
 use alignist::net::ResNetLayout;
-use alignist::so3::{GridLevel, haar_rotations};
 use alignist::net::images_tensor;
+use alignist::so3::{GridLevel, haar_rotations};
 use alignist::train::{
     MeasureLoss, Method, Network, NetworkConfig, SamplingStrategy, TrainConfig, TrainingImage,
     TrainingSet, train,

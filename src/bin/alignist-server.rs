@@ -23,7 +23,11 @@ struct Cli {
     #[arg(long, env = "ALIGNIST_LISTEN", default_value = "127.0.0.1:50051")]
     listen: SocketAddr,
     /// Prometheus metrics listen address ("off" to disable).
-    #[arg(long, env = "ALIGNIST_METRICS_LISTEN", default_value = "127.0.0.1:9100")]
+    #[arg(
+        long,
+        env = "ALIGNIST_METRICS_LISTEN",
+        default_value = "127.0.0.1:9100"
+    )]
     metrics_listen: String,
     /// Highest grid level served in full by PredictDistribution.
     #[arg(long, env = "ALIGNIST_MAX_LEVEL", default_value_t = 4)]

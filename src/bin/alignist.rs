@@ -13,7 +13,12 @@ use clap::{Args, Parser, Subcommand};
 #[command(name = "alignist", version, about, long_about = None)]
 struct Cli {
     /// Server URL.
-    #[arg(long, global = true, env = "ALIGNIST_SERVER", default_value = "http://127.0.0.1:50051")]
+    #[arg(
+        long,
+        global = true,
+        env = "ALIGNIST_SERVER",
+        default_value = "http://127.0.0.1:50051"
+    )]
     server: String,
     /// Seconds before a call gives up.
     #[arg(long, global = true, default_value_t = 60)]
@@ -129,7 +134,10 @@ async fn run(cli: Cli) -> Result<()> {
             };
             let answer = client::predict(channel, request).await?;
             if json {
-                println!("{}", serde_json::to_string_pretty(&client::predict_json(&answer))?);
+                println!(
+                    "{}",
+                    serde_json::to_string_pretty(&client::predict_json(&answer))?
+                );
             } else {
                 print!("{}", client::predict_table(&answer));
             }
@@ -162,7 +170,8 @@ async fn run(cli: Cli) -> Result<()> {
             for (i, (p, l)) in probs.iter().zip(&logs).enumerate() {
                 csv.push_str(&format!("{i},{p:e},{l}\n"));
             }
-            std::fs::write(&out, csv).with_context(|| format!("writing --out {}", out.display()))?;
+            std::fs::write(&out, csv)
+                .with_context(|| format!("writing --out {}", out.display()))?;
             let total: f64 = probs.iter().map(|&p| p as f64).sum();
             println!(
                 "level {level}: {} cells, total probability {total:.6}, written to {}",

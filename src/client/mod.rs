@@ -110,7 +110,11 @@ pub async fn distribution(
 /// ListModels.
 pub async fn models(channel: Channel) -> Result<Vec<ModelInfo>, ClientError> {
     let mut client = AlignistClient::new(channel);
-    Ok(client.list_models(ListModelsRequest {}).await?.into_inner().models)
+    Ok(client
+        .list_models(ListModelsRequest {})
+        .await?
+        .into_inner()
+        .models)
 }
 
 /// `grpc.health.v1` Check of `service` ("" for the whole server): the status's name.
@@ -151,7 +155,10 @@ pub fn predict_table(r: &PredictResponse) -> String {
         if r.depth_fused { ", depth fused" } else { "" },
         r.compute_ms
     );
-    let _ = writeln!(s, "\n rank  probability  log-density  quaternion (w, x, y, z)");
+    let _ = writeln!(
+        s,
+        "\n rank  probability  log-density  quaternion (w, x, y, z)"
+    );
     for (i, t) in r.top.iter().enumerate() {
         let _ = writeln!(
             s,

@@ -54,7 +54,11 @@ impl DepthFusion {
 
     /// Parses flattened camera-frame `xyz` (in the source mesh's units, relative to the object's
     /// centre) into normalised object units.
-    pub fn parse_points(&self, xyz: &[f32], max_points: usize) -> Result<Vec<Vector3<f32>>, EngineError> {
+    pub fn parse_points(
+        &self,
+        xyz: &[f32],
+        max_points: usize,
+    ) -> Result<Vec<Vector3<f32>>, EngineError> {
         let field = "depth.xyz";
         let invalid = |message: String| EngineError::InvalidArgument {
             field: field.into(),

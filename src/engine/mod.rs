@@ -294,7 +294,10 @@ impl Model {
             .swap_remove(0);
         if let Some((object, points)) = depth {
             let mats = self.grids[level as usize].matrices_f32();
-            for (l, d) in logits.iter_mut().zip(object.fusion.log_measure(points, &mats)) {
+            for (l, d) in logits
+                .iter_mut()
+                .zip(object.fusion.log_measure(points, &mats))
+            {
                 *l += d;
             }
         }
@@ -401,7 +404,10 @@ impl Model {
                 .collect();
             let mut logits = self.score_rotations(features, &mats);
             if let Some((object, points)) = depth {
-                for (l, d) in logits.iter_mut().zip(object.fusion.log_measure(points, &mats)) {
+                for (l, d) in logits
+                    .iter_mut()
+                    .zip(object.fusion.log_measure(points, &mats))
+                {
                     *l += d;
                 }
             }
@@ -410,7 +416,8 @@ impl Model {
         let grid = &self.grids[level as usize];
         let angle = options.mode_angle_deg.unwrap_or(15.0).to_radians();
         let modes = group_modes(grid, &result.cells, angle, 0.9, 0.01);
-        let top: Vec<CellProbability> = result.cells[..options.top_k.min(result.cells.len())].to_vec();
+        let top: Vec<CellProbability> =
+            result.cells[..options.top_k.min(result.cells.len())].to_vec();
         Ok(Prediction {
             rotations: top
                 .iter()

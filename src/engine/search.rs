@@ -69,7 +69,10 @@ pub fn coarse_to_fine(
             let kept = top_indices(&probs, keep);
             // `probs` already carry the mass kept so far: the kept ones' sum is the new cover.
             covered = kept.iter().map(|&j| probs[j]).sum::<f64>();
-            cells = kept.iter().flat_map(|&j| parent.children(cells[j])).collect();
+            cells = kept
+                .iter()
+                .flat_map(|&j| parent.children(cells[j]))
+                .collect();
         }
         let logits = score(grid, &cells);
         let lse = log_sum_exp(&logits);
@@ -111,7 +114,7 @@ pub struct Mode {
 /// Groups cells (most probable first) into modes: each cell joins the first mode whose seed (its
 /// most probable cell) is within `angle_rad`, or starts a new one. Only the cells that make up
 /// `mass_fraction` of the listed mass are grouped, and modes under `min_mass` of it are dropped,
-/// so that stray cells do not count as modes.
+/// so that stray cells do not count as modes (the most probable mode is always kept).
 pub fn group_modes(
     grid: &GridLevel,
     cells: &[CellProbability],
@@ -144,17 +147,25 @@ pub fn group_modes(
         .iter()
         .zip(&members)
         .map(|(seed, cells)| mode_of(seed, cells))
-        .filter(|m| m.probability >= min_mass * total)
         .collect();
     modes.sort_by(|a, b| b.probability.total_cmp(&a.probability));
-    modes
+    // The most probable mode is always reported (a flat distribution has one, wide mode).
+    let mut kept = modes.into_iter().enumerate();
+    kept.by_ref()
+        .filter(|(i, m)| *i == 0 || m.probability >= min_mass * total)
+        .map(|(_, m)| m)
+        .collect()
 }
 
 fn mode_of(seed: &[f64; 4], cells: &[([f64; 4], f64)]) -> Mode {
     let mut sum = [0.0f64; 4];
     let mut mass = 0.0;
     for (q, p) in cells {
-        let sign = if quaternion_dot(seed, q) < 0.0 { -1.0 } else { 1.0 };
+        let sign = if quaternion_dot(seed, q) < 0.0 {
+            -1.0
+        } else {
+            1.0
+        };
         for (s, v) in sum.iter_mut().zip(q) {
             *s += sign * p * v;
         }

@@ -151,7 +151,13 @@ fn record<T>(method: &'static str, started: Instant, result: &Result<T, Status>)
     let ms = started.elapsed().as_secs_f64() * 1e3;
     match result {
         Ok(_) => info!(method, code = code_name(code), ms, "done"),
-        Err(s) => warn!(method, code = code_name(code), ms, message = s.message(), "failed"),
+        Err(s) => warn!(
+            method,
+            code = code_name(code),
+            ms,
+            message = s.message(),
+            "failed"
+        ),
     }
 }
 

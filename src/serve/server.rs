@@ -114,7 +114,9 @@ pub async fn run(
     health
         .set_not_serving::<AlignistServer<AlignistService>>()
         .await;
-    health.set_service_status("", tonic_health::ServingStatus::NotServing).await;
+    health
+        .set_service_status("", tonic_health::ServingStatus::NotServing)
+        .await;
     let reflection = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(super::proto::FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
@@ -140,8 +142,12 @@ pub async fn run(
                 Ok(Ok(engine)) => {
                     info!(models = ?engine.names(), "models loaded");
                     state.install(Served::new(engine, batch));
-                    health.set_serving::<AlignistServer<AlignistService>>().await;
-                    health.set_service_status("", tonic_health::ServingStatus::Serving).await;
+                    health
+                        .set_serving::<AlignistServer<AlignistService>>()
+                        .await;
+                    health
+                        .set_service_status("", tonic_health::ServingStatus::Serving)
+                        .await;
                     Ok(())
                 }
                 Ok(Err(e)) => Err(ServeError::Models {
@@ -184,11 +190,16 @@ pub async fn run(
             _ = &mut shutdown => break,
         }
     }
-    info!(timeout_s = config.drain_timeout.as_secs_f64(), "shutdown: draining in-flight calls");
+    info!(
+        timeout_s = config.drain_timeout.as_secs_f64(),
+        "shutdown: draining in-flight calls"
+    );
     health
         .set_not_serving::<AlignistServer<AlignistService>>()
         .await;
-    health.set_service_status("", tonic_health::ServingStatus::NotServing).await;
+    health
+        .set_service_status("", tonic_health::ServingStatus::NotServing)
+        .await;
     let _ = stop_accepting.send(());
     match tokio::time::timeout(config.drain_timeout, &mut server).await {
         Ok(result) => {

@@ -8,9 +8,8 @@ use nalgebra::Rotation3;
 use serde::{Deserialize, Serialize};
 
 use crate::net::{Network, NetworkConfig, ProjectedGrid, images_tensor};
-use crate::so3::metrics::{ImageMetrics, MetricsSummary, image_metrics, summarize};
 use crate::so3::So3Error;
-
+use crate::so3::metrics::{ImageMetrics, MetricsSummary, image_metrics, summarize};
 
 /// A test image: crop and every equivalent ground truth.
 #[derive(Debug, Clone)]

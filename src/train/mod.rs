@@ -7,8 +7,8 @@ pub mod eval;
 pub mod sampling;
 pub mod trainer;
 
-pub use sampling::{ExpertModes, ModeSearch, SamplingStrategy, sample_rotations};
 pub use crate::net::{Network, NetworkConfig};
+pub use sampling::{ExpertModes, ModeSearch, SamplingStrategy, sample_rotations};
 pub use trainer::{
     MeasureLoss, Method, TrainConfig, TrainReport, TrainingImage, TrainingSet, train,
 };

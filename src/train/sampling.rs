@@ -88,7 +88,10 @@ impl ModeSearch {
     /// Coarse-to-fine search of the measure `log_measure` (log-weights of a batch of row-major
     /// rotations): the coarse level in full, then the children of the best `keep` cells of each
     /// level. Returns the best `keep` cells of the fine level.
-    pub fn expert_modes(&self, mut log_measure: impl FnMut(&[[f32; 9]]) -> Vec<f32>) -> ExpertModes {
+    pub fn expert_modes(
+        &self,
+        mut log_measure: impl FnMut(&[[f32; 9]]) -> Vec<f32>,
+    ) -> ExpertModes {
         let mut cells: Vec<u64> = (0..self.grids[0].len() as u64).collect();
         let mut weights = log_measure(&self.coarse_cells);
         for (parent, grid) in self.grids.iter().zip(&self.grids[1..]) {

@@ -150,9 +150,13 @@ fn sample_image(
             });
             sample_rotations(sampling, config.k, &im.rotation, modes, rng)
         }
-        Method::Ipdf => {
-            sample_rotations(&SamplingStrategy::Uniform, config.k, &im.rotation, None, rng)
-        }
+        Method::Ipdf => sample_rotations(
+            &SamplingStrategy::Uniform,
+            config.k,
+            &im.rotation,
+            None,
+            rng,
+        ),
     };
     let mats: Vec<[f32; 9]> = samples.iter().map(to_row_major_f32).collect();
     let targets = match config.method {
@@ -230,13 +234,8 @@ pub fn train(
     };
     let mut modes_cache: Vec<Option<ExpertModes>> = vec![None; set.images.len()];
     if start == 0 && matches!(config.method, Method::Alignist { .. }) {
-        let (sdf, se) = mean_log_targets(
-            config,
-            set,
-            config.batch,
-            search.as_ref(),
-            &mut modes_cache,
-        );
+        let (sdf, se) =
+            mean_log_targets(config, set, config.batch, search.as_ref(), &mut modes_cache);
         network.head = network.head.with_output_biases(sdf, se);
     }
     let size = config.network.image_size as usize;

@@ -114,7 +114,14 @@ pub fn plot_distribution(
         let (axis, tilt) = axis_and_tilt(&to_rotation(gt));
         let (x, y) = mollweide(axis.y.atan2(axis.x), axis.z.clamp(-1.0, 1.0).asin());
         let (cx, cy) = to_pixel(x, y);
-        disc(&mut img, cx, cy, max_radius * 1.4, max_radius * 1.1, hue(tilt));
+        disc(
+            &mut img,
+            cx,
+            cy,
+            max_radius * 1.4,
+            max_radius * 1.1,
+            hue(tilt),
+        );
     }
     img
 }

@@ -1,0 +1,815 @@
+//! The engine and the gRPC service over real loopback: a tiny bundle is made with the trainer's
+//! CLI (render → experts → fit), then `alignist-server` is started as a process on ephemeral
+//! ports and called with the generated client, health, reflection, Prometheus and signals.
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::OnceLock;
+use std::time::{Duration, Instant};
+
+use alignist::cad::{Camera, RenderOptions, Shape, render};
+use alignist::engine::{Engine, EngineConfig, ImageRequest, PredictOptions};
+use alignist::serve::proto::alignist_client::AlignistClient;
+use alignist::serve::proto::{
+    CropBox, DepthPoints, DistributionRequest, GetModelRequest, ImageInput, ListModelsRequest,
+    PredictRequest,
+};
+use alignist::so3::haar_rotations;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use tonic::Code;
+use tonic::transport::Channel;
+
+const SIZE: u32 = 32;
+
+fn train(args: &[&str]) {
+    let out = Command::new(env!("CARGO_BIN_EXE_alignist-train"))
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// A models directory with one tiny trained bundle, `tiny`, made once per test binary.
+fn models_dir() -> &'static Path {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let root = tempfile::tempdir().unwrap().keep();
+        let s = |p: &Path| p.to_str().unwrap().to_string();
+        let data = root.join("cube_data");
+        let experts = root.join("cube_experts");
+        let models = root.join("models");
+        train(&[
+            "render",
+            "--shape",
+            "cube",
+            "--count",
+            "8",
+            "--size",
+            "32",
+            "--seed",
+            "1",
+            "--out",
+            &s(&data),
+        ]);
+        train(&[
+            "experts",
+            "--shape",
+            "cube",
+            "--steps",
+            "20",
+            "--feature-steps",
+            "4",
+            "--images",
+            "2",
+            "--bake-resolution",
+            "16",
+            "--out",
+            &s(&experts),
+        ]);
+        train(&[
+            "fit",
+            "--data",
+            &s(&data),
+            "--experts",
+            &s(&experts),
+            "--out",
+            &s(&models.join("tiny")),
+            "--steps",
+            "3",
+            "--batch",
+            "2",
+            "--k",
+            "32",
+            "--image-size",
+            "32",
+            "--eval-images",
+            "0",
+        ]);
+        models
+    })
+}
+
+/// PNG bytes of a cube render at a random rotation.
+fn cube_png(seed: u64) -> Vec<u8> {
+    let r = haar_rotations(&mut ChaCha8Rng::seed_from_u64(seed), 1)[0];
+    let rgb = render(
+        &Shape::Cube.mesh(),
+        &Camera::square(SIZE),
+        &alignist::data::symsol_pose(r),
+        &RenderOptions::default(),
+    )
+    .rgb;
+    let mut png = Vec::new();
+    image::RgbImage::from_raw(SIZE, SIZE, rgb)
+        .unwrap()
+        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+        .unwrap();
+    png
+}
+
+fn image(png: Vec<u8>) -> Option<ImageInput> {
+    Some(ImageInput {
+        data: png,
+        ..Default::default()
+    })
+}
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+struct Server {
+    child: Child,
+    grpc: String,
+    metrics: String,
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn start_server(extra: &[&str]) -> Server {
+    let metrics = format!("127.0.0.1:{}", free_port());
+    let mut child = Command::new(env!("CARGO_BIN_EXE_alignist-server"))
+        .args([
+            "--models",
+            models_dir().to_str().unwrap(),
+            "--listen",
+            "127.0.0.1:0",
+            "--metrics-listen",
+            &metrics,
+            "--max-level",
+            "3",
+        ])
+        .args(extra)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    let addr = line
+        .trim()
+        .strip_prefix("listening on ")
+        .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
+        .to_string();
+    Server {
+        child,
+        grpc: format!("http://{addr}"),
+        metrics: format!("http://{metrics}/metrics"),
+    }
+}
+
+async fn channel(server: &Server) -> Channel {
+    Channel::from_shared(server.grpc.clone())
+        .unwrap()
+        .connect()
+        .await
+        .unwrap()
+}
+
+async fn health(channel: Channel) -> i32 {
+    let mut h = tonic_health::pb::health_client::HealthClient::new(channel);
+    h.check(tonic_health::pb::HealthCheckRequest {
+        service: "alignist.v1.Alignist".into(),
+    })
+    .await
+    .unwrap()
+    .into_inner()
+    .status
+}
+
+/// Waits until health says SERVING (models loaded).
+async fn wait_serving(channel: Channel) {
+    let serving = tonic_health::pb::health_check_response::ServingStatus::Serving as i32;
+    let start = Instant::now();
+    while health(channel.clone()).await != serving {
+        assert!(start.elapsed() < Duration::from_secs(120), "never SERVING");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+fn predict_request(seed: u64, top_k: u32, level: u32) -> PredictRequest {
+    PredictRequest {
+        model: "tiny".into(),
+        image: image(cube_png(seed)),
+        top_k,
+        level,
+        ..Default::default()
+    }
+}
+
+/// Sum of the samples of `name` whose labels include every one of `labels`.
+fn metric(text: &str, name: &str, labels: &[&str]) -> f64 {
+    text.lines()
+        .filter(|l| {
+            !l.starts_with('#')
+                && (l.starts_with(&format!("{name} ")) || l.starts_with(&format!("{name}{{")))
+                && labels.iter().all(|lab| l.contains(lab))
+        })
+        .filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
+        .sum()
+}
+
+#[test]
+fn coarse_to_fine_top1_is_the_exhaustive_argmax_at_level_4() {
+    let engine = Engine::load_dir(models_dir(), EngineConfig::default()).unwrap();
+    let model = engine.model("tiny").unwrap();
+    for seed in 0..3 {
+        let png = cube_png(100 + seed);
+        let crop = model
+            .prepare(&ImageRequest {
+                data: &png,
+                raw_size: None,
+                crop: None,
+            })
+            .unwrap();
+        let features = model.features(&[&crop]);
+        let full = model.distribution(&features, 4, None).unwrap();
+        let total: f64 = full.probability.iter().map(|&p| p as f64).sum();
+        assert!((total - 1.0).abs() < 1e-4, "{total}");
+        let argmax = (0..full.probability.len())
+            .max_by(|&a, &b| full.probability[a].total_cmp(&full.probability[b]))
+            .unwrap() as u64;
+        let options = PredictOptions {
+            top_k: 5,
+            level: Some(4),
+            mode_angle_deg: None,
+        };
+        let p = model.predict(&features, &options, None).unwrap();
+        assert_eq!(p.top[0].cell, argmax, "seed {seed}");
+        // The search's probabilities are those of the full distribution, rescaled by the mass it
+        // kept; with 512 cells kept per level it keeps nearly all of it.
+        let exact = full.probability[argmax as usize] as f64;
+        assert!(
+            (p.top[0].probability - exact).abs() <= 0.02 * exact + 1e-9,
+            "{} vs {exact}",
+            p.top[0].probability
+        );
+        assert!(p.covered_mass > 0.0 && p.covered_mass <= 1.0 + 1e-9);
+    }
+}
+
+#[test]
+fn depth_points_from_the_true_pose_sharpen_the_distribution() {
+    let engine = Engine::load_dir(models_dir(), EngineConfig::default()).unwrap();
+    let model = engine.model("tiny").unwrap();
+    let object = model.object("cube").unwrap();
+    let r = haar_rotations(&mut ChaCha8Rng::seed_from_u64(7), 1)[0];
+    // Visible surface points in the camera frame, relative to the object's centre.
+    let x0 = alignist::experts::select::visible_points_at(&object.fusion.experts().mesh, &r, 7);
+    let xyz: Vec<f32> = x0
+        .iter()
+        .flat_map(|p| {
+            let q = r.matrix().cast::<f32>() * p;
+            [q.x, q.y, q.z]
+        })
+        .collect();
+    let points = object.fusion.parse_points(&xyz, 10_000).unwrap();
+    let png = cube_png(7);
+    let crop = model
+        .prepare(&ImageRequest {
+            data: &png,
+            raw_size: None,
+            crop: None,
+        })
+        .unwrap();
+    let features = model.features(&[&crop]);
+    let grid = model.grid(3).unwrap();
+    let gts = alignist::so3::equivalents(&r, &Shape::Cube.symmetries());
+    let mass_near = |probs: &[f32]| -> f64 {
+        let centres = grid.quaternions();
+        probs
+            .iter()
+            .zip(&centres)
+            .filter(|(_, q)| {
+                gts.iter().any(|g| {
+                    alignist::so3::quaternion_angle(q, &alignist::so3::to_quaternion(g))
+                        < 20f64.to_radians()
+                })
+            })
+            .map(|(&p, _)| p as f64)
+            .sum()
+    };
+    let plain = model.distribution(&features, 3, None).unwrap();
+    let fused = model
+        .distribution(&features, 3, Some((object, &points)))
+        .unwrap();
+    let (before, after) = (mass_near(&plain.probability), mass_near(&fused.probability));
+    assert!(after > 2.0 * before && after > 0.3, "{before} → {after}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn serves_predict_distribution_models_health_and_reflection() {
+    let server = start_server(&[]);
+    let ch = channel(&server).await;
+    wait_serving(ch.clone()).await;
+    let mut client = AlignistClient::new(ch.clone());
+
+    let answer = client
+        .predict(predict_request(3, 10, 3))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(answer.top.len(), 10);
+    assert_eq!(answer.map.as_ref().unwrap(), &answer.top[0]);
+    assert!(!answer.modes.is_empty());
+    for w in answer.top.windows(2) {
+        assert!(w[0].probability >= w[1].probability);
+    }
+
+    let mut stream = client
+        .predict_distribution(DistributionRequest {
+            model: "tiny".into(),
+            image: image(cube_png(3)),
+            level: 3,
+            chunk_size: 10_000,
+            ..Default::default()
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let mut probs = Vec::new();
+    let mut chunks = 0;
+    while let Some(c) = stream.message().await.unwrap() {
+        assert_eq!(c.offset as usize, probs.len());
+        assert_eq!(c.total_cells, 36_864);
+        probs.extend(c.probability);
+        chunks += 1;
+    }
+    assert_eq!(probs.len(), 36_864);
+    assert_eq!(chunks, 4);
+    let total: f64 = probs.iter().map(|&p| p as f64).sum();
+    assert!((total - 1.0).abs() < 1e-4, "{total}");
+    // Predict's top-k is the top-k of the full distribution at the same level.
+    let mut order: Vec<usize> = (0..probs.len()).collect();
+    order.sort_by(|&a, &b| probs[b].total_cmp(&probs[a]));
+    // Same cells; the order may differ only between cells whose probabilities tie to 1e-3 (the
+    // search scores its finer level's children afresh, the full grid from precomputed layers).
+    let mut top: Vec<u64> = answer.top.iter().map(|t| t.cell).collect();
+    for (i, t) in answer.top.iter().enumerate() {
+        let in_full = probs[t.cell as usize] as f64;
+        let rank_i = probs[order[i]] as f64;
+        assert!(
+            (in_full - rank_i).abs() <= 1e-3 * rank_i,
+            "rank {i}: {in_full} vs {rank_i}"
+        );
+        assert!(
+            (t.probability - in_full).abs() <= 0.02 * in_full,
+            "{} vs {in_full}",
+            t.probability
+        );
+    }
+    let mut full_top: Vec<u64> = order[..10].iter().map(|&i| i as u64).collect();
+    top.sort();
+    full_top.sort();
+    assert_eq!(top, full_top);
+
+    let models = client
+        .list_models(ListModelsRequest {})
+        .await
+        .unwrap()
+        .into_inner()
+        .models;
+    assert_eq!(models.len(), 1);
+    assert_eq!(models[0].name, "tiny");
+    assert_eq!(models[0].objects[0].name, "cube");
+    assert_eq!(models[0].input_size, 32);
+    let one = client
+        .get_model(GetModelRequest {
+            name: "tiny".into(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    // (NaN figures of an unevaluated bundle do not compare equal, so field by field.)
+    assert_eq!(one.name, models[0].name);
+    assert_eq!(one.objects, models[0].objects);
+    assert_eq!(one.network_sha256, models[0].network_sha256);
+    assert_eq!(one.network_sha256.len(), 64);
+    let training = one.training.unwrap();
+    assert_eq!(training.steps, 3);
+    assert!(training.command.contains("fit") && training.log_likelihood.is_nan());
+
+    // Reflection lists the service, so grpcurl and Postman can call it.
+    use tonic_reflection::pb::v1::server_reflection_client::ServerReflectionClient;
+    use tonic_reflection::pb::v1::server_reflection_request::MessageRequest;
+    use tonic_reflection::pb::v1::server_reflection_response::MessageResponse;
+    let mut reflection = ServerReflectionClient::new(ch.clone());
+    let request = tonic_reflection::pb::v1::ServerReflectionRequest {
+        host: String::new(),
+        message_request: Some(MessageRequest::ListServices(String::new())),
+    };
+    let mut answers = reflection
+        .server_reflection_info(tokio_stream::iter(vec![request]))
+        .await
+        .unwrap()
+        .into_inner();
+    let first = answers.message().await.unwrap().unwrap();
+    let Some(MessageResponse::ListServicesResponse(list)) = first.message_response else {
+        panic!("{first:?}")
+    };
+    let names: Vec<String> = list.service.into_iter().map(|s| s.name).collect();
+    assert!(
+        names.contains(&"alignist.v1.Alignist".to_string()),
+        "{names:?}"
+    );
+    assert!(
+        names.contains(&"grpc.health.v1.Health".to_string()),
+        "{names:?}"
+    );
+
+    // The CLI client against the same server.
+    let dir = tempfile::tempdir().unwrap();
+    let png = dir.path().join("cube.png");
+    std::fs::write(&png, cube_png(3)).unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_alignist"))
+        .args(["--server", &server.grpc, "predict", "--image"])
+        .arg(&png)
+        .args(["--top-k", "3", "--json", "--plot"])
+        .arg(dir.path().join("plot.png"))
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(json["top"].as_array().unwrap().len(), 3);
+    assert!(image::open(dir.path().join("plot.png")).is_ok());
+    let out = Command::new(env!("CARGO_BIN_EXE_alignist"))
+        .args(["--server", &server.grpc, "health"])
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    assert_eq!(String::from_utf8_lossy(&out.stdout).trim(), "Serving");
+    let out = Command::new(env!("CARGO_BIN_EXE_alignist"))
+        .args([
+            "--server",
+            &server.grpc,
+            "predict",
+            "--model",
+            "nope",
+            "--image",
+        ])
+        .arg(&png)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("NotFound") && err.contains("nope"), "{err}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn bad_input_gets_its_status_code_and_the_server_keeps_serving() {
+    let server = start_server(&[
+        "--max-image-bytes",
+        "200000",
+        "--max-image-pixels",
+        "250000",
+    ]);
+    let ch = channel(&server).await;
+    wait_serving(ch.clone()).await;
+    let mut client = AlignistClient::new(ch.clone());
+    let ok = || predict_request(5, 3, 3);
+    let big_png = {
+        let mut png = Vec::new();
+        image::RgbImage::new(600, 600)
+            .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+            .unwrap();
+        png
+    };
+    let cases: Vec<(&str, PredictRequest, Code, &str)> = vec![
+        (
+            "not an image",
+            PredictRequest {
+                image: image(b"definitely not a png".to_vec()),
+                ..ok()
+            },
+            Code::InvalidArgument,
+            "image.data",
+        ),
+        (
+            "empty",
+            PredictRequest {
+                image: image(Vec::new()),
+                ..ok()
+            },
+            Code::InvalidArgument,
+            "image.data",
+        ),
+        (
+            "no image",
+            PredictRequest {
+                image: None,
+                ..ok()
+            },
+            Code::InvalidArgument,
+            "image",
+        ),
+        (
+            "too many bytes",
+            PredictRequest {
+                image: image(vec![0u8; 300_000]),
+                ..ok()
+            },
+            Code::ResourceExhausted,
+            "image.data",
+        ),
+        (
+            "too many pixels",
+            PredictRequest {
+                image: image(big_png),
+                ..ok()
+            },
+            Code::ResourceExhausted,
+            "pixels",
+        ),
+        (
+            "raw of the wrong length",
+            PredictRequest {
+                image: Some(ImageInput {
+                    data: vec![0; 10],
+                    width: 4,
+                    height: 4,
+                    crop: None,
+                }),
+                ..ok()
+            },
+            Code::InvalidArgument,
+            "raw RGB8",
+        ),
+        (
+            "crop outside",
+            PredictRequest {
+                image: Some(ImageInput {
+                    data: cube_png(5),
+                    crop: Some(CropBox {
+                        x: 20,
+                        y: 0,
+                        width: 20,
+                        height: 10,
+                    }),
+                    ..Default::default()
+                }),
+                ..ok()
+            },
+            Code::InvalidArgument,
+            "image.crop",
+        ),
+        (
+            "unknown model",
+            PredictRequest {
+                model: "nope".into(),
+                ..ok()
+            },
+            Code::NotFound,
+            "nope",
+        ),
+        (
+            "unknown object",
+            PredictRequest {
+                object: "teapot".into(),
+                ..ok()
+            },
+            Code::NotFound,
+            "teapot",
+        ),
+        (
+            "k = 0",
+            PredictRequest { top_k: 0, ..ok() },
+            Code::InvalidArgument,
+            "top_k",
+        ),
+        (
+            "k above the grid",
+            PredictRequest {
+                top_k: 1_000_000,
+                level: 1,
+                ..ok()
+            },
+            Code::InvalidArgument,
+            "top_k",
+        ),
+        (
+            "level above the maximum",
+            PredictRequest { level: 7, ..ok() },
+            Code::InvalidArgument,
+            "level",
+        ),
+        (
+            "malformed depth",
+            PredictRequest {
+                depth: Some(DepthPoints {
+                    xyz: vec![0.1, 0.2],
+                }),
+                ..ok()
+            },
+            Code::InvalidArgument,
+            "depth.xyz",
+        ),
+        (
+            "depth not finite",
+            PredictRequest {
+                depth: Some(DepthPoints {
+                    xyz: vec![0.1, f32::NAN, 0.3],
+                }),
+                ..ok()
+            },
+            Code::InvalidArgument,
+            "depth.xyz",
+        ),
+    ];
+    for (name, request, code, field) in cases {
+        let status = client.predict(request).await.expect_err(name);
+        assert_eq!(status.code(), code, "{name}: {}", status.message());
+        assert!(
+            status.message().contains(field),
+            "{name}: message {:?} does not name {field}",
+            status.message()
+        );
+    }
+    let status = client
+        .predict_distribution(DistributionRequest {
+            model: "tiny".into(),
+            image: image(cube_png(5)),
+            level: 4,
+            ..Default::default()
+        })
+        .await
+        .expect_err("level above --max-level");
+    assert_eq!(status.code(), Code::InvalidArgument);
+    assert!(status.message().contains("level"));
+    let status = client
+        .get_model(GetModelRequest {
+            name: "nope".into(),
+        })
+        .await
+        .expect_err("unknown model");
+    assert_eq!(status.code(), Code::NotFound);
+    // Still serving.
+    let answer = client.predict(ok()).await.unwrap().into_inner();
+    assert_eq!(answer.top.len(), 3);
+    let text = reqwest_metrics(&server.metrics).await;
+    assert!(
+        metric(
+            &text,
+            "alignist_requests_total",
+            &["method=\"Predict\"", "code=\"INVALID_ARGUMENT\""]
+        ) >= 8.0,
+        "{text}"
+    );
+}
+
+/// GET of the Prometheus endpoint, with a plain HTTP/1.0 request (no client library needed).
+async fn reqwest_metrics(url: &str) -> String {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let rest = url.strip_prefix("http://").unwrap();
+    let (host, path) = rest.split_once('/').unwrap();
+    let mut stream = tokio::net::TcpStream::connect(host).await.unwrap();
+    stream
+        .write_all(format!("GET /{path} HTTP/1.0\r\nHost: {host}\r\n\r\n").as_bytes())
+        .await
+        .unwrap();
+    let mut body = String::new();
+    stream.read_to_string(&mut body).await.unwrap();
+    body
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn concurrent_requests_are_batched() {
+    let server = start_server(&["--max-batch", "16", "--max-delay-ms", "20"]);
+    let ch = channel(&server).await;
+    wait_serving(ch.clone()).await;
+    let png = cube_png(11);
+    let calls = (0..200).map(|_| {
+        let mut client = AlignistClient::new(ch.clone());
+        let request = PredictRequest {
+            model: "tiny".into(),
+            image: image(png.clone()),
+            top_k: 1,
+            level: 2,
+            ..Default::default()
+        };
+        tokio::spawn(async move { client.predict(request).await.map(|r| r.into_inner()) })
+    });
+    let results = futures_join(calls).await;
+    assert_eq!(results.len(), 200);
+    let first = results[0].as_ref().unwrap().top[0].cell;
+    for r in &results {
+        assert_eq!(r.as_ref().unwrap().top[0].cell, first);
+    }
+    let text = reqwest_metrics(&server.metrics).await;
+    let batches = metric(&text, "alignist_batches_total", &[]);
+    let images = metric(&text, "alignist_batched_images_total", &[]);
+    assert!(images >= 200.0, "{text}");
+    assert!(
+        images / batches > 1.0,
+        "{images} images in {batches} batches: no batching"
+    );
+}
+
+async fn futures_join<T>(handles: impl Iterator<Item = tokio::task::JoinHandle<T>>) -> Vec<T> {
+    let mut out = Vec::new();
+    for h in handles.collect::<Vec<_>>() {
+        out.push(h.await.unwrap());
+    }
+    out
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn sigterm_drains_accepted_calls_and_exits_0() {
+    let mut server = start_server(&["--max-batch", "4"]);
+    let ch = channel(&server).await;
+    wait_serving(ch.clone()).await;
+    let png = cube_png(12);
+    let calls: Vec<_> = (0..24)
+        .map(|_| {
+            let mut client = AlignistClient::new(ch.clone());
+            let request = PredictRequest {
+                model: "tiny".into(),
+                image: image(png.clone()),
+                top_k: 5,
+                level: 5,
+                ..Default::default()
+            };
+            tokio::spawn(async move { client.predict(request).await })
+        })
+        .collect();
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let pid = server.child.id().to_string();
+    assert!(
+        Command::new("kill")
+            .args(["-TERM", &pid])
+            .status()
+            .unwrap()
+            .success()
+    );
+    for call in calls {
+        let answer = call.await.unwrap();
+        assert!(answer.is_ok(), "{answer:?}");
+    }
+    let status = server.child.wait().unwrap();
+    assert_eq!(status.code(), Some(0));
+}
+
+#[test]
+fn modes_of_a_tetrahedral_distribution_are_its_12_equivalents() {
+    use alignist::engine::{CellProbability, group_modes};
+    use alignist::so3::{GridLevel, SymmetryGroup, equivalents, quaternion_angle, to_quaternion};
+    let grid = GridLevel::new(3).unwrap();
+    let r = haar_rotations(&mut ChaCha8Rng::seed_from_u64(5), 1)[0];
+    let gts = equivalents(&r, &SymmetryGroup::Tetrahedral.rotations());
+    // Mass ∝ exp(−angle²/2σ²) to the nearest equivalent (σ = 4°), on every cell.
+    let quats: Vec<[f64; 4]> = grid.quaternions();
+    let gq: Vec<[f64; 4]> = gts.iter().map(to_quaternion).collect();
+    let mut cells: Vec<CellProbability> = quats
+        .iter()
+        .enumerate()
+        .map(|(i, q)| {
+            let a = gq
+                .iter()
+                .map(|g| quaternion_angle(q, g))
+                .fold(f64::MAX, f64::min);
+            CellProbability {
+                level: 3,
+                cell: i as u64,
+                probability: (-(a / 4f64.to_radians()).powi(2) / 2.0).exp(),
+                log_density: 0.0,
+            }
+        })
+        .collect();
+    let total: f64 = cells.iter().map(|c| c.probability).sum();
+    cells.iter_mut().for_each(|c| c.probability /= total);
+    cells.sort_by(|a, b| b.probability.total_cmp(&a.probability));
+    let modes = group_modes(&grid, &cells, 15f64.to_radians(), 0.9, 0.01);
+    assert_eq!(modes.len(), 12);
+    for m in &modes {
+        let nearest = gq
+            .iter()
+            .map(|g| quaternion_angle(&m.quaternion, g))
+            .fold(f64::MAX, f64::min);
+        assert!(nearest.to_degrees() < 3.0, "{}", nearest.to_degrees());
+        assert!(
+            (m.probability - 0.9 / 12.0).abs() < 0.03,
+            "{}",
+            m.probability
+        );
+    }
+}
