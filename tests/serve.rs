@@ -2,13 +2,12 @@
 //! CLI (render → experts → fit), then `alignist-server` is started as a process on ephemeral
 //! ports and called with the generated client, health, reflection, Prometheus and signals.
 
-use std::io::{BufRead, BufReader};
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
-use std::sync::OnceLock;
-use std::time::{Duration, Instant};
+mod common;
 
-use alignist::cad::{Camera, RenderOptions, Shape, render};
+use std::process::Command;
+use std::time::Duration;
+
+use alignist::cad::Shape;
 use alignist::engine::{Engine, EngineConfig, ImageRequest, PredictOptions};
 use alignist::serve::proto::alignist_client::AlignistClient;
 use alignist::serve::proto::{
@@ -16,215 +15,10 @@ use alignist::serve::proto::{
     PredictRequest,
 };
 use alignist::so3::haar_rotations;
+use common::*;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use tonic::Code;
-use tonic::transport::Channel;
-
-const SIZE: u32 = 32;
-
-fn train(args: &[&str]) {
-    let out = Command::new(env!("CARGO_BIN_EXE_alignist-train"))
-        .args(args)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{args:?}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
-
-/// A models directory with one tiny trained bundle, `tiny`, made once per test binary.
-fn models_dir() -> &'static Path {
-    static DIR: OnceLock<PathBuf> = OnceLock::new();
-    DIR.get_or_init(|| {
-        let root = tempfile::tempdir().unwrap().keep();
-        let s = |p: &Path| p.to_str().unwrap().to_string();
-        let data = root.join("cube_data");
-        let experts = root.join("cube_experts");
-        let models = root.join("models");
-        train(&[
-            "render",
-            "--shape",
-            "cube",
-            "--count",
-            "8",
-            "--size",
-            "32",
-            "--seed",
-            "1",
-            "--out",
-            &s(&data),
-        ]);
-        train(&[
-            "experts",
-            "--shape",
-            "cube",
-            "--steps",
-            "20",
-            "--feature-steps",
-            "4",
-            "--images",
-            "2",
-            "--bake-resolution",
-            "16",
-            "--out",
-            &s(&experts),
-        ]);
-        train(&[
-            "fit",
-            "--data",
-            &s(&data),
-            "--experts",
-            &s(&experts),
-            "--out",
-            &s(&models.join("tiny")),
-            "--steps",
-            "3",
-            "--batch",
-            "2",
-            "--k",
-            "32",
-            "--image-size",
-            "32",
-            "--eval-images",
-            "0",
-        ]);
-        models
-    })
-}
-
-/// PNG bytes of a cube render at a random rotation.
-fn cube_png(seed: u64) -> Vec<u8> {
-    let r = haar_rotations(&mut ChaCha8Rng::seed_from_u64(seed), 1)[0];
-    let rgb = render(
-        &Shape::Cube.mesh(),
-        &Camera::square(SIZE),
-        &alignist::data::symsol_pose(r),
-        &RenderOptions::default(),
-    )
-    .rgb;
-    let mut png = Vec::new();
-    image::RgbImage::from_raw(SIZE, SIZE, rgb)
-        .unwrap()
-        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
-        .unwrap();
-    png
-}
-
-fn image(png: Vec<u8>) -> Option<ImageInput> {
-    Some(ImageInput {
-        data: png,
-        ..Default::default()
-    })
-}
-
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-struct Server {
-    child: Child,
-    grpc: String,
-    metrics: String,
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-fn start_server(extra: &[&str]) -> Server {
-    let metrics = format!("127.0.0.1:{}", free_port());
-    let mut child = Command::new(env!("CARGO_BIN_EXE_alignist-server"))
-        .args([
-            "--models",
-            models_dir().to_str().unwrap(),
-            "--listen",
-            "127.0.0.1:0",
-            "--metrics-listen",
-            &metrics,
-            "--max-level",
-            "3",
-        ])
-        .args(extra)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let addr = line
-        .trim()
-        .strip_prefix("listening on ")
-        .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
-        .to_string();
-    Server {
-        child,
-        grpc: format!("http://{addr}"),
-        metrics: format!("http://{metrics}/metrics"),
-    }
-}
-
-async fn channel(server: &Server) -> Channel {
-    Channel::from_shared(server.grpc.clone())
-        .unwrap()
-        .connect()
-        .await
-        .unwrap()
-}
-
-async fn health(channel: Channel) -> i32 {
-    let mut h = tonic_health::pb::health_client::HealthClient::new(channel);
-    h.check(tonic_health::pb::HealthCheckRequest {
-        service: "alignist.v1.Alignist".into(),
-    })
-    .await
-    .unwrap()
-    .into_inner()
-    .status
-}
-
-/// Waits until health says SERVING (models loaded).
-async fn wait_serving(channel: Channel) {
-    let serving = tonic_health::pb::health_check_response::ServingStatus::Serving as i32;
-    let start = Instant::now();
-    while health(channel.clone()).await != serving {
-        assert!(start.elapsed() < Duration::from_secs(120), "never SERVING");
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
-}
-
-fn predict_request(seed: u64, top_k: u32, level: u32) -> PredictRequest {
-    PredictRequest {
-        model: "tiny".into(),
-        image: image(cube_png(seed)),
-        top_k,
-        level,
-        ..Default::default()
-    }
-}
-
-/// Sum of the samples of `name` whose labels include every one of `labels`.
-fn metric(text: &str, name: &str, labels: &[&str]) -> f64 {
-    text.lines()
-        .filter(|l| {
-            !l.starts_with('#')
-                && (l.starts_with(&format!("{name} ")) || l.starts_with(&format!("{name}{{")))
-                && labels.iter().all(|lab| l.contains(lab))
-        })
-        .filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
-        .sum()
-}
 
 #[test]
 fn coarse_to_fine_top1_is_the_exhaustive_argmax_at_level_4() {
@@ -666,7 +460,7 @@ async fn bad_input_gets_its_status_code_and_the_server_keeps_serving() {
     // Still serving.
     let answer = client.predict(ok()).await.unwrap().into_inner();
     assert_eq!(answer.top.len(), 3);
-    let text = reqwest_metrics(&server.metrics).await;
+    let text = common::http_get(&server.metrics).await;
     assert!(
         metric(
             &text,
@@ -675,21 +469,6 @@ async fn bad_input_gets_its_status_code_and_the_server_keeps_serving() {
         ) >= 8.0,
         "{text}"
     );
-}
-
-/// GET of the Prometheus endpoint, with a plain HTTP/1.0 request (no client library needed).
-async fn reqwest_metrics(url: &str) -> String {
-    use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    let rest = url.strip_prefix("http://").unwrap();
-    let (host, path) = rest.split_once('/').unwrap();
-    let mut stream = tokio::net::TcpStream::connect(host).await.unwrap();
-    stream
-        .write_all(format!("GET /{path} HTTP/1.0\r\nHost: {host}\r\n\r\n").as_bytes())
-        .await
-        .unwrap();
-    let mut body = String::new();
-    stream.read_to_string(&mut body).await.unwrap();
-    body
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
@@ -715,7 +494,7 @@ async fn concurrent_requests_are_batched() {
     for r in &results {
         assert_eq!(r.as_ref().unwrap().top[0].cell, first);
     }
-    let text = reqwest_metrics(&server.metrics).await;
+    let text = common::http_get(&server.metrics).await;
     let batches = metric(&text, "alignist_batches_total", &[]);
     let images = metric(&text, "alignist_batched_images_total", &[]);
     assert!(images >= 200.0, "{text}");

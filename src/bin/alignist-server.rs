@@ -11,8 +11,9 @@ use anyhow::{Context, Result, bail};
 use clap::Parser;
 
 /// Serves orientation distributions of known objects over gRPC, with health, reflection and
-/// Prometheus metrics. SIGTERM or SIGINT stops accepting calls, drains the ones in flight, and
-/// exits 0.
+/// Prometheus metrics. A changed models directory (or SIGHUP) reloads the bundles, keeping the
+/// old ones if the new ones fail validation. SIGTERM or SIGINT stops accepting calls, drains the
+/// ones in flight, and exits 0.
 #[derive(Parser)]
 #[command(name = "alignist-server", version, about, long_about = None)]
 struct Cli {
@@ -50,6 +51,9 @@ struct Cli {
     /// Largest request image, in pixels.
     #[arg(long, env = "ALIGNIST_MAX_IMAGE_PIXELS", default_value_t = 4096 * 4096)]
     max_image_pixels: u64,
+    /// Seconds between checks of the models directory for changed bundles (0: only on SIGHUP).
+    #[arg(long, env = "ALIGNIST_RELOAD_INTERVAL_S", default_value_t = 10)]
+    reload_interval_s: u64,
     /// Seconds to wait for in-flight calls after SIGTERM/SIGINT.
     #[arg(long, env = "ALIGNIST_DRAIN_TIMEOUT_S", default_value_t = 20)]
     drain_timeout_s: u64,
@@ -101,6 +105,8 @@ fn main() -> Result<()> {
         },
         drain_timeout: Duration::from_secs(cli.drain_timeout_s),
         max_concurrent_streams: 1024,
+        reload_interval: (cli.reload_interval_s > 0)
+            .then(|| Duration::from_secs(cli.reload_interval_s)),
     };
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(run(config, shutdown_signal()))?;

@@ -82,6 +82,31 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// A bounded load test of Predict against a server on this machine (loopback only):
+    /// prints requests/s, latency p50/p90/p99 and counts by status code; exits 1 on any failure.
+    Load {
+        /// Model name (empty: the server's only model).
+        #[arg(long, default_value = "")]
+        model: String,
+        /// PNG or JPEG image sent with every call (default: a rendered cube at the model's size).
+        #[arg(long)]
+        image: Option<PathBuf>,
+        /// Total calls.
+        #[arg(long, default_value_t = 1000)]
+        requests: usize,
+        /// Calls in flight at once.
+        #[arg(long, default_value_t = 8)]
+        concurrency: usize,
+        /// HTTP/2 connections the calls are spread over.
+        #[arg(long, default_value_t = 4)]
+        connections: usize,
+        /// Top-k per call.
+        #[arg(long, default_value_t = 5)]
+        top_k: u32,
+        /// Search level per call (0: the server's default).
+        #[arg(long, default_value_t = 0)]
+        level: u32,
+    },
     /// The server's health (grpc.health.v1); exits 1 unless SERVING.
     Health {
         /// Service name ("" for the whole server).
@@ -112,8 +137,32 @@ fn save_plot(path: &PathBuf, rotations: &[[f64; 4]], probs: &[f64]) -> Result<()
         .with_context(|| format!("writing --plot {}", path.display()))
 }
 
+/// A PNG of the cube at a fixed pose (64 × 64), for load runs without --image.
+fn default_image() -> Result<Vec<u8>> {
+    use alignist::cad::{Camera, RenderOptions, Shape, render};
+    let r = alignist::so3::rot_z(0.4) * alignist::so3::rot_x(0.7);
+    let rgb = render(
+        &Shape::Cube.mesh(),
+        &Camera::square(64),
+        &alignist::data::symsol_pose(r),
+        &RenderOptions::default(),
+    )
+    .rgb;
+    let mut png = Vec::new();
+    image::RgbImage::from_raw(64, 64, rgb)
+        .context("render size")?
+        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)?;
+    Ok(png)
+}
+
 async fn run(cli: Cli) -> Result<()> {
     let timeout = Duration::from_secs(cli.timeout_s.max(1));
+    if matches!(cli.command, Command::Load { .. }) && !client::load::is_loopback(&cli.server) {
+        bail!(
+            "--server {}: the load generator only targets this machine (localhost, 127.0.0.1, ::1)",
+            cli.server
+        );
+    }
     let channel = client::connect(&cli.server, timeout).await?;
     match cli.command {
         Command::Predict {
@@ -202,6 +251,41 @@ async fn run(cli: Cli) -> Result<()> {
                 println!("{}", serde_json::to_string_pretty(&v)?);
             } else {
                 print!("{}", client::models_table(&models));
+            }
+        }
+        Command::Load {
+            model,
+            image,
+            requests,
+            concurrency,
+            connections,
+            top_k,
+            level,
+        } => {
+            if requests == 0 || concurrency == 0 || connections == 0 {
+                bail!("--requests, --concurrency and --connections must be at least 1");
+            }
+            let data = match image {
+                Some(path) => std::fs::read(&path)
+                    .with_context(|| format!("reading --image {}", path.display()))?,
+                None => default_image()?,
+            };
+            let mut channels = vec![channel];
+            for _ in 1..connections {
+                channels.push(client::connect(&cli.server, timeout).await?);
+            }
+            let request = PredictRequest {
+                model,
+                image: Some(client::image_input(data, None)),
+                top_k,
+                level,
+                ..Default::default()
+            };
+            let report =
+                client::load::run_load(channels, request, requests, concurrency, timeout).await?;
+            println!("{report}");
+            if report.failures() > 0 {
+                bail!("{} of {} calls failed", report.failures(), report.requests);
             }
         }
         Command::Health { service } => {

@@ -1,6 +1,8 @@
 //! The command-line client's calls: connect, send, and turn answers and status codes into
 //! tables (for people), JSON (for programs) or CSV.
 
+pub mod load;
+
 use std::fmt::Write as _;
 use std::time::Duration;
 

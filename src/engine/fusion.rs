@@ -67,7 +67,7 @@ impl DepthFusion {
         if xyz.is_empty() {
             return Err(invalid("has no points".into()));
         }
-        if xyz.len() % 3 != 0 {
+        if !xyz.len().is_multiple_of(3) {
             return Err(invalid(format!(
                 "has {} values, not a multiple of 3 (x, y, z triples)",
                 xyz.len()

@@ -1,5 +1,6 @@
 //! Running the service: listen, report health (NOT_SERVING until the models are loaded), serve
-//! reflection and Prometheus metrics, and on SIGTERM/SIGINT stop accepting, drain in-flight calls
+//! reflection and Prometheus metrics, reload changed models (polling and SIGHUP) without
+//! dropping a call, and on SIGTERM/SIGINT stop accepting, drain in-flight calls
 //! up to a timeout, and return.
 
 use std::net::SocketAddr;
@@ -31,6 +32,91 @@ pub struct ServerConfig {
     pub drain_timeout: Duration,
     /// Concurrent calls per connection.
     pub max_concurrent_streams: u32,
+    /// How often the models directory is checked for changes (`None`: only on SIGHUP).
+    pub reload_interval: Option<Duration>,
+}
+
+/// A fingerprint of every file under the models directory: relative path, length and
+/// modification time. A change to any of them triggers a reload.
+pub fn models_fingerprint(dir: &std::path::Path) -> Vec<(String, u64, u128)> {
+    fn walk(root: &std::path::Path, dir: &std::path::Path, out: &mut Vec<(String, u64, u128)>) {
+        let Ok(entries) = std::fs::read_dir(dir) else {
+            return;
+        };
+        for entry in entries.flatten() {
+            let path = entry.path();
+            let Ok(meta) = entry.metadata() else { continue };
+            if meta.is_dir() {
+                walk(root, &path, out);
+            } else {
+                let modified = meta
+                    .modified()
+                    .ok()
+                    .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+                    .map_or(0, |d| d.as_nanos());
+                let rel = path.strip_prefix(root).unwrap_or(&path);
+                out.push((rel.display().to_string(), meta.len(), modified));
+            }
+        }
+    }
+    let mut out = Vec::new();
+    walk(dir, dir, &mut out);
+    out.sort();
+    out
+}
+
+/// Resolves on every SIGHUP (never on platforms without it).
+async fn hangup(signal: &mut Option<tokio::signal::unix::Signal>) {
+    match signal {
+        Some(s) => {
+            s.recv().await;
+        }
+        None => std::future::pending::<()>().await,
+    }
+}
+
+/// Watches the models directory (polling and SIGHUP) and swaps in a new engine when it changed
+/// and loads cleanly. A bundle that fails validation is refused with an error log, and the
+/// engine being served stays; requests in flight finish on the engine they started with.
+async fn watch_models(
+    models: PathBuf,
+    engine_config: EngineConfig,
+    batch: BatchConfig,
+    interval: Option<Duration>,
+    state: ServiceState,
+    mut seen: Vec<(String, u64, u128)>,
+) {
+    let mut hup = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()).ok();
+    let mut tick = tokio::time::interval(interval.unwrap_or(Duration::from_secs(3600)));
+    tick.tick().await;
+    loop {
+        let forced = tokio::select! {
+            _ = tick.tick(), if interval.is_some() => false,
+            _ = hangup(&mut hup) => true,
+        };
+        let dir = models.clone();
+        let now = match tokio::task::spawn_blocking(move || models_fingerprint(&dir)).await {
+            Ok(f) => f,
+            Err(_) => continue,
+        };
+        if now == seen && !forced {
+            continue;
+        }
+        seen = now;
+        let dir = models.clone();
+        match tokio::task::spawn_blocking(move || Engine::load_dir(&dir, engine_config)).await {
+            Ok(Ok(engine)) => {
+                info!(models = ?engine.names(), "models reloaded");
+                state.install(Served::new(engine, batch));
+                metrics::counter!("alignist_reloads_total", "result" => "ok").increment(1);
+            }
+            Ok(Err(e)) => {
+                error!("reload refused, still serving the previous models: {e}");
+                metrics::counter!("alignist_reloads_total", "result" => "refused").increment(1);
+            }
+            Err(e) => error!("reload failed: {e}"),
+        }
+    }
 }
 
 /// Errors that stop the server.
@@ -134,8 +220,11 @@ pub async fn run(
     let loader = {
         let (state, health) = (state.clone(), health.clone());
         let (models, engine_config, batch) = (config.models.clone(), config.engine, config.batch);
+        let reload_interval = config.reload_interval;
         tokio::spawn(async move {
             let path = models.display().to_string();
+            let fingerprint = models_fingerprint(&models);
+            let watched = models.clone();
             let loaded =
                 tokio::task::spawn_blocking(move || Engine::load_dir(&models, engine_config)).await;
             match loaded {
@@ -148,6 +237,14 @@ pub async fn run(
                     health
                         .set_service_status("", tonic_health::ServingStatus::Serving)
                         .await;
+                    tokio::spawn(watch_models(
+                        watched,
+                        engine_config,
+                        batch,
+                        reload_interval,
+                        state,
+                        fingerprint,
+                    ));
                     Ok(())
                 }
                 Ok(Err(e)) => Err(ServeError::Models {

@@ -98,7 +98,7 @@ pub fn plot_distribution(
     order.sort_by(|&a, &b| probabilities[a].total_cmp(&probabilities[b]));
     for i in order {
         let p = probabilities[i];
-        if !(p > 0.0) || max_p <= 0.0 {
+        if p.is_nan() || p <= 0.0 || max_p <= 0.0 {
             continue;
         }
         let radius = max_radius * (p / max_p).sqrt();

@@ -1,0 +1,264 @@
+//! Shared fixtures of the loopback tests: a tiny bundle trained once through the CLI, cube
+//! renders as PNG, a server process on ephemeral ports, and Prometheus text parsing.
+#![allow(dead_code)]
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::OnceLock;
+use std::time::{Duration, Instant};
+
+use alignist::cad::{Camera, RenderOptions, Shape, render};
+use alignist::serve::proto::{ImageInput, PredictRequest};
+use alignist::so3::haar_rotations;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use tonic::transport::Channel;
+
+pub const SIZE: u32 = 32;
+
+pub fn train(args: &[&str]) {
+    let out = Command::new(env!("CARGO_BIN_EXE_alignist-train"))
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// A models directory with one tiny trained bundle, `tiny`, made once per test binary.
+pub fn models_dir() -> &'static Path {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let root = tempfile::tempdir().unwrap().keep();
+        let s = |p: &Path| p.to_str().unwrap().to_string();
+        let data = root.join("cube_data");
+        let experts = root.join("cube_experts");
+        let models = root.join("models");
+        train(&[
+            "render",
+            "--shape",
+            "cube",
+            "--count",
+            "8",
+            "--size",
+            "32",
+            "--seed",
+            "1",
+            "--out",
+            &s(&data),
+        ]);
+        train(&[
+            "experts",
+            "--shape",
+            "cube",
+            "--steps",
+            "20",
+            "--feature-steps",
+            "4",
+            "--images",
+            "2",
+            "--bake-resolution",
+            "16",
+            "--out",
+            &s(&experts),
+        ]);
+        train(&[
+            "fit",
+            "--data",
+            &s(&data),
+            "--experts",
+            &s(&experts),
+            "--out",
+            &s(&models.join("tiny")),
+            "--steps",
+            "3",
+            "--batch",
+            "2",
+            "--k",
+            "32",
+            "--image-size",
+            "32",
+            "--eval-images",
+            "0",
+        ]);
+        models
+    })
+}
+
+/// PNG bytes of a cube render at a random rotation.
+pub fn cube_png(seed: u64) -> Vec<u8> {
+    let r = haar_rotations(&mut ChaCha8Rng::seed_from_u64(seed), 1)[0];
+    let rgb = render(
+        &Shape::Cube.mesh(),
+        &Camera::square(SIZE),
+        &alignist::data::symsol_pose(r),
+        &RenderOptions::default(),
+    )
+    .rgb;
+    let mut png = Vec::new();
+    image::RgbImage::from_raw(SIZE, SIZE, rgb)
+        .unwrap()
+        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+        .unwrap();
+    png
+}
+
+pub fn image(png: Vec<u8>) -> Option<ImageInput> {
+    Some(ImageInput {
+        data: png,
+        ..Default::default()
+    })
+}
+
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+pub struct Server {
+    pub child: Child,
+    pub grpc: String,
+    pub metrics: String,
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+pub fn start_server(extra: &[&str]) -> Server {
+    start_server_on(models_dir(), extra)
+}
+
+/// A server over `models` (e.g. a private copy that a test may change).
+pub fn start_server_on(models: &Path, extra: &[&str]) -> Server {
+    let metrics = format!("127.0.0.1:{}", free_port());
+    let mut child = Command::new(env!("CARGO_BIN_EXE_alignist-server"))
+        .args([
+            "--models",
+            models.to_str().unwrap(),
+            "--listen",
+            "127.0.0.1:0",
+            "--metrics-listen",
+            &metrics,
+            "--max-level",
+            "3",
+        ])
+        .args(extra)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    let addr = line
+        .trim()
+        .strip_prefix("listening on ")
+        .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
+        .to_string();
+    Server {
+        child,
+        grpc: format!("http://{addr}"),
+        metrics: format!("http://{metrics}/metrics"),
+    }
+}
+
+pub async fn channel(server: &Server) -> Channel {
+    Channel::from_shared(server.grpc.clone())
+        .unwrap()
+        .connect()
+        .await
+        .unwrap()
+}
+
+pub async fn health(channel: Channel) -> i32 {
+    let mut h = tonic_health::pb::health_client::HealthClient::new(channel);
+    h.check(tonic_health::pb::HealthCheckRequest {
+        service: "alignist.v1.Alignist".into(),
+    })
+    .await
+    .unwrap()
+    .into_inner()
+    .status
+}
+
+/// Waits until health says SERVING (models loaded).
+pub async fn wait_serving(channel: Channel) {
+    let serving = tonic_health::pb::health_check_response::ServingStatus::Serving as i32;
+    let start = Instant::now();
+    while health(channel.clone()).await != serving {
+        assert!(start.elapsed() < Duration::from_secs(120), "never SERVING");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+pub fn predict_request(seed: u64, top_k: u32, level: u32) -> PredictRequest {
+    PredictRequest {
+        model: "tiny".into(),
+        image: image(cube_png(seed)),
+        top_k,
+        level,
+        ..Default::default()
+    }
+}
+
+/// Sum of the samples of `name` whose labels include every one of `labels`.
+pub fn metric(text: &str, name: &str, labels: &[&str]) -> f64 {
+    text.lines()
+        .filter(|l| {
+            !l.starts_with('#')
+                && (l.starts_with(&format!("{name} ")) || l.starts_with(&format!("{name}{{")))
+                && labels.iter().all(|lab| l.contains(lab))
+        })
+        .filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
+        .sum()
+}
+
+
+/// A private copy of the tiny models directory.
+pub fn copy_models() -> tempfile::TempDir {
+    let dir = tempfile::tempdir().unwrap();
+    copy_tree(models_dir(), dir.path());
+    dir
+}
+
+/// Recursive copy.
+pub fn copy_tree(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        let target = to.join(e.file_name());
+        if e.file_type().unwrap().is_dir() {
+            copy_tree(&e.path(), &target);
+        } else {
+            std::fs::copy(e.path(), &target).unwrap();
+        }
+    }
+}
+
+/// GET of the Prometheus endpoint, with a plain HTTP/1.0 request (no client library needed).
+pub async fn http_get(url: &str) -> String {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let rest = url.strip_prefix("http://").unwrap();
+    let (host, path) = rest.split_once('/').unwrap();
+    let mut stream = tokio::net::TcpStream::connect(host).await.unwrap();
+    stream
+        .write_all(format!("GET /{path} HTTP/1.0\r\nHost: {host}\r\n\r\n").as_bytes())
+        .await
+        .unwrap();
+    let mut body = String::new();
+    stream.read_to_string(&mut body).await.unwrap();
+    body
+}
+

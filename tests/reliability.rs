@@ -1,0 +1,174 @@
+//! Reliability under load and faults, over real loopback: 10 000 calls at concurrency 32 through
+//! the `alignist load` tool, a model swap under load, a corrupt bundle refused on reload, and the
+//! trainer killed with SIGKILL while checkpointing.
+
+mod common;
+
+use std::process::Command;
+use std::time::Duration;
+
+use alignist::client::load::run_load;
+use alignist::serve::proto::alignist_client::AlignistClient;
+use alignist::serve::proto::{ListModelsRequest, PredictRequest};
+use common::*;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn ten_thousand_calls_at_concurrency_32_all_succeed() {
+    let server = start_server(&["--max-batch", "32", "--queue", "1024"]);
+    wait_serving(channel(&server).await).await;
+    let dir = tempfile::tempdir().unwrap();
+    let png = dir.path().join("cube.png");
+    std::fs::write(&png, cube_png(21)).unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_alignist"))
+        .args(["--server", &server.grpc, "load", "--image"])
+        .arg(&png)
+        .args([
+            "--requests",
+            "10000",
+            "--concurrency",
+            "32",
+            "--top-k",
+            "1",
+            "--level",
+            "1",
+        ])
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(stdout.contains("10000 requests"), "{stdout}");
+    assert!(stdout.contains("status codes: Ok 10000"), "{stdout}");
+    // The tool refuses anything but loopback.
+    let out = Command::new(env!("CARGO_BIN_EXE_alignist"))
+        .args(["--server", "http://example.com:50051", "load"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("only targets this machine"));
+}
+
+async fn model_names(server: &Server) -> Vec<String> {
+    let mut client = AlignistClient::new(channel(server).await);
+    client
+        .list_models(ListModelsRequest {})
+        .await
+        .unwrap()
+        .into_inner()
+        .models
+        .into_iter()
+        .map(|m| m.name)
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn models_swap_under_load_without_a_failed_call_and_a_corrupt_one_is_refused() {
+    let models = copy_models();
+    let server = start_server_on(models.path(), &["--reload-interval-s", "1"]);
+    let ch = channel(&server).await;
+    wait_serving(ch.clone()).await;
+    assert_eq!(model_names(&server).await, ["tiny"]);
+
+    // Load runs while a second bundle is added: the reload swaps engines under it.
+    let request = PredictRequest {
+        model: "tiny".into(),
+        image: image(cube_png(22)),
+        top_k: 3,
+        level: 2,
+        ..Default::default()
+    };
+    let load = tokio::spawn(run_load(
+        vec![ch.clone()],
+        request.clone(),
+        1500,
+        8,
+        Duration::from_secs(60),
+    ));
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    // Written beside, then renamed in: a bundle appears whole.
+    let staging = models.path().join(".staging");
+    copy_tree(&models.path().join("tiny"), &staging);
+    std::fs::rename(&staging, models.path().join("tiny2")).unwrap();
+    let report = load.await.unwrap().unwrap();
+    assert_eq!(report.failures(), 0, "{report}");
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    while model_names(&server).await != ["tiny", "tiny2"] {
+        assert!(std::time::Instant::now() < deadline, "never reloaded");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    let text = http_get(&server.metrics).await;
+    assert!(
+        metric(&text, "alignist_reloads_total", &["result=\"ok\""]) >= 1.0,
+        "{text}"
+    );
+
+    // A corrupt bundle is refused; the models being served stay and keep answering.
+    let broken = models.path().join("broken");
+    copy_tree(&models.path().join("tiny"), &broken);
+    let weights = broken.join("network.safetensors");
+    let mut bytes = std::fs::read(&weights).unwrap();
+    let n = bytes.len();
+    bytes[n - 5] ^= 0x5a;
+    std::fs::write(&weights, bytes).unwrap();
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    loop {
+        let text = http_get(&server.metrics).await;
+        if metric(&text, "alignist_reloads_total", &["result=\"refused\""]) >= 1.0 {
+            break;
+        }
+        assert!(std::time::Instant::now() < deadline, "reload never tried");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    assert_eq!(model_names(&server).await, ["tiny", "tiny2"]);
+    let mut client = AlignistClient::new(ch.clone());
+    let answer = client.predict(request).await.unwrap().into_inner();
+    assert_eq!(answer.top.len(), 3);
+}
+
+#[test]
+fn trainer_killed_while_checkpointing_resumes_from_the_last_good_checkpoint() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = |p: &std::path::Path| p.to_str().unwrap().to_string();
+    let data = dir.path().join("data");
+    let experts = models_dir().join("tiny/experts/cube");
+    let out = Command::new(env!("CARGO_BIN_EXE_alignist-train"))
+        .args(["render", "--shape", "cube", "--count", "6", "--size", "32"])
+        .args(["--seed", "3", "--out", &s(&data)])
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let bundle = dir.path().join("models/killed");
+    let fit = || {
+        let mut c = Command::new(env!("CARGO_BIN_EXE_alignist-train"));
+        c.args(["fit", "--data", &s(&data), "--experts", &s(&experts)])
+            .args(["--out", &s(&bundle), "--steps", "60", "--batch", "2", "--k", "16"])
+            .args(["--image-size", "32", "--checkpoint-every", "1", "--eval-images", "0"])
+            .args(["--resume"])
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null());
+        c
+    };
+    let checkpoints = bundle.with_extension("checkpoints");
+    // SIGKILL at staggered times: with a checkpoint every step, many kills land mid-write.
+    for delay_ms in [1500u64, 1700, 1900, 2300] {
+        let mut child = fit().spawn().unwrap();
+        std::thread::sleep(Duration::from_millis(delay_ms));
+        let _ = child.kill();
+        let _ = child.wait();
+        if bundle.join("manifest.json").exists() {
+            break;
+        }
+    }
+    let latest_before = std::fs::read_to_string(checkpoints.join("latest")).ok();
+    let status = fit().status().unwrap();
+    assert!(status.success(), "resume after SIGKILL failed (latest was {latest_before:?})");
+    let m = alignist::bundle::model::ModelBundle::load(&bundle).unwrap().manifest;
+    assert_eq!(m.provenance.train.steps, 60);
+    if latest_before.is_some() {
+        // It resumed: the run after the kills trained fewer than all 60 steps.
+        assert!(m.provenance.report.resumed_from > 0 || m.provenance.report.steps_run == 0);
+    }
+}
