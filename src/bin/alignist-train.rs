@@ -51,8 +51,17 @@ enum Command {
         #[arg(required = true)]
         bundles: Vec<PathBuf>,
     },
-    /// Print performance figures (not yet implemented).
-    Bench,
+    /// Print performance figures of a model bundle: the backend's matmul peak, full-grid head
+    /// throughput at levels 3 and 4 against it, coarse-to-fine top-k latency, encoder images/s,
+    /// and gRPC against in-process Predict throughput.
+    Bench {
+        /// Model bundle folder.
+        #[arg(long, default_value = "models/symsol1")]
+        model: PathBuf,
+        /// Test images rendered from the bundle's first object.
+        #[arg(long, default_value_t = 8)]
+        images: usize,
+    },
 }
 
 fn main() -> Result<()> {
@@ -65,7 +74,7 @@ fn main() -> Result<()> {
         Command::Fit(args) => fit_cmd(&args),
         Command::Eval(args) => eval_cmd(&args),
         Command::Results { bundles } => results_cmd(&bundles),
-        Command::Bench => not_yet("bench"),
+        Command::Bench { model, images } => bench_cmd(&model, images),
     }
 }
 
@@ -898,8 +907,32 @@ fn eval_cmd(args: &EvalArgs) -> Result<()> {
     Ok(())
 }
 
-fn not_yet(name: &str) -> Result<()> {
-    bail!("`alignist-train {name}` is not implemented yet")
+fn bench_cmd(bundle: &Path, count: usize) -> Result<()> {
+    let loaded = alignist::bundle::model::ModelBundle::load(bundle)
+        .with_context(|| format!("--model {}", bundle.display()))?;
+    let size = loaded.manifest.network.image_size;
+    let mesh = &loaded.experts[0].mesh;
+    let camera = alignist::cad::Camera::square(size);
+    let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(99);
+    let images: Vec<Vec<u8>> = alignist::so3::haar_rotations(&mut rng, count.max(1))
+        .into_iter()
+        .map(|r| {
+            let rgb = alignist::cad::render(
+                mesh,
+                &camera,
+                &alignist::data::symsol_pose(r),
+                &alignist::cad::RenderOptions::default(),
+            )
+            .rgb;
+            let mut png = Vec::new();
+            image::RgbImage::from_raw(size, size, rgb)
+                .context("render size")?
+                .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)?;
+            Ok(png)
+        })
+        .collect::<Result<_>>()?;
+    drop(loaded);
+    alignist::serve::bench::bench(bundle, &images)
 }
 
 fn write_grid(level: u8, out: &Path) -> Result<()> {

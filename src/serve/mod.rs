@@ -3,6 +3,7 @@
 //! lives in [`crate::engine`].
 
 pub mod batcher;
+pub mod bench;
 pub mod server;
 
 use std::collections::BTreeMap;
