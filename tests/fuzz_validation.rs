@@ -1,0 +1,130 @@
+//! Property tests (the fuzz target, since cargo-fuzz needs nightly): request images — random
+//! bytes, mutated PNG/JPEG, raw sizes, crop boxes — and request options through the engine's
+//! validation never panic, and every answer is either a correct-size crop or a named error.
+//! `PROPTEST_CASES=N` sets the number of cases (the closing note reports a long run).
+
+mod common;
+
+use alignist::engine::{
+    CropBox, EngineError, ImageLimits, ImageRequest, PredictOptions, prepare_image,
+};
+use proptest::prelude::*;
+
+fn png(w: u32, h: u32, seed: u8) -> Vec<u8> {
+    let img = image::RgbImage::from_fn(w, h, |x, y| {
+        image::Rgb([x as u8 ^ seed, y as u8, seed.wrapping_mul(7)])
+    });
+    let mut out = Vec::new();
+    img.write_to(&mut std::io::Cursor::new(&mut out), image::ImageFormat::Png)
+        .unwrap();
+    out
+}
+
+fn jpeg(w: u32, h: u32) -> Vec<u8> {
+    let img = image::RgbImage::from_fn(w, h, |x, y| image::Rgb([x as u8, y as u8, 9]));
+    let mut out = Vec::new();
+    img.write_to(&mut std::io::Cursor::new(&mut out), image::ImageFormat::Jpeg)
+        .unwrap();
+    out
+}
+
+fn check(result: Result<Vec<u8>, EngineError>, size: u32) -> Result<(), TestCaseError> {
+    match result {
+        Ok(rgb) => prop_assert_eq!(rgb.len(), (size * size * 3) as usize),
+        Err(EngineError::InvalidArgument { field, message })
+        | Err(EngineError::ResourceExhausted { field, message }) => {
+            prop_assert!(field.starts_with("image"), "{field}");
+            prop_assert!(!message.is_empty());
+        }
+        Err(other) => prop_assert!(false, "unexpected error kind: {other}"),
+    }
+    Ok(())
+}
+
+fn crop_strategy() -> impl Strategy<Value = Option<CropBox>> {
+    proptest::option::of((0u32..80, 0u32..80, 0u32..80, 0u32..80).prop_map(
+        |(x, y, width, height)| CropBox {
+            x,
+            y,
+            width,
+            height,
+        },
+    ))
+}
+
+const LIMITS: ImageLimits = ImageLimits {
+    max_bytes: 64 * 1024,
+    max_pixels: 128 * 128,
+};
+
+proptest! {
+    #[test]
+    fn random_bytes_never_panic(data in proptest::collection::vec(any::<u8>(), 0..4096),
+                                raw in proptest::option::of((0u32..70, 0u32..70)),
+                                crop in crop_strategy(), size in 1u32..48) {
+        check(prepare_image(&ImageRequest { data: &data, raw_size: raw, crop }, size, &LIMITS), size)?;
+    }
+
+    #[test]
+    fn mutated_images_never_panic(w in 1u32..100, h in 1u32..100, seed in any::<u8>(),
+                                  use_jpeg in any::<bool>(),
+                                  flips in proptest::collection::vec((any::<usize>(), any::<u8>()), 0..8),
+                                  cut in proptest::option::of(any::<usize>()),
+                                  crop in crop_strategy(), size in 1u32..48) {
+        let mut data = if use_jpeg { jpeg(w, h) } else { png(w, h, seed) };
+        for (at, x) in flips {
+            let n = data.len();
+            data[at % n] ^= x;
+        }
+        if let Some(c) = cut {
+            let n = data.len();
+            data.truncate(c % (n + 1));
+        }
+        check(prepare_image(&ImageRequest { data: &data, raw_size: None, crop }, size, &LIMITS), size)?;
+    }
+
+    #[test]
+    fn intact_images_inside_the_limits_are_accepted(w in 1u32..100, h in 1u32..100, seed in any::<u8>(), size in 1u32..48) {
+        let data = png(w, h, seed);
+        let r = prepare_image(&ImageRequest { data: &data, raw_size: None, crop: None }, size, &LIMITS);
+        if w * h <= 128 * 128 && data.len() <= 64 * 1024 {
+            prop_assert_eq!(r.unwrap().len(), (size * size * 3) as usize);
+        } else {
+            let exhausted = matches!(r, Err(EngineError::ResourceExhausted { .. }));
+            prop_assert!(exhausted, "not RESOURCE_EXHAUSTED");
+        }
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+    #[test]
+    fn predict_options_and_depth_are_validated_without_panics(
+        top_k in 0usize..100_000, level in proptest::option::of(0u8..12),
+        angle in proptest::option::of(-10.0f64..400.0),
+        xyz in proptest::collection::vec(prop_oneof![any::<f32>(), -2.0f32..2.0], 0..40)) {
+        static ENGINE: std::sync::OnceLock<alignist::engine::Engine> = std::sync::OnceLock::new();
+        let engine = ENGINE.get_or_init(|| {
+            alignist::engine::Engine::load_dir(common::models_dir(), Default::default()).unwrap()
+        });
+        let model = engine.model("tiny").unwrap();
+        let options = PredictOptions { top_k, level, mode_angle_deg: angle };
+        match model.check_predict(&options) {
+            Ok(l) => {
+                prop_assert!(top_k >= 1 && l <= 6);
+            }
+            Err(EngineError::InvalidArgument { field, .. }) => {
+                prop_assert!(["top_k", "level", "mode_angle_deg"].contains(&field.as_str()), "{field}");
+            }
+            Err(e) => prop_assert!(false, "{e}"),
+        }
+        let object = model.object("cube").unwrap();
+        match object.fusion.parse_points(&xyz, 10) {
+            Ok(points) => prop_assert_eq!(points.len() * 3, xyz.len()),
+            Err(EngineError::InvalidArgument { field, .. }) | Err(EngineError::ResourceExhausted { field, .. }) => {
+                prop_assert_eq!(field, "depth.xyz");
+            }
+            Err(e) => prop_assert!(false, "{e}"),
+        }
+    }
+}
