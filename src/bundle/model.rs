@@ -83,7 +83,8 @@ pub struct ModelBundle {
     pub experts: Vec<ExpertSet>,
 }
 
-const NETWORK_FILE: &str = "network.safetensors";
+/// The network's weight file inside a bundle.
+pub const NETWORK_FILE: &str = "network.safetensors";
 const MANIFEST_FILE: &str = "manifest.json";
 
 fn copy_dir(from: &Path, to: &Path) -> Result<(), BundleError> {

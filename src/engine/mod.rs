@@ -113,8 +113,12 @@ pub struct Model {
     pub manifest: crate::bundle::model::ModelManifest,
     /// Objects.
     pub objects: Vec<ModelObject>,
+    /// The network on the convolution backend: its encoder runs here.
     network: Network,
     device: Device,
+    /// The same weights on the dense backend: the head runs here (the faster matmul).
+    head_network: Network,
+    dense: Device,
     /// Grids 0 ..= max level, with precomputed projections up to the full level.
     grids: Vec<GridLevel>,
     projected: Vec<ProjectedGrid>,
@@ -166,6 +170,20 @@ impl Model {
         config: EngineConfig,
     ) -> Result<Model, EngineError> {
         let device = crate::backend::device_for(crate::backend::Workload::Conv);
+        let dense = crate::backend::device_for(crate::backend::Workload::Dense);
+        let weights = path.join(crate::bundle::model::NETWORK_FILE);
+        let entry = bundle
+            .manifest
+            .files
+            .get(crate::bundle::model::NETWORK_FILE)
+            .ok_or_else(|| {
+                EngineError::Models(format!("{}: files: no network entry", path.display()))
+            })?;
+        let head_network = crate::bundle::load_weights(
+            bundle.manifest.network.init(&dense),
+            &weights,
+            entry,
+        )?;
         let top = config.search_max_level.max(config.max_full_level);
         if top > MAX_LEVEL {
             return Err(EngineError::Models(format!(
@@ -177,7 +195,7 @@ impl Model {
             .collect::<Result<Vec<_>, _>>()
             .map_err(|e| EngineError::Models(e.to_string()))?;
         let projected = (0..=config.max_full_level)
-            .map(|l| ProjectedGrid::new(&bundle.network, &bundle.manifest.network, l, &device))
+            .map(|l| ProjectedGrid::new(&head_network, &bundle.manifest.network, l, &dense))
             .collect::<Result<Vec<_>, _>>()
             .map_err(|e| EngineError::Models(e.to_string()))?;
         let objects = bundle
@@ -199,6 +217,8 @@ impl Model {
             objects,
             network: bundle.network,
             device,
+            head_network,
+            dense,
             grids,
             projected,
             config,
@@ -253,17 +273,19 @@ impl Model {
         prepare_image(image, self.input_size(), &self.config.image_limits)
     }
 
-    /// Image features `[B, D]` of prepared crops (one encoder pass for the batch).
+    /// Image features `[B, D]` of prepared crops (one encoder pass for the batch), on the
+    /// head's device.
     pub fn features(&self, crops: &[&[u8]]) -> Tensor<2> {
         let images = images_tensor(crops, self.input_size() as usize, &self.device);
-        self.network.encoder.forward(images)
+        let features = self.network.encoder.forward(images);
+        Tensor::from_data(features.into_data(), &self.dense)
     }
 
     /// One image's features (as the batcher hands them over) as a `[1, D]` tensor.
     pub fn features_tensor(&self, features: &[f32]) -> Tensor<2> {
         Tensor::from_data(
             burn::tensor::TensorData::new(features.to_vec(), [1, features.len()]),
-            &self.device,
+            &self.dense,
         )
     }
 
@@ -290,7 +312,7 @@ impl Model {
         depth: Option<(&ModelObject, &[nalgebra::Vector3<f32>])>,
     ) -> Vec<f32> {
         let mut logits = self.projected[level as usize]
-            .log_weights_of_features(&self.network, features.clone())
+            .log_weights_of_features(&self.head_network, features.clone())
             .swap_remove(0);
         if let Some((object, points)) = depth {
             let mats = self.grids[level as usize].matrices_f32();
@@ -435,9 +457,9 @@ impl Model {
             .manifest
             .network
             .encoding
-            .encode_tensor(rotations, &self.device);
-        let projected = self.network.head.project_rotations(enc).unsqueeze::<3>();
-        self.network
+            .encode_tensor(rotations, &self.dense);
+        let projected = self.head_network.head.project_rotations(enc).unsqueeze::<3>();
+        self.head_network
             .head
             .forward_projected(features.clone(), projected)
             .combined()
