@@ -27,7 +27,12 @@ fn kubernetes_grace_period_covers_pre_stop_and_drain() {
     assert!(grace > pre_stop + drain, "{grace} ≤ {pre_stop} + {drain}");
     for probe in ["startupProbe", "readinessProbe", "livenessProbe"] {
         let at = d.find(probe).unwrap();
-        assert!(d[at..].trim_start_matches(|c| c != '\n').trim_start().starts_with("grpc:"));
+        assert!(
+            d[at..]
+                .trim_start_matches(|c| c != '\n')
+                .trim_start()
+                .starts_with("grpc:")
+        );
     }
     assert!(read("deploy/k8s/service.yaml").contains("clusterIP: None"));
     for f in ["hpa.yaml", "pdb.yaml", "service.yaml", "deployment.yaml"] {

@@ -144,8 +144,24 @@ fn trainer_killed_while_checkpointing_resumes_from_the_last_good_checkpoint() {
     let fit = || {
         let mut c = Command::new(env!("CARGO_BIN_EXE_alignist-train"));
         c.args(["fit", "--data", &s(&data), "--experts", &s(&experts)])
-            .args(["--out", &s(&bundle), "--steps", "60", "--batch", "2", "--k", "16"])
-            .args(["--image-size", "32", "--checkpoint-every", "1", "--eval-images", "0"])
+            .args([
+                "--out",
+                &s(&bundle),
+                "--steps",
+                "60",
+                "--batch",
+                "2",
+                "--k",
+                "16",
+            ])
+            .args([
+                "--image-size",
+                "32",
+                "--checkpoint-every",
+                "1",
+                "--eval-images",
+                "0",
+            ])
             .args(["--resume"])
             .stdout(std::process::Stdio::null())
             .stderr(std::process::Stdio::null());
@@ -164,8 +180,13 @@ fn trainer_killed_while_checkpointing_resumes_from_the_last_good_checkpoint() {
     }
     let latest_before = std::fs::read_to_string(checkpoints.join("latest")).ok();
     let status = fit().status().unwrap();
-    assert!(status.success(), "resume after SIGKILL failed (latest was {latest_before:?})");
-    let m = alignist::bundle::model::ModelBundle::load(&bundle).unwrap().manifest;
+    assert!(
+        status.success(),
+        "resume after SIGKILL failed (latest was {latest_before:?})"
+    );
+    let m = alignist::bundle::model::ModelBundle::load(&bundle)
+        .unwrap()
+        .manifest;
     assert_eq!(m.provenance.train.steps, 60);
     if latest_before.is_some() {
         // It resumed: the run after the kills trained fewer than all 60 steps.

@@ -179,11 +179,8 @@ impl Model {
             .ok_or_else(|| {
                 EngineError::Models(format!("{}: files: no network entry", path.display()))
             })?;
-        let head_network = crate::bundle::load_weights(
-            bundle.manifest.network.init(&dense),
-            &weights,
-            entry,
-        )?;
+        let head_network =
+            crate::bundle::load_weights(bundle.manifest.network.init(&dense), &weights, entry)?;
         let top = config.search_max_level.max(config.max_full_level);
         if top > MAX_LEVEL {
             return Err(EngineError::Models(format!(
@@ -458,7 +455,11 @@ impl Model {
             .network
             .encoding
             .encode_tensor(rotations, &self.dense);
-        let projected = self.head_network.head.project_rotations(enc).unsqueeze::<3>();
+        let projected = self
+            .head_network
+            .head
+            .project_rotations(enc)
+            .unsqueeze::<3>();
         self.head_network
             .head
             .forward_projected(features.clone(), projected)

@@ -8,9 +8,9 @@ use std::time::{Duration, Instant};
 
 use burn::tensor::{Distribution, Tensor};
 
+use super::BatchConfig;
 use super::proto::{ImageInput, PredictRequest};
 use super::server::{ServerConfig, run};
-use super::BatchConfig;
 use crate::engine::{Engine, EngineConfig, ImageRequest, Model, PredictOptions};
 
 fn quantile(v: &mut [f64], q: f64) -> f64 {
@@ -123,10 +123,7 @@ pub fn bench(bundle: &Path, images: &[Vec<u8>]) -> anyhow::Result<()> {
         let s = best_of(5, || {
             let _ = model.features(&refs).into_data();
         });
-        println!(
-            "encoder at batch {batch}: {:.1} images/s",
-            batch as f64 / s
-        );
+        println!("encoder at batch {batch}: {:.1} images/s", batch as f64 / s);
     }
     grpc_vs_in_process(model, bundle, &images[0])
 }
@@ -209,16 +206,54 @@ fn grpc_vs_in_process(model: Arc<Model>, bundle: &Path, png: &[u8]) -> anyhow::R
         // Warm-up, then the measured run.
         crate::client::load::run_load(vec![channel.clone()], request.clone(), 16, 8, Duration::from_secs(60)).await?;
         let report = crate::client::load::run_load(
-            vec![channel],
-            request,
+            vec![channel.clone()],
+            request.clone(),
             requests,
             concurrency,
             Duration::from_secs(120),
         )
         .await?;
+        // Latency of single calls (nothing else in flight) on the served model.
+        let default_predict = PredictRequest {
+            top_k: 10,
+            level: 0,
+            ..request.clone()
+        };
+        let single = crate::client::load::run_load(
+            vec![channel.clone()],
+            default_predict,
+            30,
+            1,
+            Duration::from_secs(120),
+        )
+        .await?;
+        println!(
+            "gRPC Predict (top-10, search to level 5), one call at a time: p50 {:.1} ms, p99 {:.1} ms",
+            single.p50_ms, single.p99_ms
+        );
+        let mut dist_ms = Vec::new();
+        for _ in 0..8 {
+            let t = Instant::now();
+            let (_, probs, _) = crate::client::distribution(
+                channel.clone(),
+                super::proto::DistributionRequest {
+                    image: request.image.clone(),
+                    level: 4,
+                    ..Default::default()
+                },
+            )
+            .await?;
+            anyhow::ensure!(probs.len() == 294_912, "level-4 distribution has {} cells", probs.len());
+            dist_ms.push(t.elapsed().as_secs_f64() * 1e3);
+        }
+        println!(
+            "gRPC PredictDistribution level 4 (294912 cells, streamed): p50 {:.0} ms, p99 {:.0} ms",
+            quantile(&mut dist_ms, 0.5),
+            quantile(&mut dist_ms, 0.99)
+        );
         let _ = stop.send(());
         let _ = server.await;
-        if report.failures() > 0 {
+        if report.failures() + single.failures() > 0 {
             anyhow::bail!("gRPC bench calls failed: {report}");
         }
         anyhow::Ok(report.requests_per_second)

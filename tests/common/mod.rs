@@ -225,7 +225,6 @@ pub fn metric(text: &str, name: &str, labels: &[&str]) -> f64 {
         .sum()
 }
 
-
 /// A private copy of the tiny models directory.
 pub fn copy_models() -> tempfile::TempDir {
     let dir = tempfile::tempdir().unwrap();
@@ -261,4 +260,3 @@ pub async fn http_get(url: &str) -> String {
     stream.read_to_string(&mut body).await.unwrap();
     body
 }
-
