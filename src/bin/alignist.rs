@@ -58,7 +58,7 @@ enum Command {
         /// Print JSON instead of a table.
         #[arg(long)]
         json: bool,
-        /// Also draw the top rotations (IPDF-style plot) to this PNG.
+        /// Also draw the distribution at level 3 (IPDF-style plot) to this PNG.
         #[arg(long)]
         plot: Option<PathBuf>,
     },
@@ -191,13 +191,20 @@ async fn run(cli: Cli) -> Result<()> {
                 print!("{}", client::predict_table(&answer));
             }
             if let Some(path) = plot {
-                let rotations: Vec<[f64; 4]> = answer
-                    .top
-                    .iter()
-                    .filter_map(|t| t.quaternion.clone().try_into().ok())
-                    .collect();
-                let probs: Vec<f64> = answer.top.iter().map(|t| t.probability).collect();
-                save_plot(&path, &rotations, &probs)?;
+                // The plot shows the whole distribution (level 3), not just the top-k.
+                let request = DistributionRequest {
+                    model: image.model.clone(),
+                    object: image.object.clone(),
+                    image: Some(read_image(&image)?),
+                    level: 3,
+                    chunk_size: 0,
+                    depth: None,
+                };
+                let channel = client::connect(&cli.server, timeout).await?;
+                let (level, probs, _) = client::distribution(channel, request).await?;
+                let grid = alignist::so3::GridLevel::new(level as u8)?;
+                let probs: Vec<f64> = probs.iter().map(|&p| p as f64).collect();
+                save_plot(&path, &grid.quaternions(), &probs)?;
             }
         }
         Command::Distribution {

@@ -58,7 +58,8 @@ fn to_rotation(q: &[f64; 4]) -> Rotation3<f64> {
     UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(q[0], q[1], q[2], q[3])).into()
 }
 
-/// Draws `rotations` (unit quaternions `(w, x, y, z)`) with probabilities `probabilities`, and
+/// Draws `rotations` (unit quaternions `(w, x, y, z)`) with probabilities `probabilities` (those
+/// above twice the uniform probability; marker area ∝ probability), and
 /// `ground_truths` as rings, on a `width`-pixel-wide image (height `width / 2`).
 pub fn plot_distribution(
     rotations: &[[f64; 4]],
@@ -93,12 +94,15 @@ pub fn plot_distribution(
         }
     }
     let max_p = probabilities.iter().cloned().fold(0.0f64, f64::max);
-    let max_radius = 0.02 * width as f64;
+    let max_radius = 0.012 * width as f64;
+    // As in IPDF's plots, rotations at or below twice the uniform probability are not drawn, so
+    // the plot shows where the mass concentrates.
+    let floor = 2.0 / probabilities.len().max(1) as f64;
     let mut order: Vec<usize> = (0..rotations.len().min(probabilities.len())).collect();
     order.sort_by(|&a, &b| probabilities[a].total_cmp(&probabilities[b]));
     for i in order {
         let p = probabilities[i];
-        if p.is_nan() || p <= 0.0 || max_p <= 0.0 {
+        if p.is_nan() || p <= floor || max_p <= 0.0 {
             continue;
         }
         let radius = max_radius * (p / max_p).sqrt();
