@@ -185,7 +185,7 @@ fn grpc_vs_in_process(model: Arc<Model>, bundle: &Path, png: &[u8]) -> anyhow::R
         let url = format!("http://{listen}");
         let mut channel = None;
         for _ in 0..600 {
-            if let Ok(c) = crate::client::connect(&url, Duration::from_secs(5)).await
+            if let Ok(c) = crate::client::connect(&url, Duration::from_secs(120)).await
                 && crate::client::health(c.clone(), "").await.ok().as_deref() == Some("Serving")
             {
                 channel = Some(c);
