@@ -130,24 +130,40 @@ fn render_experts_fit_eval_and_load_a_bundle() {
         0
     );
 
-    // eval on the bundle.
+    // eval on the bundle: the overall figures of its report.
     let report = dir.path().join("report.json");
-    run(&[
-        "eval",
-        "--model",
-        s(&bundle),
-        "--data",
-        &format!("cube={}", s(&data)),
-        "--level",
-        "1",
-        "--images",
-        "2",
-        "--out",
-        s(&report),
-    ]);
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
-    assert_eq!(json["overall"]["images"], 2);
+    let eval_overall = |images: &str| -> serde_json::Value {
+        run(&[
+            "eval",
+            "--model",
+            s(&bundle),
+            "--data",
+            &format!("cube={}", s(&data)),
+            "--level",
+            "1",
+            "--images",
+            images,
+            "--out",
+            s(&report),
+        ]);
+        let json: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+        json["overall"].clone()
+    };
+    assert_eq!(eval_overall("2")["images"], 2);
+
+    // The bundle read back scores as the network `fit` held in memory: evaluating the loaded
+    // bundle on the same 3 test images at the same level reproduces the manifest's figures.
+    let json = serde_json::json!({ "overall": eval_overall("3") });
+    let again: alignist::so3::metrics::MetricsSummary =
+        serde_json::from_value(json["overall"].clone()).unwrap();
+    assert_eq!(again.images, eval.overall.images);
+    assert_eq!(again.spread_deg, eval.overall.spread_deg);
+    assert_eq!(again.median_error_deg, eval.overall.median_error_deg);
+    assert_eq!(again.accuracy_at, eval.overall.accuracy_at);
+    // LL sums logs over images and equivalents in a parallel reduction: equal up to the order of
+    // the sum (the scores themselves are compared bit for bit in tests/train.rs).
+    assert!((again.log_likelihood - eval.overall.log_likelihood).abs() < 1e-12);
     let bad = Command::new(env!("CARGO_BIN_EXE_alignist-train"))
         .args([
             "eval",

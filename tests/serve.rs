@@ -477,18 +477,7 @@ async fn concurrent_requests_are_batched() {
     let ch = channel(&server).await;
     wait_serving(ch.clone()).await;
     let png = cube_png(11);
-    let calls = (0..200).map(|_| {
-        let mut client = AlignistClient::new(ch.clone());
-        let request = PredictRequest {
-            model: "tiny".into(),
-            image: image(png.clone()),
-            top_k: 1,
-            level: 2,
-            ..Default::default()
-        };
-        tokio::spawn(async move { client.predict(request).await.map(|r| r.into_inner()) })
-    });
-    let results = futures_join(calls).await;
+    let results = futures_join(spawn_predicts(&ch, &png, 200, 1, 2).into_iter()).await;
     assert_eq!(results.len(), 200);
     let first = results[0].as_ref().unwrap().top[0].cell;
     for r in &results {
@@ -502,6 +491,29 @@ async fn concurrent_requests_are_batched() {
         images / batches > 1.0,
         "{images} images in {batches} batches: no batching"
     );
+}
+
+/// Starts `n` Predict calls of the same image concurrently, each on its own client.
+fn spawn_predicts(
+    ch: &tonic::transport::Channel,
+    png: &[u8],
+    n: usize,
+    top_k: u32,
+    level: u32,
+) -> Vec<tokio::task::JoinHandle<Result<alignist::serve::proto::PredictResponse, tonic::Status>>> {
+    (0..n)
+        .map(|_| {
+            let mut client = AlignistClient::new(ch.clone());
+            let request = PredictRequest {
+                model: "tiny".into(),
+                image: image(png.to_vec()),
+                top_k,
+                level,
+                ..Default::default()
+            };
+            tokio::spawn(async move { client.predict(request).await.map(|r| r.into_inner()) })
+        })
+        .collect()
 }
 
 async fn futures_join<T>(handles: impl Iterator<Item = tokio::task::JoinHandle<T>>) -> Vec<T> {
@@ -518,19 +530,7 @@ async fn sigterm_drains_accepted_calls_and_exits_0() {
     let ch = channel(&server).await;
     wait_serving(ch.clone()).await;
     let png = cube_png(12);
-    let calls: Vec<_> = (0..24)
-        .map(|_| {
-            let mut client = AlignistClient::new(ch.clone());
-            let request = PredictRequest {
-                model: "tiny".into(),
-                image: image(png.clone()),
-                top_k: 5,
-                level: 5,
-                ..Default::default()
-            };
-            tokio::spawn(async move { client.predict(request).await })
-        })
-        .collect();
+    let calls = spawn_predicts(&ch, &png, 24, 5, 5);
     tokio::time::sleep(Duration::from_millis(300)).await;
     let pid = server.child.id().to_string();
     assert!(
@@ -591,4 +591,46 @@ fn modes_of_a_tetrahedral_distribution_are_its_12_equivalents() {
             m.probability
         );
     }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_full_queue_answers_unavailable_and_an_expired_call_gives_up() {
+    let server = start_server(&["--queue", "1", "--max-batch", "1", "--max-delay-ms", "0"]);
+    let ch = channel(&server).await;
+    wait_serving(ch.clone()).await;
+    let png = cube_png(31);
+    let calls = spawn_predicts(&ch, &png, 40, 1, 5);
+    let (mut ok, mut unavailable) = (0, 0);
+    for call in calls {
+        match call.await.unwrap() {
+            Ok(_) => ok += 1,
+            Err(s) => {
+                assert_eq!(s.code(), Code::Unavailable, "{s:?}");
+                assert!(s.message().contains("queue"), "{}", s.message());
+                unavailable += 1;
+            }
+        }
+    }
+    assert!(
+        ok >= 1 && unavailable >= 1,
+        "{ok} ok, {unavailable} unavailable"
+    );
+
+    // A call whose deadline passes gets DEADLINE_EXCEEDED or CANCELLED, and the server goes on.
+    let mut client = AlignistClient::new(ch.clone());
+    let mut call = tonic::Request::new(PredictRequest {
+        model: "tiny".into(),
+        image: image(png.clone()),
+        top_k: 1,
+        level: 6,
+        ..Default::default()
+    });
+    call.set_timeout(Duration::from_millis(5));
+    let status = client.predict(call).await.expect_err("deadline");
+    assert!(
+        matches!(status.code(), Code::DeadlineExceeded | Code::Cancelled),
+        "{status:?}"
+    );
+    let answer = client.predict(predict_request(31, 2, 2)).await.unwrap();
+    assert_eq!(answer.into_inner().top.len(), 2);
 }

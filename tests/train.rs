@@ -182,6 +182,19 @@ fn training_is_deterministic_and_resumes_exactly() {
     }
     assert_eq!(fingerprint(&a, &set), fingerprint(&resumed, &set));
 
+    // The network file of a bundle reads back to the same scores, bit for bit.
+    let entry =
+        alignist::bundle::save_weights(&a, &files.path().join("network.safetensors")).unwrap();
+    let device = alignist::backend::device_for(alignist::backend::Workload::Conv);
+    let loaded = alignist::bundle::load_weights(
+        cfg.network.init(&device),
+        &files.path().join("network.safetensors"),
+        &entry,
+    )
+    .unwrap();
+    let (fa, fl) = (fingerprint(&a, &set), fingerprint(&loaded, &set));
+    assert!(fa.iter().zip(&fl).all(|(x, y)| x.to_bits() == y.to_bits()));
+
     // Another seed gives other weights.
     let other = TrainConfig { seed: 12, ..cfg };
     let (c, _) = train(&other, &set, None, false, |_, _, _| {
