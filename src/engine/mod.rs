@@ -234,27 +234,34 @@ impl Model {
 
     /// The object named `name` (empty: the only object, when there is one).
     pub fn object(&self, name: &str) -> Result<&ModelObject, EngineError> {
+        Ok(&self.objects[self.object_index(name)?])
+    }
+
+    /// Index in [`Model::objects`] of the object named `name` (empty: the only object).
+    pub fn object_index(&self, name: &str) -> Result<usize, EngineError> {
         if name.is_empty() {
-            return match self.objects.as_slice() {
-                [only] => Ok(only),
-                _ => Err(invalid(
+            return match self.objects.len() {
+                1 => Ok(0),
+                n => Err(invalid(
                     "object",
                     format!(
-                        "is required: model '{}' has {} objects ({})",
+                        "is required: model '{}' has {n} objects ({})",
                         self.name,
-                        self.objects.len(),
                         self.object_names()
                     ),
                 )),
             };
         }
-        self.objects.iter().find(|o| o.name == name).ok_or_else(|| {
-            EngineError::NotFound(format!(
-                "object '{name}' is not in model '{}' (objects: {})",
-                self.name,
-                self.object_names()
-            ))
-        })
+        self.objects
+            .iter()
+            .position(|o| o.name == name)
+            .ok_or_else(|| {
+                EngineError::NotFound(format!(
+                    "object '{name}' is not in model '{}' (objects: {})",
+                    self.name,
+                    self.object_names()
+                ))
+            })
     }
 
     fn object_names(&self) -> String {

@@ -75,18 +75,17 @@ pub struct Batcher {
 
 impl Batcher {
     /// Starts the batching thread of `model`.
-    pub fn start(model: Arc<Model>, config: BatchConfig) -> Batcher {
+    pub fn start(model: Arc<Model>, config: BatchConfig) -> std::io::Result<Batcher> {
         let (sender, receiver) = mpsc::channel(config.queue_capacity.max(1));
         let name = model.name.clone();
         std::thread::Builder::new()
             .name(format!("encoder-{name}"))
-            .spawn(move || run(model, config, receiver))
-            .expect("spawn encoder thread");
-        Batcher {
+            .spawn(move || run(model, config, receiver))?;
+        Ok(Batcher {
             model: name,
             capacity: config.queue_capacity,
             sender,
-        }
+        })
     }
 
     /// Queues a prepared crop and waits for its features.
@@ -136,10 +135,14 @@ fn run(model: Arc<Model>, config: BatchConfig, mut receiver: mpsc::Receiver<Job>
         let started = Instant::now();
         let features = model.features(&crops);
         let [b, d] = features.dims();
-        let flat = features
-            .into_data()
-            .try_to_vec::<f32>()
-            .expect("float features");
+        let flat = match features.into_data().try_to_vec::<f32>() {
+            Ok(flat) => flat,
+            Err(e) => {
+                // Dropping the jobs answers their callers (UNAVAILABLE); the thread goes on.
+                tracing::error!("encoder output of model '{}' unreadable: {e:?}", model.name);
+                continue;
+            }
+        };
         metrics::histogram!("alignist_batch_size").record(b as f64);
         metrics::counter!("alignist_batches_total").increment(1);
         metrics::counter!("alignist_batched_images_total").increment(b as u64);

@@ -140,23 +140,29 @@ fn grpc_vs_in_process(model: Arc<Model>, bundle: &Path, png: &[u8]) -> anyhow::R
     };
     let t = Instant::now();
     std::thread::scope(|scope| {
-        for w in 0..concurrency {
-            let (model, options) = (&model, &options);
-            scope.spawn(move || {
-                for _ in (w..requests).step_by(concurrency) {
-                    let crop = model
-                        .prepare(&ImageRequest {
+        let workers: Vec<_> = (0..concurrency)
+            .map(|w| {
+                let (model, options) = (&model, &options);
+                scope.spawn(move || -> Result<(), crate::engine::EngineError> {
+                    for _ in (w..requests).step_by(concurrency) {
+                        let crop = model.prepare(&ImageRequest {
                             data: png,
                             raw_size: None,
                             crop: None,
-                        })
-                        .expect("bench image");
-                    let f = model.features(&[&crop]);
-                    model.predict(&f, options, None).expect("predict");
-                }
-            });
-        }
-    });
+                        })?;
+                        let f = model.features(&[&crop]);
+                        model.predict(&f, options, None)?;
+                    }
+                    Ok(())
+                })
+            })
+            .collect();
+        workers.into_iter().try_for_each(|w| {
+            w.join()
+                .map_err(|_| anyhow::anyhow!("bench worker panicked"))?
+                .map_err(anyhow::Error::from)
+        })
+    })?;
     let in_process = requests as f64 / t.elapsed().as_secs_f64();
     drop(model);
 

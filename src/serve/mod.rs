@@ -18,9 +18,7 @@ use tracing::{Instrument, info, info_span, warn};
 
 pub use batcher::{BatchConfig, BatchError, Batcher};
 
-use crate::engine::{
-    CropBox, Engine, EngineError, ImageRequest, Model, ModelObject, PredictOptions,
-};
+use crate::engine::{CropBox, Engine, EngineError, ImageRequest, Model, PredictOptions};
 
 /// Generated protobuf types and the service's file descriptor set (for reflection).
 #[allow(missing_docs, clippy::all)]
@@ -47,13 +45,13 @@ pub struct Served {
 }
 
 impl Served {
-    /// Starts a batcher per model.
-    pub fn new(engine: Engine, batch: BatchConfig) -> Served {
+    /// Starts a batcher (an encoder thread) per model.
+    pub fn new(engine: Engine, batch: BatchConfig) -> std::io::Result<Served> {
         let batchers = engine
             .models()
-            .map(|m| (m.name.clone(), Batcher::start(m.clone(), batch)))
-            .collect();
-        Served { engine, batchers }
+            .map(|m| Ok((m.name.clone(), Batcher::start(m.clone(), batch)?)))
+            .collect::<std::io::Result<_>>()?;
+        Ok(Served { engine, batchers })
     }
 }
 
@@ -175,7 +173,8 @@ async fn blocking<T: Send + 'static>(
 struct Prepared {
     model: Arc<Model>,
     object: Option<usize>,
-    depth: Option<Vec<nalgebra::Vector3<f32>>>,
+    /// The object's index and its depth points, when depth was given.
+    depth: Option<(usize, Vec<nalgebra::Vector3<f32>>)>,
     batcher: Batcher,
     image: ImageInput,
 }
@@ -203,15 +202,6 @@ fn raw_size(image: &ImageInput) -> Result<Option<(u32, u32)>, Status> {
     }
 }
 
-fn object_index(model: &Model, name: &str) -> Result<usize, Status> {
-    let object: &ModelObject = model.object(name).map_err(status_of)?;
-    Ok(model
-        .objects
-        .iter()
-        .position(|o| std::ptr::eq(o, object))
-        .expect("object of this model"))
-}
-
 fn prepare(
     served: &Served,
     model: &str,
@@ -224,18 +214,17 @@ fn prepare(
     raw_size(&image)?;
     let object = match (&depth, object.is_empty()) {
         (None, true) => None,
-        _ => Some(object_index(&model, object)?),
+        _ => Some(model.object_index(object).map_err(status_of)?),
     };
-    let depth = match depth {
-        None => None,
-        Some(d) => {
-            let o = &model.objects[object.expect("object resolved when depth is given")];
-            Some(
-                o.fusion
-                    .parse_points(&d.xyz, model.config().max_depth_points)
-                    .map_err(status_of)?,
-            )
-        }
+    let depth = match (depth, object) {
+        (Some(d), Some(i)) => Some((
+            i,
+            model.objects[i]
+                .fusion
+                .parse_points(&d.xyz, model.config().max_depth_points)
+                .map_err(status_of)?,
+        )),
+        _ => None,
     };
     let batcher = served
         .batchers
@@ -316,14 +305,14 @@ impl AlignistService {
         let level = p.model.check_predict(&options).map_err(status_of)?;
         let features = encode(&p).await?;
         let model = p.model.clone();
-        let (object, depth) = (p.object, p.depth);
+        let depth = p.depth;
         let fused = depth.is_some();
         let compute = Instant::now();
         let prediction = blocking(move || {
             let f = model.features_tensor(&features);
             let fusion = depth
-                .as_deref()
-                .map(|pts| (&model.objects[object.expect("object")], pts));
+                .as_ref()
+                .map(|(i, pts)| (&model.objects[*i], pts.as_slice()));
             model.predict(&f, &options, fusion).map_err(status_of)
         })
         .await?;
@@ -445,13 +434,13 @@ impl AlignistService {
         } as usize;
         let features = encode(&p).await?;
         let model = p.model.clone();
-        let (object, depth) = (p.object, p.depth);
+        let depth = p.depth;
         let compute = Instant::now();
         let distribution = blocking(move || {
             let f = model.features_tensor(&features);
             let fusion = depth
-                .as_deref()
-                .map(|pts| (&model.objects[object.expect("object")], pts));
+                .as_ref()
+                .map(|(i, pts)| (&model.objects[*i], pts.as_slice()));
             model.distribution(&f, level, fusion).map_err(status_of)
         })
         .await?;

@@ -105,11 +105,19 @@ async fn watch_models(
         seen = now;
         let dir = models.clone();
         match tokio::task::spawn_blocking(move || Engine::load_dir(&dir, engine_config)).await {
-            Ok(Ok(engine)) => {
-                info!(models = ?engine.names(), "models reloaded");
-                state.install(Served::new(engine, batch));
-                metrics::counter!("alignist_reloads_total", "result" => "ok").increment(1);
-            }
+            Ok(Ok(engine)) => match Served::new(engine, batch) {
+                Ok(served) => {
+                    info!(models = ?served.engine.names(), "models reloaded");
+                    state.install(served);
+                    metrics::counter!("alignist_reloads_total", "result" => "ok").increment(1);
+                }
+                Err(e) => {
+                    error!(
+                        "reload failed to start encoder threads, still serving the previous models: {e}"
+                    );
+                    metrics::counter!("alignist_reloads_total", "result" => "refused").increment(1);
+                }
+            },
             Ok(Err(e)) => {
                 error!("reload refused, still serving the previous models: {e}");
                 metrics::counter!("alignist_reloads_total", "result" => "refused").increment(1);
@@ -155,12 +163,16 @@ pub enum ServeError {
 pub async fn shutdown_signal() {
     let ctrl_c = tokio::signal::ctrl_c();
     #[cfg(unix)]
-    {
-        let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
-            .expect("install SIGTERM handler");
-        tokio::select! {
-            _ = ctrl_c => {},
-            _ = term.recv() => {},
+    match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+        Ok(mut term) => {
+            tokio::select! {
+                _ = ctrl_c => {},
+                _ = term.recv() => {},
+            }
+        }
+        Err(e) => {
+            error!("cannot listen for SIGTERM ({e}); only SIGINT stops the server");
+            let _ = ctrl_c.await;
         }
     }
     #[cfg(not(unix))]
@@ -230,7 +242,11 @@ pub async fn run(
             match loaded {
                 Ok(Ok(engine)) => {
                     info!(models = ?engine.names(), "models loaded");
-                    state.install(Served::new(engine, batch));
+                    let served = Served::new(engine, batch).map_err(|e| ServeError::Models {
+                        path: path.clone(),
+                        message: format!("starting encoder threads: {e}"),
+                    })?;
+                    state.install(served);
                     health
                         .set_serving::<AlignistServer<AlignistService>>()
                         .await;
