@@ -58,6 +58,10 @@ fn invalid(field: &str, message: impl Into<String>) -> EngineError {
     }
 }
 
+/// Most rotations one Predict may return (the search keeps `top_k / 8` cells per level, so this
+/// also bounds its work).
+pub const MAX_TOP_K: usize = 16_384;
+
 /// How the engine serves.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct EngineConfig {
@@ -364,13 +368,7 @@ impl Model {
                 ),
             ));
         }
-        let start = self.config.search_start_level.min(level);
         let grid = &self.grids[level as usize];
-        let reachable = if level == start {
-            grid.len()
-        } else {
-            self.config.keep * 8
-        };
         if options.top_k == 0 {
             return Err(invalid("top_k", "must be at least 1"));
         }
@@ -384,13 +382,10 @@ impl Model {
                 ),
             ));
         }
-        if options.top_k > reachable.max(self.config.keep * 8) {
+        if options.top_k > MAX_TOP_K {
             return Err(invalid(
                 "top_k",
-                format!(
-                    "{} is above the {} cells a search to level {level} scores",
-                    options.top_k, reachable
-                ),
+                format!("{} is above the limit of {MAX_TOP_K}", options.top_k),
             ));
         }
         if let Some(a) = options.mode_angle_deg
