@@ -20,20 +20,24 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use tonic::Code;
 
+/// Image features of a PNG through the model's own preparation and encoder.
+fn features_of(model: &alignist::engine::Model, png: &[u8]) -> burn::tensor::Tensor<2> {
+    let crop = model
+        .prepare(&ImageRequest {
+            data: png,
+            raw_size: None,
+            crop: None,
+        })
+        .unwrap();
+    model.features(&[&crop])
+}
+
 #[test]
 fn coarse_to_fine_top1_is_the_exhaustive_argmax_at_level_4() {
     let engine = Engine::load_dir(models_dir(), EngineConfig::default()).unwrap();
     let model = engine.model("tiny").unwrap();
     for seed in 0..3 {
-        let png = cube_png(100 + seed);
-        let crop = model
-            .prepare(&ImageRequest {
-                data: &png,
-                raw_size: None,
-                crop: None,
-            })
-            .unwrap();
-        let features = model.features(&[&crop]);
+        let features = features_of(&model, &cube_png(100 + seed));
         let full = model.distribution(&features, 4, None).unwrap();
         let total: f64 = full.probability.iter().map(|&p| p as f64).sum();
         assert!((total - 1.0).abs() < 1e-4, "{total}");
@@ -75,15 +79,7 @@ fn depth_points_from_the_true_pose_sharpen_the_distribution() {
         })
         .collect();
     let points = object.fusion.parse_points(&xyz, 10_000).unwrap();
-    let png = cube_png(7);
-    let crop = model
-        .prepare(&ImageRequest {
-            data: &png,
-            raw_size: None,
-            crop: None,
-        })
-        .unwrap();
-    let features = model.features(&[&crop]);
+    let features = features_of(&model, &cube_png(7));
     let grid = model.grid(3).unwrap();
     let gts = alignist::so3::equivalents(&r, &Shape::Cube.symmetries());
     let mass_near = |probs: &[f32]| -> f64 {

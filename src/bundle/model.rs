@@ -87,12 +87,17 @@ pub struct ModelBundle {
 pub const NETWORK_FILE: &str = "network.safetensors";
 const MANIFEST_FILE: &str = "manifest.json";
 
-fn copy_dir(from: &Path, to: &Path) -> Result<(), BundleError> {
+/// Copies the folder `from` into `to` (created), subfolders included.
+pub fn copy_dir(from: &Path, to: &Path) -> Result<(), BundleError> {
     fs::create_dir_all(to).map_err(|e| super::io_err(to, e))?;
     for entry in fs::read_dir(from).map_err(|e| super::io_err(from, e))? {
         let entry = entry.map_err(|e| super::io_err(from, e))?;
         let target = to.join(entry.file_name());
-        fs::copy(entry.path(), &target).map_err(|e| super::io_err(&target, e))?;
+        if entry.path().is_dir() {
+            copy_dir(&entry.path(), &target)?;
+        } else {
+            fs::copy(entry.path(), &target).map_err(|e| super::io_err(&target, e))?;
+        }
     }
     Ok(())
 }

@@ -75,10 +75,13 @@ pub fn is_loopback(url: &str) -> bool {
             .is_ok_and(|ip| ip.is_loopback())
 }
 
-fn quantile(sorted: &[f64], q: f64) -> f64 {
-    if sorted.is_empty() {
+/// The `q`-quantile (nearest rank) of `values`, in any order.
+pub fn quantile(values: &[f64], q: f64) -> f64 {
+    if values.is_empty() {
         return f64::NAN;
     }
+    let mut sorted = values.to_vec();
+    sorted.sort_by(f64::total_cmp);
     sorted[((sorted.len() - 1) as f64 * q).round() as usize]
 }
 
@@ -132,7 +135,6 @@ pub async fn run_load(
         }
     }
     let seconds = started.elapsed().as_secs_f64();
-    latencies.sort_by(f64::total_cmp);
     Ok(LoadReport {
         requests: latencies.len(),
         seconds,

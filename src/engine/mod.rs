@@ -523,16 +523,6 @@ impl Engine {
         Model::from_bundle(&name, folder, bundle, config)
     }
 
-    /// An engine over already-built models.
-    pub fn from_models(models: Vec<Model>) -> Engine {
-        Engine {
-            models: models
-                .into_iter()
-                .map(|m| (m.name.clone(), Arc::new(m)))
-                .collect(),
-        }
-    }
-
     /// The model named `name` (empty: the only model, when there is one).
     pub fn model(&self, name: &str) -> Result<Arc<Model>, EngineError> {
         if name.is_empty() {

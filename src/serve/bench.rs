@@ -11,12 +11,8 @@ use burn::tensor::{Distribution, Tensor};
 use super::BatchConfig;
 use super::proto::{ImageInput, PredictRequest};
 use super::server::{ServerConfig, run};
+use crate::client::load::quantile;
 use crate::engine::{Engine, EngineConfig, ImageRequest, Model, PredictOptions};
-
-fn quantile(v: &mut [f64], q: f64) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[((v.len() - 1) as f64 * q).round() as usize]
-}
 
 /// Best-of-`reps` seconds of `f`.
 fn best_of(reps: usize, mut f: impl FnMut()) -> f64 {
@@ -113,8 +109,8 @@ pub fn bench(bundle: &Path, images: &[Vec<u8>]) -> anyhow::Result<()> {
     println!(
         "coarse-to-fine top-10 to level 5 (keep {}), encoder included: p50 {:.1} ms, p99 {:.1} ms",
         engine_config.keep,
-        quantile(&mut lat, 0.5),
-        quantile(&mut lat, 0.99)
+        quantile(&lat, 0.5),
+        quantile(&lat, 0.99)
     );
     for batch in [1usize, BatchConfig::default().max_batch] {
         let refs: Vec<&[u8]> = (0..batch)
@@ -169,7 +165,7 @@ fn grpc_vs_in_process(model: Arc<Model>, bundle: &Path, png: &[u8]) -> anyhow::R
     // The same bundle served over gRPC on an ephemeral loopback port.
     let dir = tempfile_dir()?;
     let link = dir.join(bundle.file_name().unwrap_or_default());
-    copy_dir(bundle, &link)?;
+    crate::bundle::model::copy_dir(bundle, &link)?;
     let runtime = tokio::runtime::Runtime::new()?;
     let grpc = runtime.block_on(async {
         let port = std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port();
@@ -254,8 +250,8 @@ fn grpc_vs_in_process(model: Arc<Model>, bundle: &Path, png: &[u8]) -> anyhow::R
         }
         println!(
             "gRPC PredictDistribution level 4 (294912 cells, streamed): p50 {:.0} ms, p99 {:.0} ms",
-            quantile(&mut dist_ms, 0.5),
-            quantile(&mut dist_ms, 0.99)
+            quantile(&dist_ms, 0.5),
+            quantile(&dist_ms, 0.99)
         );
         let _ = stop.send(());
         let _ = server.await;
@@ -276,18 +272,4 @@ fn tempfile_dir() -> std::io::Result<std::path::PathBuf> {
     let dir = std::env::temp_dir().join(format!("alignist-bench-{}", std::process::id()));
     std::fs::create_dir_all(&dir)?;
     Ok(dir)
-}
-
-fn copy_dir(from: &Path, to: &Path) -> std::io::Result<()> {
-    std::fs::create_dir_all(to)?;
-    for e in std::fs::read_dir(from)? {
-        let e = e?;
-        let target = to.join(e.file_name());
-        if e.file_type()?.is_dir() {
-            copy_dir(&e.path(), &target)?;
-        } else {
-            std::fs::copy(e.path(), &target)?;
-        }
-    }
-    Ok(())
 }

@@ -9,6 +9,7 @@ use std::time::Duration;
 
 use tokio::net::TcpListener;
 use tonic::transport::Server;
+use tonic_health::ServingStatus;
 use tracing::{error, info, warn};
 
 use super::proto::alignist_server::AlignistServer;
@@ -159,6 +160,17 @@ pub enum ServeError {
     Transport(#[from] tonic::transport::Error),
 }
 
+/// Sets the health of the Alignist service and of the server as a whole ("").
+async fn report_health(health: &tonic_health::server::HealthReporter, status: ServingStatus) {
+    health
+        .set_service_status(
+            <AlignistServer<AlignistService> as tonic::server::NamedService>::NAME,
+            status,
+        )
+        .await;
+    health.set_service_status("", status).await;
+}
+
 /// Resolves when SIGTERM or SIGINT arrives.
 pub async fn shutdown_signal() {
     let ctrl_c = tokio::signal::ctrl_c();
@@ -209,12 +221,7 @@ pub async fn run(
     info!(%local, "gRPC listening");
 
     let (health, health_service) = tonic_health::server::health_reporter();
-    health
-        .set_not_serving::<AlignistServer<AlignistService>>()
-        .await;
-    health
-        .set_service_status("", tonic_health::ServingStatus::NotServing)
-        .await;
+    report_health(&health, ServingStatus::NotServing).await;
     let reflection = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(super::proto::FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
@@ -247,12 +254,7 @@ pub async fn run(
                         message: format!("starting encoder threads: {e}"),
                     })?;
                     state.install(served);
-                    health
-                        .set_serving::<AlignistServer<AlignistService>>()
-                        .await;
-                    health
-                        .set_service_status("", tonic_health::ServingStatus::Serving)
-                        .await;
+                    report_health(&health, ServingStatus::Serving).await;
                     tokio::spawn(watch_models(
                         watched,
                         engine_config,
@@ -307,12 +309,7 @@ pub async fn run(
         timeout_s = config.drain_timeout.as_secs_f64(),
         "shutdown: draining in-flight calls"
     );
-    health
-        .set_not_serving::<AlignistServer<AlignistService>>()
-        .await;
-    health
-        .set_service_status("", tonic_health::ServingStatus::NotServing)
-        .await;
+    report_health(&health, ServingStatus::NotServing).await;
     let _ = stop_accepting.send(());
     match tokio::time::timeout(config.drain_timeout, &mut server).await {
         Ok(result) => {

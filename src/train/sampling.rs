@@ -96,7 +96,10 @@ impl ModeSearch {
         let mut weights = log_measure(&self.coarse_cells);
         for (parent, grid) in self.grids.iter().zip(&self.grids[1..]) {
             let best = top_cells(&cells, &weights, self.keep);
-            cells = best.iter().flat_map(|&c| parent.children(c)).collect();
+            cells = best
+                .iter()
+                .flat_map(|&i| parent.children(cells[i]))
+                .collect();
             let mats: Vec<[f32; 9]> = cells
                 .iter()
                 .map(|&c| to_row_major_f32(&grid.rotation(c)))
@@ -104,18 +107,16 @@ impl ModeSearch {
             weights = log_measure(&mats);
         }
         let best = top_cells(&cells, &weights, self.keep);
-        let lookup: std::collections::HashMap<u64, f32> =
-            cells.iter().copied().zip(weights.iter().copied()).collect();
         ExpertModes {
-            log_weights: best.iter().map(|c| lookup[c]).collect(),
-            cells: best,
+            cells: best.iter().map(|&i| cells[i]).collect(),
+            log_weights: best.iter().map(|&i| weights[i]).collect(),
         }
     }
 }
 
-/// The `keep` cells with the largest weights (ties broken by index, so the result is
-/// deterministic), in decreasing weight.
-fn top_cells(cells: &[u64], weights: &[f32], keep: usize) -> Vec<u64> {
+/// Positions of the `keep` cells with the largest weights (ties broken by cell index, so the
+/// result is deterministic), in decreasing weight.
+fn top_cells(cells: &[u64], weights: &[f32], keep: usize) -> Vec<usize> {
     let mut order: Vec<usize> = (0..cells.len()).collect();
     let by_weight = |&a: &usize, &b: &usize| {
         weights[b]
@@ -127,7 +128,7 @@ fn top_cells(cells: &[u64], weights: &[f32], keep: usize) -> Vec<u64> {
         order.truncate(keep);
     }
     order.sort_by(by_weight);
-    order.into_iter().map(|i| cells[i]).collect()
+    order
 }
 
 /// Draws the K rotations: index 0 is `r_gt`. `modes` (the fine grid and this image's

@@ -234,16 +234,7 @@ pub fn copy_models() -> tempfile::TempDir {
 
 /// Recursive copy.
 pub fn copy_tree(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        let target = to.join(e.file_name());
-        if e.file_type().unwrap().is_dir() {
-            copy_tree(&e.path(), &target);
-        } else {
-            std::fs::copy(e.path(), &target).unwrap();
-        }
-    }
+    alignist::bundle::model::copy_dir(from, to).unwrap();
 }
 
 /// GET of the Prometheus endpoint, with a plain HTTP/1.0 request (no client library needed).
