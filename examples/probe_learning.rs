@@ -32,23 +32,24 @@ fn main() {
         .nth(4)
         .and_then(|s| s.parse().ok())
         .unwrap_or(1.0);
-    let baked = match &experts {
+    let (baked, modes) = match &experts {
         Some(dir) => {
-            let mut b = alignist::bundle::experts::ExpertSet::load(std::path::Path::new(dir))
-                .unwrap()
-                .bake();
+            let set =
+                alignist::bundle::experts::ExpertSet::load(std::path::Path::new(dir)).unwrap();
+            let mut b = set.bake();
+            let modes = vec![set.mode_table(&b).unwrap()];
             b.params.lambda_sdf *= lambda_scale;
             b.params.lambda_se *= lambda_scale;
-            b
+            (b, modes)
         }
-        None => bake_experts(
+        None => (bake_experts(
             &SirenConfig::new(3, 8, 1, 1).init(&device),
             &key_siren_config().init(&device),
             8,
             1.05,
             EnergyParams::default(),
             &device,
-        ),
+        ), Vec::new()),
     };
     let size = 32;
     let camera = alignist::cad::Camera::square(size);
@@ -73,6 +74,7 @@ fn main() {
         .collect();
     let set = TrainingSet {
         objects: vec![baked],
+        modes,
         images,
     };
     let cfg = TrainConfig {

@@ -9,6 +9,8 @@ use std::sync::LazyLock;
 use alignist::bundle::experts::{ExpertSet, ExpertsJob, train_expert_set};
 use alignist::cad::Shape;
 use alignist::experts::feature::{FeatureTrainConfig, symmetry_ratio};
+use alignist::experts::modes::ModeTableConfig;
+use alignist::experts::select::WidthCriterion;
 use alignist::experts::sdf::SdfTrainConfig;
 use alignist::experts::select::visible_points_at;
 use alignist::so3::{
@@ -36,6 +38,9 @@ fn trained(shape: Shape) -> PathBuf {
             sdf: SdfTrainConfig::default(),
             features: FeatureTrainConfig::default(),
             bake_resolution: 64,
+            energy: Default::default(),
+            width: Default::default(),
+            modes: Default::default(),
             command: format!("tests/experts.rs trained({shape})"),
         },
         &mut |_, _, _, _| {},
@@ -258,6 +263,8 @@ fn experts_and_score_cli_write_files_that_load_and_refuse_corruption() {
         "2",
         "--bake-resolution",
         "16",
+        "--table-views",
+        "2",
         "--out",
         set_dir.to_str().unwrap(),
     ]);
@@ -274,6 +281,7 @@ fn experts_and_score_cli_write_files_that_load_and_refuse_corruption() {
     for f in [
         "manifest.json",
         "mesh.ply",
+        "modes.json",
         "sdf.safetensors",
         "keys.safetensors",
         "query.safetensors",
@@ -365,6 +373,8 @@ fn mismatched_manifests_are_refused_naming_the_field() {
         "1",
         "--bake-resolution",
         "8",
+        "--table-views",
+        "1",
         "--out",
         set_dir.to_str().unwrap(),
     ]);
@@ -386,7 +396,7 @@ fn mismatched_manifests_are_refused_naming_the_field() {
     // The SDF network described with another width: the weights no longer fit.
     let err = edit("\"hidden\": 256", "\"hidden\": 128");
     assert!(err.contains("sdf.safetensors"), "{err}");
-    let err = edit("\"format_version\": 1", "\"format_version\": 9");
+    let err = edit("\"format_version\": 2", "\"format_version\": 9");
     assert!(
         err.contains("manifest.json") && err.contains("format_version"),
         "{err}"
@@ -398,4 +408,131 @@ fn mismatched_manifests_are_refused_naming_the_field() {
     );
     std::fs::write(&manifest, &original).unwrap();
     assert!(ExpertSet::load(&set_dir).is_ok());
+}
+
+/// A tiny expert job (seconds) whose symmetries are `symmetries`.
+fn tiny_job(symmetries: Vec<Rotation3<f64>>) -> ExpertsJob {
+    let (mesh, normalisation) = Shape::Cube.mesh().normalised();
+    ExpertsJob {
+        name: "cube".into(),
+        mesh,
+        normalisation,
+        symmetries,
+        sdf: SdfTrainConfig {
+            steps: 20,
+            ..Default::default()
+        },
+        features: FeatureTrainConfig {
+            steps: 4,
+            images: 2,
+            ..Default::default()
+        },
+        bake_resolution: 16,
+        energy: Default::default(),
+        width: WidthCriterion {
+            poses: 2,
+            axes: 4,
+            ..Default::default()
+        },
+        modes: ModeTableConfig {
+            views: 2,
+            coarse_level: 1,
+            level: 2,
+            keep_fraction: 0.02,
+            seed: 0,
+        },
+        command: "tiny".into(),
+    }
+}
+
+#[test]
+fn lambda_selection_and_mode_table_never_read_the_symmetry_group() {
+    let right = train_expert_set(tiny_job(Shape::Cube.symmetries()), &mut |_, _, _, _| {}).unwrap();
+    // A wrong group (C5 is no symmetry of the cube) and no group at all.
+    for wrong in [
+        SymmetryGroup::Cyclic(5).rotations(),
+        vec![Rotation3::identity()],
+    ] {
+        let other = train_expert_set(tiny_job(wrong), &mut |_, _, _, _| {}).unwrap();
+        assert_eq!(other.manifest.energy, right.manifest.energy);
+        assert_eq!(other.manifest.energy_selection, right.manifest.energy_selection);
+        assert_eq!(other.modes, right.modes);
+    }
+    let selection = &right.manifest.energy_selection;
+    assert_eq!(selection.criterion, "width");
+    assert!(right.manifest.energy.lambda_sdf > 0.0 && right.manifest.energy.lambda_se > 0.0);
+    // By construction each expert's log-target falls by ¼ at the width.
+    let at_width = selection.profile[1];
+    assert!((at_width.1 + 0.25).abs() < 1e-9 && (at_width.2 + 0.25).abs() < 1e-9);
+}
+
+#[test]
+fn cube_mode_table_holds_every_symmetry_and_sampling_reaches_every_equivalent() {
+    use alignist::train::{ModeSampler, SamplingStrategy, sample_rotations};
+    let set = load(&CUBE);
+    let table = set.modes.clone().expect("a format-2 set has its table");
+    let grid = table.grid().unwrap();
+    let group = SymmetryGroup::Octahedral.rotations();
+    for s in &group {
+        // The symmetry's own cell, or (a symmetry on a cell boundary) a cell within 3°.
+        let near = table
+            .cells
+            .iter()
+            .any(|&c| geodesic_angle(&grid.rotation(c), s) < 3f64.to_radians());
+        assert!(near, "symmetry {s:?} is not in the mode table");
+    }
+    let sampler = ModeSampler::new(&table, 0.0).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(404);
+    let r_gt = haar_rotation(&mut rng);
+    let samples = sample_rotations(
+        &SamplingStrategy::ModeFocused {
+            focused: 2000,
+            temperature: 0.0,
+        },
+        2001,
+        &r_gt,
+        Some(&sampler),
+        &mut rng,
+    );
+    for e in equivalents(&r_gt, &group) {
+        let hits = samples[1..]
+            .iter()
+            .filter(|r| geodesic_angle(r, &e) < 8f64.to_radians())
+            .count();
+        assert!(hits >= 10, "{hits} of 2000 samples within 8° of an equivalent");
+    }
+}
+
+#[test]
+fn format_1_expert_sets_are_read_and_get_a_mode_table() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/symsol1/experts/cube");
+    let set = ExpertSet::load(&dir).unwrap();
+    if set.manifest.format_version != 1 {
+        // The shipped model was retrained: make a format-1 copy of its set.
+        let tmp = tempfile::tempdir().unwrap();
+        let copy = tmp.path().join("cube");
+        std::fs::create_dir_all(&copy).unwrap();
+        for f in std::fs::read_dir(&dir).unwrap() {
+            let f = f.unwrap();
+            std::fs::copy(f.path(), copy.join(f.file_name())).unwrap();
+        }
+        let mut m: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(copy.join("manifest.json")).unwrap())
+                .unwrap();
+        m["format_version"] = 1.into();
+        m["files"].as_object_mut().unwrap().remove("modes.json");
+        std::fs::write(copy.join("manifest.json"), m.to_string()).unwrap();
+        return check_format_1(&copy);
+    }
+    check_format_1(&dir);
+}
+
+fn check_format_1(dir: &Path) {
+    let set = ExpertSet::load(dir).unwrap();
+    assert_eq!(set.manifest.format_version, 1);
+    assert!(set.modes.is_none());
+    let baked = set.bake();
+    let table = set.mode_table(&baked).unwrap();
+    assert!(table.validate().is_ok());
+    assert_eq!(table.cells.len(), (294_912f64 * 0.01).ceil() as usize);
 }

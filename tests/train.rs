@@ -8,6 +8,7 @@ use alignist::cad::Shape;
 use alignist::encoding::RotationEncoding;
 use alignist::experts::SirenConfig;
 use alignist::experts::energy::EnergyParams;
+use alignist::experts::modes::{ModeTable, ModeTableConfig};
 use alignist::experts::select::visible_points_at;
 use alignist::net::ResNetLayout;
 use alignist::net::images_tensor;
@@ -53,8 +54,21 @@ fn tiny_set() -> TrainingSet {
             }
         })
         .collect();
+    let modes = ModeTable::build(
+        &baked,
+        &mesh,
+        &ModeTableConfig {
+            views: 2,
+            coarse_level: 1,
+            level: 2,
+            keep_fraction: 0.02,
+            seed: 0,
+        },
+    )
+    .unwrap();
     TrainingSet {
         objects: vec![baked],
+        modes: vec![modes],
         images,
     }
 }
@@ -80,9 +94,7 @@ fn alignist_method() -> Method {
         loss: MeasureLoss::Gkl,
         sampling: SamplingStrategy::ModeFocused {
             focused: 40,
-            level: 1,
-            fine_level: 2,
-            keep: 64,
+            temperature: 0.0,
         },
     }
 }
@@ -244,6 +256,9 @@ fn a_few_hundred_real_steps_lower_the_loss_and_beat_uniform_on_held_out_renders(
                 ..Default::default()
             },
             bake_resolution: 32,
+            energy: Default::default(),
+            width: Default::default(),
+            modes: Default::default(),
             command: "test".into(),
         },
         &mut |_, _, _, _| {},
@@ -280,6 +295,7 @@ fn a_few_hundred_real_steps_lower_the_loss_and_beat_uniform_on_held_out_renders(
         .collect();
     let set = TrainingSet {
         objects: vec![baked],
+        modes: vec![experts.modes.clone().unwrap()],
         images,
     };
     let cfg = TrainConfig {

@@ -8,6 +8,9 @@ use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 
+use alignist::experts::feature::FeatureTrainConfig;
+use alignist::experts::modes::ModeTableConfig;
+use alignist::experts::select::WidthCriterion;
 use alignist::so3::{GridLevel, MAX_LEVEL, to_quaternion};
 
 /// Trains and inspects alignist models.
@@ -361,9 +364,31 @@ struct ExpertsArgs {
     /// Surface negatives per feature step.
     #[arg(long, default_value_t = 512)]
     negatives: usize,
+    /// Learning rate of the key SIREN.
+    #[arg(long, default_value_t = FeatureTrainConfig::default().lr_keys)]
+    lr_keys: f64,
+    /// Learning rate of the query CNN.
+    #[arg(long, default_value_t = FeatureTrainConfig::default().lr_query)]
+    lr_query: f64,
     /// Voxel bake resolution per axis.
     #[arg(long, default_value_t = 64)]
     bake_resolution: usize,
+    /// Width σ in degrees of the combined target around each mode (chooses λ_SDF and λ_SE; no
+    /// symmetry is needed).
+    #[arg(long, default_value_t = WidthCriterion::default().width_deg)]
+    width: f64,
+    /// Norm of the SDF energy: l0 (the paper's fraction off the surface), l1, l2 (graded).
+    #[arg(long, default_value = "l2", value_parser = ["l0", "l1", "l2"])]
+    norm: String,
+    /// Key distance of the feature energy: distance (the paper's) or squared (graded).
+    #[arg(long, default_value = "squared", value_parser = ["distance", "squared"])]
+    key_norm: String,
+    /// Fraction of the level-4 cells kept in the mode table.
+    #[arg(long, default_value_t = ModeTableConfig::default().keep_fraction)]
+    table_fraction: f64,
+    /// Random views searched for the mode table.
+    #[arg(long, default_value_t = ModeTableConfig::default().views)]
+    table_views: usize,
     /// Seed.
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -371,8 +396,23 @@ struct ExpertsArgs {
 
 fn experts_cmd(args: &ExpertsArgs) -> Result<()> {
     use alignist::bundle::experts::{ExpertsJob, train_expert_set};
-    use alignist::experts::feature::FeatureTrainConfig;
+    use alignist::experts::energy::{EnergyParams, KeyNorm, SdfNorm};
     use alignist::experts::sdf::SdfTrainConfig;
+
+    if !(args.width > 0.0 && args.width <= 45.0) {
+        bail!("--width must be in (0, 45] degrees, got {}", args.width);
+    }
+    if !(args.table_fraction > 0.0 && args.table_fraction <= 0.25) {
+        bail!(
+            "--table-fraction must be in (0, 0.25], got {}",
+            args.table_fraction
+        );
+    }
+    for (flag, v) in [("--lr-keys", args.lr_keys), ("--lr-query", args.lr_query)] {
+        if !(v > 0.0 && v < 1.0) {
+            bail!("{flag} must be in (0, 1), got {v}");
+        }
+    }
 
     if args.image_size < 8 || !args.image_size.is_multiple_of(4) {
         bail!(
@@ -417,10 +457,35 @@ fn experts_cmd(args: &ExpertsArgs) -> Result<()> {
             image_size: args.image_size,
             pixels: args.pixels,
             negatives: args.negatives,
+            lr_keys: args.lr_keys,
+            lr_query: args.lr_query,
             seed: args.seed,
             ..Default::default()
         },
         bake_resolution: args.bake_resolution,
+        energy: EnergyParams {
+            norm: match args.norm.as_str() {
+                "l0" => SdfNorm::L0,
+                "l1" => SdfNorm::L1,
+                _ => SdfNorm::L2,
+            },
+            key_norm: match args.key_norm.as_str() {
+                "distance" => KeyNorm::Distance,
+                _ => KeyNorm::Squared,
+            },
+            ..EnergyParams::default()
+        },
+        width: WidthCriterion {
+            width_deg: args.width,
+            seed: args.seed,
+            ..WidthCriterion::default()
+        },
+        modes: ModeTableConfig {
+            views: args.table_views.max(1),
+            keep_fraction: args.table_fraction,
+            seed: args.seed,
+            ..ModeTableConfig::default()
+        },
         command: std::env::args().collect::<Vec<_>>().join(" "),
     };
     let style = ProgressStyle::with_template("{prefix:>9} {bar:40} {pos}/{len}  {msg}  eta {eta}")
@@ -472,15 +537,28 @@ fn experts_cmd(args: &ExpertsArgs) -> Result<()> {
         m.bake.resolution, m.bake.sdf_mean_error, m.bake.keys_relative_error
     );
     eprintln!(
-        "  energy: {:?} eps {} lambda_sdf {} lambda_se {:.3} (LL sweeps at level {}: sdf {:?}, se {:?})",
+        "  energy: {:?} / {:?}, eps {}, lambda_sdf {:.4}, lambda_se {:.4} (width {}°; profile \
+         (deg, log a_sdf, log a_se): {:?})",
         m.energy.norm,
+        m.energy.key_norm,
         m.energy.epsilon,
         m.energy.lambda_sdf,
         m.energy.lambda_se,
-        m.energy_selection.level,
-        m.energy_selection.lambda_sdf,
-        m.energy_selection.lambda_se
+        args.width,
+        m.energy_selection
+            .profile
+            .iter()
+            .map(|(d, a, b)| format!("({d:.1}, {a:.2}, {b:.2})"))
+            .collect::<Vec<_>>()
     );
+    if let Some(t) = &set.modes {
+        eprintln!(
+            "  mode table: {} cells of level {} from {} views",
+            t.cells.len(),
+            t.config.level,
+            t.config.views
+        );
+    }
     Ok(())
 }
 
@@ -489,55 +567,45 @@ struct ScoreArgs {
     /// An expert set folder (from `alignist-train experts`).
     #[arg(long)]
     experts: PathBuf,
-    /// The ground-truth rotation as qw,qx,qy,qz.
+    /// The ground-truth rotation as qw,qx,qy,qz (default: --poses random ones).
     #[arg(long, allow_hyphen_values = true)]
-    rotation: String,
+    rotation: Option<String>,
+    /// Random ground truths to report on when no --rotation is given.
+    #[arg(long, default_value_t = 1)]
+    poses: usize,
     /// Grid level (0 ..= 5).
     #[arg(long)]
     level: u8,
-    /// Output CSV.
+    /// Output CSV of the targets of the (first) ground truth: index,log_a_sdf,log_a_se.
     #[arg(long)]
-    out: PathBuf,
-    /// Seed of the visible-point sampling.
+    out: Option<PathBuf>,
+    /// Report the balance against this symmetry group (none, T, O, I, C<n>, D<n>, cone,
+    /// cylinder): the target mass within --radius of each equivalent, min/max, the mass
+    /// outside. The group is used for this report only.
+    #[arg(long)]
+    symmetry: Option<String>,
+    /// Radius of the balance report in degrees.
+    #[arg(long, default_value_t = 8.0)]
+    radius: f64,
+    /// Seed of the visible-point sampling and of the random ground truths.
     #[arg(long, default_value_t = 0)]
     seed: u64,
 }
 
-fn score_cmd(args: &ScoreArgs) -> Result<()> {
-    use alignist::bundle::experts::ExpertSet;
-    use alignist::experts::select::visible_points_at;
-
-    if args.level > 5 {
-        bail!(
-            "--level {} is above 5 (level 5 already has 2 359 296 cells)",
-            args.level
-        );
-    }
-    let q: Vec<f64> = args
-        .rotation
+fn parse_rotation(text: &str) -> Result<nalgebra::Rotation3<f64>> {
+    let q: Vec<f64> = text
         .split(',')
         .map(|v| v.trim().parse::<f64>())
         .collect::<Result<_, _>>()
-        .with_context(|| {
-            format!(
-                "--rotation '{}' is not four numbers qw,qx,qy,qz",
-                args.rotation
-            )
-        })?;
+        .with_context(|| format!("--rotation '{text}' is not four numbers qw,qx,qy,qz"))?;
     if q.len() != 4 {
         bail!("--rotation needs 4 values qw,qx,qy,qz, got {}", q.len());
     }
-    let r_gt = alignist::so3::from_quaternion([q[0], q[1], q[2], q[3]]).context("--rotation")?;
-    let set = ExpertSet::load(&args.experts)
-        .with_context(|| format!("loading --experts {}", args.experts.display()))?;
-    let baked = set.bake();
-    let x0 = visible_points_at(&set.mesh, &r_gt, args.seed);
-    if x0.is_empty() {
-        bail!("the object is not visible at this rotation");
-    }
-    let grid = GridLevel::new(args.level)?;
-    let targets = baked.log_targets(&r_gt, &x0, &grid.matrices_f32());
-    let tmp = args.out.with_extension("csv.partial");
+    alignist::so3::from_quaternion([q[0], q[1], q[2], q[3]]).context("--rotation")
+}
+
+fn write_targets_csv(out: &Path, targets: &alignist::experts::energy::LogTargets) -> Result<()> {
+    let tmp = out.with_extension("csv.partial");
     let mut w = BufWriter::new(
         File::create(&tmp).with_context(|| format!("cannot create {}", tmp.display()))?,
     );
@@ -549,14 +617,123 @@ fn score_cmd(args: &ScoreArgs) -> Result<()> {
     w.into_inner()
         .map_err(|e| e.into_error())
         .with_context(write_err)?;
-    std::fs::rename(&tmp, &args.out)
-        .with_context(|| format!("renaming {} to {}", tmp.display(), args.out.display()))?;
-    eprintln!(
-        "wrote {} cells of level {} to {}",
-        grid.len(),
-        args.level,
-        args.out.display()
-    );
+    std::fs::rename(&tmp, out)
+        .with_context(|| format!("renaming {} to {}", tmp.display(), out.display()))
+}
+
+fn score_cmd(args: &ScoreArgs) -> Result<()> {
+    use alignist::bundle::experts::ExpertSet;
+    use alignist::experts::select::visible_points_at;
+    use alignist::so3::metrics::{MassNearEquivalents, mass_near_equivalents, softmax};
+    use alignist::so3::{SymmetryGroup, equivalents, haar_rotation};
+    use rand::SeedableRng;
+
+    if args.level > 5 {
+        bail!(
+            "--level {} is above 5 (level 5 already has 2 359 296 cells)",
+            args.level
+        );
+    }
+    if args.out.is_none() && args.symmetry.is_none() {
+        bail!("give --out FILE.csv, --symmetry GROUP (a balance report), or both");
+    }
+    if args.poses == 0 {
+        bail!("--poses must be at least 1");
+    }
+    if !(args.radius > 0.0 && args.radius <= 90.0) {
+        bail!("--radius must be in (0, 90] degrees, got {}", args.radius);
+    }
+    let group: Option<SymmetryGroup> = args
+        .symmetry
+        .as_deref()
+        .map(str::parse)
+        .transpose()
+        .context("--symmetry")?;
+    let rotations = match &args.rotation {
+        Some(text) => vec![parse_rotation(text)?],
+        None => {
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(args.seed);
+            (0..args.poses).map(|_| haar_rotation(&mut rng)).collect()
+        }
+    };
+    let set = ExpertSet::load(&args.experts)
+        .with_context(|| format!("loading --experts {}", args.experts.display()))?;
+    let baked = set.bake();
+    let grid = GridLevel::new(args.level)?;
+    let cells = grid.matrices_f32();
+    let centres = group.map(|_| grid.quaternions());
+    let mut reports: Vec<[MassNearEquivalents; 3]> = Vec::new();
+    for (k, r_gt) in rotations.iter().enumerate() {
+        let x0 = visible_points_at(&set.mesh, r_gt, args.seed.wrapping_add(k as u64));
+        if x0.is_empty() {
+            bail!("the object is not visible at rotation {k}");
+        }
+        let targets = baked.log_targets(r_gt, &x0, &cells);
+        if k == 0
+            && let Some(out) = &args.out
+        {
+            write_targets_csv(out, &targets)?;
+            eprintln!(
+                "wrote {} cells of level {} to {}",
+                grid.len(),
+                args.level,
+                out.display()
+            );
+        }
+        if let (Some(group), Some(centres)) = (group, &centres) {
+            let eq = equivalents(r_gt, &group.rotations());
+            let combined: Vec<f32> = targets
+                .log_a_sdf
+                .iter()
+                .zip(&targets.log_a_se)
+                .map(|(a, b)| a + b)
+                .collect();
+            let report = |w: &[f32]| -> Result<MassNearEquivalents> {
+                Ok(mass_near_equivalents(
+                    &softmax(&grid, w)?,
+                    centres,
+                    &eq,
+                    args.radius,
+                ))
+            };
+            reports.push([
+                report(&combined)?,
+                report(&targets.log_a_sdf)?,
+                report(&targets.log_a_se)?,
+            ]);
+        }
+    }
+    if let Some(group) = group {
+        println!(
+            "balance against {group} ({} equivalents), level {}, radius {}°, {} ground truth(s):",
+            group.order(),
+            args.level,
+            args.radius,
+            reports.len()
+        );
+        println!("| targets | mass inside | mass outside | min/max | min | max |");
+        println!("|---|---|---|---|---|---|");
+        for (j, name) in ["both experts", "SDF expert", "feature expert"]
+            .iter()
+            .enumerate()
+        {
+            let n = reports.len() as f64;
+            let mean = |f: &dyn Fn(&MassNearEquivalents) -> f64| {
+                reports.iter().map(|r| f(&r[j])).sum::<f64>() / n
+            };
+            let fold = |init: f64, pick: fn(f64, f64) -> f64| {
+                move |m: &MassNearEquivalents| m.per_equivalent.iter().cloned().fold(init, pick)
+            };
+            println!(
+                "| {name} | {:.3} | {:.3} | {:.3} | {:.4} | {:.4} |",
+                mean(&|m| m.inside),
+                mean(&|m| m.outside),
+                mean(&|m| m.balance),
+                mean(&fold(f64::INFINITY, f64::min)),
+                mean(&fold(0.0, f64::max)),
+            );
+        }
+    }
     Ok(())
 }
 
@@ -734,8 +911,16 @@ fn fit_cmd(args: &FitArgs) -> Result<()> {
         }
         sets.push(set);
     }
+    let baked: Vec<_> = sets.iter().map(|s| s.bake()).collect();
+    let modes = sets
+        .iter()
+        .zip(&baked)
+        .map(|(s, b)| s.mode_table(b))
+        .collect::<Result<Vec<_>, _>>()
+        .context("building the mode tables")?;
     let training = TrainingSet {
-        objects: sets.iter().map(|s| s.bake()).collect(),
+        objects: baked,
+        modes,
         images,
     };
     let config = TrainConfig {

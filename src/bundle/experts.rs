@@ -1,5 +1,9 @@
-//! An expert set on disk: a folder with `manifest.json`, the normalised mesh (`mesh.ply`) and
-//! safetensors weights of the SDF SIREN, the key SIREN and the query CNN.
+//! An expert set on disk: a folder with `manifest.json`, the normalised mesh (`mesh.ply`),
+//! safetensors weights of the SDF SIREN, the key SIREN and the query CNN, and (format 2) the
+//! object's table of relative rotations where targets have mass (`modes.json`).
+//!
+//! Format 1 sets (λ chosen against the declared symmetry, no mode table) are still read: the
+//! server needs only their SDF expert, and the trainer builds their mode table when it starts.
 
 use std::collections::BTreeMap;
 use std::fs;
@@ -17,12 +21,16 @@ use crate::experts::feature::{
     FEATURE_DIM, FeatureFit, FeatureTrainConfig, QueryNet, QueryNetConfig,
 };
 use crate::experts::sdf::{SdfFit, SdfTrainConfig};
-use crate::experts::select::EnergySelection;
+use crate::experts::modes::{ModeTable, ModeTableConfig};
+use crate::experts::select::{EnergySelection, WidthCriterion};
 use crate::experts::{Siren, SirenConfig, run_batched};
 use crate::so3::{from_row_major, to_row_major};
 
-/// Format version of expert manifests this build reads and writes.
-pub const EXPERTS_FORMAT_VERSION: u32 = 1;
+/// Format version of expert manifests this build writes.
+pub const EXPERTS_FORMAT_VERSION: u32 = 2;
+
+/// The oldest format version this build reads.
+pub const EXPERTS_OLDEST_FORMAT_VERSION: u32 = 1;
 
 /// The object an expert set was trained for.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -35,7 +43,8 @@ pub struct ObjectInfo {
     pub mesh_sha256: String,
     /// How the original mesh was mapped to NOCS.
     pub normalisation: Normalisation,
-    /// The object's symmetries (row-major rotations, identity first), for evaluation.
+    /// The object's symmetries (row-major rotations, identity first), for evaluation and
+    /// reports only: nothing in expert training or λ selection reads them.
     pub symmetries: Vec<[f64; 9]>,
 }
 
@@ -66,8 +75,11 @@ pub struct ExpertsManifest {
     pub features: FeatureSection,
     /// Energy hyper-parameters (λ, ε, norm).
     pub energy: EnergyParams,
-    /// How the selection of λ went: `(λ_SDF or λ_SE, mean LL of the targets at level 3)`.
+    /// How λ was chosen (format 2: the width criterion) and the targets' profile.
     pub energy_selection: EnergySelection,
+    /// How the mode table was built (format 2).
+    #[serde(default)]
+    pub modes: Option<ModeTableConfig>,
     /// The voxel bakes.
     pub bake: BakeInfo,
     /// The command that made this set.
@@ -106,8 +118,11 @@ pub struct ExpertSet {
     pub keys: Siren,
     /// The query CNN.
     pub query: QueryNet,
+    /// The relative rotations where targets have mass (`None` in format 1 sets).
+    pub modes: Option<ModeTable>,
 }
 
+const MODES_FILE: &str = "modes.json";
 const MESH_FILE: &str = "mesh.ply";
 const SDF_FILE: &str = "sdf.safetensors";
 const KEYS_FILE: &str = "keys.safetensors";
@@ -145,6 +160,12 @@ impl ExpertSet {
             QUERY_FILE.into(),
             save_weights(&self.query, &dir.join(QUERY_FILE))?,
         );
+        if let Some(modes) = &self.modes {
+            let path = dir.join(MODES_FILE);
+            super::write_manifest(&path, modes)?;
+            files.insert(MODES_FILE.into(), sha256_file(&path)?);
+            self.manifest.modes = Some(modes.config);
+        }
         self.manifest.object.mesh_sha256 = files[MESH_FILE].sha256.clone();
         self.manifest.files = files;
         super::write_manifest(&dir.join(MANIFEST_FILE), &self.manifest)
@@ -156,11 +177,19 @@ impl ExpertSet {
         let device = &crate::backend::device();
         let conv_device = &crate::backend::device_for(crate::backend::Workload::Conv);
         let manifest_path = dir.join(MANIFEST_FILE);
-        let manifest: ExpertsManifest = super::read_versioned_manifest(
-            &manifest_path,
-            EXPERTS_FORMAT_VERSION,
-            |m: &ExpertsManifest| m.format_version,
-        )?;
+        let manifest: ExpertsManifest = super::read_manifest(&manifest_path)?;
+        if !(EXPERTS_OLDEST_FORMAT_VERSION..=EXPERTS_FORMAT_VERSION)
+            .contains(&manifest.format_version)
+        {
+            return Err(BundleError::Manifest {
+                path: manifest_path.display().to_string(),
+                message: format!(
+                    "format_version is {} but this build reads {EXPERTS_OLDEST_FORMAT_VERSION} ..= \
+                     {EXPERTS_FORMAT_VERSION}",
+                    manifest.format_version
+                ),
+            });
+        }
         let field = |message: String| BundleError::Manifest {
             path: manifest_path.display().to_string(),
             message,
@@ -199,13 +228,38 @@ impl ExpertSet {
             &dir.join(QUERY_FILE),
             &manifest.files[QUERY_FILE],
         )?;
+        let modes = if manifest.format_version >= 2 {
+            let entry = manifest
+                .files
+                .get(MODES_FILE)
+                .ok_or_else(|| field(format!("files: no entry for {MODES_FILE}")))?;
+            let path = dir.join(MODES_FILE);
+            super::verify_file(&path, entry)?;
+            let table: ModeTable = super::read_manifest(&path)?;
+            table.validate().map_err(|message| BundleError::Manifest {
+                path: path.display().to_string(),
+                message,
+            })?;
+            Some(table)
+        } else {
+            None
+        };
         Ok(ExpertSet {
             manifest,
             mesh,
             sdf,
             keys,
             query,
+            modes,
         })
+    }
+
+    /// The mode table: the stored one, or (format 1 sets) one built now from `baked`.
+    pub fn mode_table(&self, baked: &BakedExperts) -> Result<ModeTable, crate::so3::So3Error> {
+        match &self.modes {
+            Some(table) => Ok(table.clone()),
+            None => ModeTable::build(baked, &self.mesh, &ModeTableConfig::default()),
+        }
     }
 
     /// Bakes both experts on the manifest's grid and attaches its energy hyper-parameters.
@@ -266,6 +320,12 @@ pub struct ExpertsJob {
     pub features: FeatureTrainConfig,
     /// Voxel bake resolution and bound.
     pub bake_resolution: usize,
+    /// The energies' norms and ε (their λs are chosen by `width`).
+    pub energy: EnergyParams,
+    /// The width criterion that chooses λ_SDF and λ_SE.
+    pub width: WidthCriterion,
+    /// How the mode table is built.
+    pub modes: ModeTableConfig,
     /// The command line, for the manifest.
     pub command: String,
 }
@@ -273,16 +333,16 @@ pub struct ExpertsJob {
 /// Progress of [`train_expert_set`]: `(phase, step, steps, loss)`.
 pub type ExpertsProgress<'a> = dyn FnMut(&str, usize, usize, f64) + 'a;
 
-/// Trains both experts, bakes them, measures the bakes' error, and selects λ_SDF and λ_SE by the
-/// LL of their targets at level 3 on 4 random poses.
+/// Trains both experts, bakes them, measures the bakes' error, selects λ_SDF and λ_SE by the
+/// width criterion and builds the mode table. `job.symmetries` are only written to the manifest
+/// and used for the feature expert's reported symmetry ratio.
 pub fn train_expert_set(
     job: ExpertsJob,
     progress: &mut ExpertsProgress<'_>,
 ) -> Result<ExpertSet, crate::experts::ExpertError> {
-    use crate::experts::energy::EnergyParams;
     use crate::experts::feature::train_features;
     use crate::experts::sdf::{eval_sdf, sample_near_surface, train_sdf};
-    use crate::experts::select::{LambdaSweep, select_lambdas};
+    use crate::experts::select::select_by_width;
     use rand::SeedableRng;
 
     let device = crate::backend::device();
@@ -300,7 +360,7 @@ pub fn train_expert_set(
         &features.keys,
         job.bake_resolution,
         bound,
-        EnergyParams::default(),
+        job.energy,
         &device,
     );
     // Bake error against the networks.
@@ -321,18 +381,17 @@ pub fn train_expert_set(
     let keys_relative_error = mean_dist(&key_net, &key_baked) / key_scale;
 
     progress("select", 0, 1, 0.0);
-    let se_values: Vec<f64> = [5.0, 10.0, 20.0, 40.0, 80.0, 160.0]
-        .iter()
-        .map(|c| c / key_scale)
-        .collect();
-    let sweep = LambdaSweep {
-        sdf: vec![5.0, 10.0, 20.0, 40.0, 80.0],
-        se: se_values,
-        level: 3,
-        poses: 4,
-        seed: job.sdf.seed,
+    let baked = BakedExperts {
+        params: job.energy,
+        ..baked
     };
-    let (energy, selection) = select_lambdas(&baked, &job.mesh, &job.symmetries, &sweep);
+    let (energy, selection) = select_by_width(&baked, &job.mesh, &job.width);
+    progress("modes", 0, 1, 0.0);
+    let baked = BakedExperts {
+        params: energy,
+        ..baked
+    };
+    let modes = ModeTable::build(&baked, &job.mesh, &job.modes)?;
     Ok(ExpertSet {
         manifest: ExpertsManifest {
             format_version: EXPERTS_FORMAT_VERSION,
@@ -353,6 +412,7 @@ pub fn train_expert_set(
             },
             energy,
             energy_selection: selection,
+            modes: Some(modes.config),
             bake: BakeInfo {
                 resolution: job.bake_resolution,
                 bound,
@@ -366,5 +426,6 @@ pub fn train_expert_set(
         sdf,
         keys: features.keys,
         query: features.query,
+        modes: Some(modes),
     })
 }

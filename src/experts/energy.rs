@@ -21,6 +21,21 @@ pub enum SdfNorm {
     L0,
     /// `mean |f_SDF(x')| / ε`.
     L1,
+    /// `mean f_SDF(x')² / ε²`: graded, and quadratic in the angle near a mode, so that
+    /// `exp(−U)` is a bell a few degrees wide around every pose that puts the points back on the
+    /// surface (the training default, see [`EnergyParams::default`]).
+    L2,
+}
+
+/// How the feature energy measures the distance between the keys of `x'` and `x⁰`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum KeyNorm {
+    /// `mean_i ‖f_SE(x'_i) − f_SE(x⁰_i)‖₂` (the paper's).
+    #[default]
+    Distance,
+    /// `mean_i ‖f_SE(x'_i) − f_SE(x⁰_i)‖₂²`: graded like [`SdfNorm::L2`].
+    Squared,
 }
 
 /// Hyper-parameters of the energies, recorded in the expert manifest.
@@ -34,17 +49,21 @@ pub struct EnergyParams {
     pub norm: SdfNorm,
     /// `λ_SE`, per unit of key distance.
     pub lambda_se: f64,
+    /// How key distances are measured (expert sets of format 1 have [`KeyNorm::Distance`]).
+    #[serde(default)]
+    pub key_norm: KeyNorm,
 }
 
 impl Default for EnergyParams {
-    /// DESIGN.md §2's starting point: L0, ε = 0.02, λ_SDF = 20; λ_SE is set from the keys'
-    /// scale when the experts are trained.
+    /// The graded energies (L2 SDF, squared key distance, ε = 0.02); the λs are placeholders
+    /// that [`super::select::select_by_width`] replaces when an expert set is trained.
     fn default() -> Self {
         EnergyParams {
-            lambda_sdf: 20.0,
+            lambda_sdf: 1.0,
             epsilon: 0.02,
-            norm: SdfNorm::L0,
-            lambda_se: 20.0,
+            norm: SdfNorm::L2,
+            lambda_se: 1.0,
+            key_norm: KeyNorm::Squared,
         }
     }
 }
@@ -56,6 +75,11 @@ pub fn sdf_energy(sdf_values: &[f32], params: &EnergyParams) -> f64 {
     let norm = match params.norm {
         SdfNorm::L0 => sdf_values.iter().filter(|v| v.abs() > eps).count() as f64 / n,
         SdfNorm::L1 => sdf_values.iter().map(|v| v.abs() as f64).sum::<f64>() / n / params.epsilon,
+        SdfNorm::L2 => {
+            sdf_values.iter().map(|&v| (v as f64).powi(2)).sum::<f64>()
+                / n
+                / params.epsilon.powi(2)
+        }
     };
     params.lambda_sdf * norm
 }
@@ -76,9 +100,24 @@ pub fn mean_key_distance(a: &[f32], b: &[f32], dim: usize) -> f64 {
         / n
 }
 
-/// `U_SE = λ_SE · mean_i ‖f_SE(x'_i) − f_SE(x⁰_i)‖₂`; keys are row-major `n × d`.
+/// `mean_i ‖a_i − b_i‖₂²` over keys given row-major as `n × dim`.
+pub fn mean_squared_key_distance(a: &[f32], b: &[f32], dim: usize) -> f64 {
+    let n = (a.len() / dim).max(1) as f64;
+    a.iter()
+        .zip(b)
+        .map(|(p, q)| ((p - q) as f64).powi(2))
+        .sum::<f64>()
+        / n
+}
+
+/// `U_SE = λ_SE · mean_i ‖f_SE(x'_i) − f_SE(x⁰_i)‖₂` (paper Eq. 4), or its squared form
+/// ([`KeyNorm::Squared`]); keys are row-major `n × d`.
 pub fn se_energy(keys_moved: &[f32], keys_seen: &[f32], dim: usize, params: &EnergyParams) -> f64 {
-    params.lambda_se * mean_key_distance(keys_moved, keys_seen, dim)
+    params.lambda_se
+        * match params.key_norm {
+            KeyNorm::Distance => mean_key_distance(keys_moved, keys_seen, dim),
+            KeyNorm::Squared => mean_squared_key_distance(keys_moved, keys_seen, dim),
+        }
 }
 
 /// Up to `n` visible canonical points: NOCS values of pixels drawn uniformly inside the mask.

@@ -5,6 +5,7 @@
 pub mod baked;
 pub mod energy;
 pub mod feature;
+pub mod modes;
 pub mod sdf;
 pub mod select;
 mod siren;
@@ -25,6 +26,9 @@ pub enum ExpertError {
     /// A render at a random pose showed nothing of the object.
     #[error("{0}: a training render shows no pixel of the object")]
     EmptyRender(String),
+    /// A grid level that cannot be used.
+    #[error(transparent)]
+    So3(#[from] crate::so3::So3Error),
     /// Training produced a non-finite loss.
     #[error("training diverged at step {step} (loss {loss})")]
     Diverged {

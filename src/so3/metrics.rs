@@ -161,3 +161,69 @@ pub fn summarize(per_image: &[ImageMetrics], thresholds_deg: &[f64]) -> MetricsS
         median_error_deg: median,
     }
 }
+
+/// How a distribution's mass sits around the equivalent ground truths of an image (the expert
+/// targets' *balance*, DESIGN.md §2).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct MassNearEquivalents {
+    /// The radius in degrees.
+    pub radius_deg: f64,
+    /// Per equivalent, the mass of the cells within the radius whose nearest equivalent it is.
+    pub per_equivalent: Vec<f64>,
+    /// Total mass within the radius of some equivalent.
+    pub inside: f64,
+    /// `1 − inside`.
+    pub outside: f64,
+    /// `min / max` of [`MassNearEquivalents::per_equivalent`] (1 = perfectly balanced).
+    pub balance: f64,
+}
+
+/// The mass of `probs` (one per cell, `centres` from [`GridLevel::quaternions`]) within
+/// `radius_deg` of each of `ground_truths`, each cell counted for its nearest ground truth only.
+pub fn mass_near_equivalents(
+    probs: &[f64],
+    centres: &[[f64; 4]],
+    ground_truths: &[Rotation3<f64>],
+    radius_deg: f64,
+) -> MassNearEquivalents {
+    let gts: Vec<[f64; 4]> = ground_truths.iter().map(to_quaternion).collect();
+    // |⟨q, g⟩| ≥ cos(radius / 2) ⇔ angle ≤ radius.
+    let min_dot = (radius_deg.to_radians() / 2.0).cos();
+    let per_equivalent = probs
+        .par_iter()
+        .zip(centres.par_iter())
+        .filter(|(p, _)| **p > 0.0)
+        .fold(
+            || vec![0.0f64; gts.len()],
+            |mut acc, (p, q)| {
+                let best = gts
+                    .iter()
+                    .map(|g| quaternion_dot(q, g).abs())
+                    .enumerate()
+                    .max_by(|a, b| a.1.total_cmp(&b.1));
+                if let Some((j, dot)) = best
+                    && dot >= min_dot
+                {
+                    acc[j] += p;
+                }
+                acc
+            },
+        )
+        .reduce(
+            || vec![0.0f64; gts.len()],
+            |mut a, b| {
+                a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
+                a
+            },
+        );
+    let inside: f64 = per_equivalent.iter().sum();
+    let max = per_equivalent.iter().cloned().fold(0.0f64, f64::max);
+    let min = per_equivalent.iter().cloned().fold(f64::INFINITY, f64::min);
+    MassNearEquivalents {
+        radius_deg,
+        balance: if max > 0.0 { min / max } else { 0.0 },
+        per_equivalent,
+        inside,
+        outside: (1.0 - inside).max(0.0),
+    }
+}

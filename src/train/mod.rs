@@ -8,7 +8,7 @@ pub mod sampling;
 pub mod trainer;
 
 pub use crate::net::{Network, NetworkConfig};
-pub use sampling::{ExpertModes, ModeSearch, SamplingStrategy, sample_rotations};
+pub use sampling::{ModeSampler, SamplingStrategy, sample_rotations};
 pub use trainer::{
     MeasureLoss, Method, TrainConfig, TrainReport, TrainingImage, TrainingSet, train,
 };
@@ -35,4 +35,7 @@ pub enum TrainError {
     /// A training set that cannot be trained on.
     #[error("{0}")]
     Data(String),
+    /// A grid level that cannot be used.
+    #[error(transparent)]
+    So3(#[from] crate::so3::So3Error),
 }

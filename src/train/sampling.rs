@@ -1,164 +1,116 @@
 //! The K rotations each training image is scored on (DESIGN.md §2, "Sampling").
 //!
-//! Mode-focused (the paper's): the experts' combined measure `a^SDF·a^SE` of this image is
-//! searched coarse-to-fine — every cell of a coarse level, then the children of the best `keep`
-//! cells, level by level down to a fine one ([`ModeSearch::expert_modes`]); `focused` fine cells are drawn with
-//! probability ∝ their measure and a rotation is jittered uniformly inside each; the rest are
-//! Haar-uniform; the ground truth comes first. Uniform (IPDF's, and the "random sampling"
-//! ablation): the ground truth, then K − 1 Haar-uniform rotations.
+//! Mode-focused (the paper's): `focused` rotations `R_gt·Q`, with `Q` jittered uniformly inside a
+//! cell drawn from the object's [`ModeTable`] (the relative rotations where the experts' targets
+//! have mass, with their shoulders; uniformly over the table's cells by default, or tempered by
+//! their weights), the rest Haar-uniform, the ground truth first. Uniform (IPDF's, and the
+//! "random sampling" ablation): the ground truth, then K − 1 Haar-uniform rotations.
 //!
-//! Why fine cells: the experts' targets are sharp (λ chosen by LL at level 3). Jittered inside
-//! coarse level-2 cells (~7°), almost no focused sample lands where the target has mass, so the
-//! network would be told that the neighbourhoods of the modes are empty; at level 4 (~2°) most do.
+//! Why uniform over the table rather than ∝ the targets: the targets are bells a few degrees wide,
+//! and samples drawn ∝ a bell land on its peak and teach nothing about its shoulders.
 
 use nalgebra::Rotation3;
 use rand::{Rng, RngExt};
 use serde::{Deserialize, Serialize};
 
-use crate::so3::{GridLevel, So3Error, haar_rotation, jitter_in_cell, to_row_major_f32};
+use crate::experts::modes::ModeTable;
+use crate::so3::{GridLevel, So3Error, haar_rotation, jitter_in_cell};
 
 /// How the K rotations of an image are drawn.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
 pub enum SamplingStrategy {
-    /// `focused` rotations near the experts' modes, the rest uniform, the GT first.
+    /// `focused` rotations from the object's mode table, the rest uniform, the GT first.
     ModeFocused {
         /// How many of the K are drawn near the modes (paper: 3000 of 4096).
         focused: usize,
-        /// Level scored in full at the start of the mode search.
-        level: u8,
-        /// Level of the cells the focused rotations are jittered in.
-        fine_level: u8,
-        /// Cells kept per level of the search.
-        keep: usize,
+        /// Cells are drawn ∝ `exp(temperature · log_weight)`: 0 = uniformly over the table.
+        #[serde(default)]
+        temperature: f64,
     },
     /// The GT, then uniform rotations.
     Uniform,
 }
 
 impl SamplingStrategy {
-    /// The paper's mix at a given K: three quarters near the modes, searched from level 2 down to
-    /// level 4 keeping 512 cells per level (enough for the 360 modes of a cone at ~4° apart).
+    /// The paper's mix at a given K: three quarters from the mode table, drawn uniformly.
     pub fn mode_focused(k: usize) -> Self {
         SamplingStrategy::ModeFocused {
             focused: k * 3 / 4,
-            level: 2,
-            fine_level: 4,
-            keep: 512,
+            temperature: 0.0,
         }
     }
 }
 
-/// The experts' modes of one image: the best cells of the fine level and their combined
-/// log-measure `log a^SDF + log a^SE`.
-#[derive(Debug, Clone, PartialEq)]
-pub struct ExpertModes {
-    /// Cell indices at the fine level.
-    pub cells: Vec<u64>,
-    /// Their log-measures.
-    pub log_weights: Vec<f32>,
-}
-
-/// The grids a mode search walks, coarse to fine.
+/// Draws cells of an object's [`ModeTable`].
 #[derive(Debug, Clone)]
-pub struct ModeSearch {
-    grids: Vec<GridLevel>,
-    coarse_cells: Vec<[f32; 9]>,
-    keep: usize,
+pub struct ModeSampler {
+    grid: GridLevel,
+    cells: Vec<u64>,
+    /// Cumulative weights (empty when uniform).
+    cumulative: Vec<f64>,
 }
 
-impl ModeSearch {
-    /// Grids `level ..= fine_level`; `keep` cells survive each level.
-    pub fn new(level: u8, fine_level: u8, keep: usize) -> Result<Self, So3Error> {
-        let grids = (level..=fine_level.max(level))
-            .map(GridLevel::new)
-            .collect::<Result<Vec<_>, _>>()?;
+impl ModeSampler {
+    /// A sampler over `table` at `temperature` (0 = uniform over its cells).
+    pub fn new(table: &ModeTable, temperature: f64) -> Result<Self, So3Error> {
+        let grid = table.grid()?;
+        let cumulative = if temperature == 0.0 {
+            Vec::new()
+        } else {
+            let max = table
+                .log_weights
+                .iter()
+                .cloned()
+                .fold(f32::NEG_INFINITY, f32::max);
+            let mut total = 0.0;
+            table
+                .log_weights
+                .iter()
+                .map(|&w| {
+                    total += (temperature * (w - max) as f64).exp();
+                    total
+                })
+                .collect()
+        };
         Ok(Self {
-            coarse_cells: grids[0].matrices_f32(),
-            grids,
-            keep: keep.max(1),
+            grid,
+            cells: table.cells.clone(),
+            cumulative,
         })
     }
 
-    /// The fine grid the modes' cells belong to.
-    pub fn fine_grid(&self) -> &GridLevel {
-        self.grids.last().expect("at least one level")
-    }
-
-    /// Coarse-to-fine search of the measure `log_measure` (log-weights of a batch of row-major
-    /// rotations): the coarse level in full, then the children of the best `keep` cells of each
-    /// level. Returns the best `keep` cells of the fine level.
-    pub fn expert_modes(
-        &self,
-        mut log_measure: impl FnMut(&[[f32; 9]]) -> Vec<f32>,
-    ) -> ExpertModes {
-        let mut cells: Vec<u64> = (0..self.grids[0].len() as u64).collect();
-        let mut weights = log_measure(&self.coarse_cells);
-        for (parent, grid) in self.grids.iter().zip(&self.grids[1..]) {
-            let best = top_cells(&cells, &weights, self.keep);
-            cells = best
-                .iter()
-                .flat_map(|&i| parent.children(cells[i]))
-                .collect();
-            let mats: Vec<[f32; 9]> = cells
-                .iter()
-                .map(|&c| to_row_major_f32(&grid.rotation(c)))
-                .collect();
-            weights = log_measure(&mats);
-        }
-        let best = top_cells(&cells, &weights, self.keep);
-        ExpertModes {
-            cells: best.iter().map(|&i| cells[i]).collect(),
-            log_weights: best.iter().map(|&i| weights[i]).collect(),
-        }
+    /// One relative rotation `Q`, uniform inside a drawn cell.
+    pub fn draw<R: Rng + ?Sized>(&self, rng: &mut R) -> Rotation3<f64> {
+        let i = match self.cumulative.last() {
+            Some(&total) if total > 0.0 => {
+                let u = rng.random_range(0.0..total);
+                self.cumulative
+                    .partition_point(|&c| c <= u)
+                    .min(self.cells.len() - 1)
+            }
+            _ => rng.random_range(0..self.cells.len()),
+        };
+        jitter_in_cell(&self.grid, self.cells[i], rng)
     }
 }
 
-/// Positions of the `keep` cells with the largest weights (ties broken by cell index, so the
-/// result is deterministic), in decreasing weight.
-fn top_cells(cells: &[u64], weights: &[f32], keep: usize) -> Vec<usize> {
-    let mut order: Vec<usize> = (0..cells.len()).collect();
-    let by_weight = |&a: &usize, &b: &usize| {
-        weights[b]
-            .total_cmp(&weights[a])
-            .then(cells[a].cmp(&cells[b]))
-    };
-    if order.len() > keep {
-        order.select_nth_unstable_by(keep - 1, by_weight);
-        order.truncate(keep);
-    }
-    order.sort_by(by_weight);
-    order
-}
-
-/// Draws the K rotations: index 0 is `r_gt`. `modes` (the fine grid and this image's
-/// [`ExpertModes`]) are needed by [`SamplingStrategy::ModeFocused`]; without them every
-/// non-GT rotation is uniform.
+/// Draws the K rotations: index 0 is `r_gt`. `modes` (the object's [`ModeSampler`]) is needed by
+/// [`SamplingStrategy::ModeFocused`]; without it every non-GT rotation is uniform.
 pub fn sample_rotations<R: Rng + ?Sized>(
     strategy: &SamplingStrategy,
     k: usize,
     r_gt: &Rotation3<f64>,
-    modes: Option<(&GridLevel, &ExpertModes)>,
+    modes: Option<&ModeSampler>,
     rng: &mut R,
 ) -> Vec<Rotation3<f64>> {
     let mut out = Vec::with_capacity(k);
     out.push(*r_gt);
-    if let (SamplingStrategy::ModeFocused { focused, .. }, Some((grid, modes))) = (strategy, modes)
+    if let (SamplingStrategy::ModeFocused { focused, .. }, Some(modes)) = (strategy, modes)
         && !modes.cells.is_empty()
     {
-        let log_w = &modes.log_weights;
-        let max = log_w.iter().cloned().fold(f32::NEG_INFINITY, f32::max);
-        let mut cumulative = Vec::with_capacity(log_w.len());
-        let mut total = 0.0f64;
-        for &w in log_w {
-            total += ((w - max) as f64).exp();
-            cumulative.push(total);
-        }
-        let n = (*focused).min(k.saturating_sub(1));
-        for _ in 0..n {
-            let u = rng.random_range(0.0..total);
-            let i = cumulative.partition_point(|&c| c <= u).min(log_w.len() - 1);
-            out.push(jitter_in_cell(grid, modes.cells[i], rng));
+        for _ in 0..(*focused).min(k.saturating_sub(1)) {
+            out.push(r_gt * modes.draw(rng));
         }
     }
     while out.len() < k {

@@ -17,8 +17,9 @@ use serde::{Deserialize, Serialize};
 
 use super::TrainError;
 use super::checkpoint::{CheckpointState, latest_checkpoint, load_checkpoint, save_checkpoint};
-use super::sampling::{ExpertModes, ModeSearch, SamplingStrategy, sample_rotations};
+use super::sampling::{ModeSampler, SamplingStrategy, sample_rotations};
 use crate::experts::energy::{BakedExperts, LogTargets};
+use crate::experts::modes::ModeTable;
 use crate::net::{Network, NetworkConfig, images_tensor};
 use crate::net::{gkl_loss, ipdf_loss, l1_measure_loss};
 use crate::so3::to_row_major_f32;
@@ -97,6 +98,8 @@ pub struct TrainingImage {
 pub struct TrainingSet {
     /// Baked experts per object.
     pub objects: Vec<BakedExperts>,
+    /// Mode table per object (needed by mode-focused sampling; may be empty otherwise).
+    pub modes: Vec<ModeTable>,
     /// The images.
     pub images: Vec<TrainingImage>,
 }
@@ -114,41 +117,19 @@ pub struct TrainReport {
     pub seconds: f64,
 }
 
-/// `log a^SDF + log a^SE` of `rotations` for one image.
-fn combined_log_targets(
-    experts: &BakedExperts,
-    im: &TrainingImage,
-    rotations: &[[f32; 9]],
-) -> Vec<f32> {
-    let t = experts.log_targets(&im.rotation, &im.visible, rotations);
-    t.log_a_sdf
-        .iter()
-        .zip(&t.log_a_se)
-        .map(|(a, b)| a + b)
-        .collect()
-}
-
 /// The K rotations of image `id` for one step, and (Alignist) their expert targets.
 fn sample_image(
     config: &TrainConfig,
     set: &TrainingSet,
     id: usize,
-    search: Option<&ModeSearch>,
-    modes_cache: &mut [Option<ExpertModes>],
+    samplers: &[ModeSampler],
     rng: &mut ChaCha8Rng,
 ) -> (Vec<[f32; 9]>, Option<LogTargets>) {
     let im = &set.images[id];
     let experts = &set.objects[im.object];
     let samples = match &config.method {
         Method::Alignist { sampling, .. } => {
-            // The experts' modes depend only on the image: searched once per image, on first use.
-            let modes = search.map(|search| {
-                let modes = modes_cache[id].get_or_insert_with(|| {
-                    search.expert_modes(|r| combined_log_targets(experts, im, r))
-                });
-                (search.fine_grid(), &*modes)
-            });
-            sample_rotations(sampling, config.k, &im.rotation, modes, rng)
+            sample_rotations(sampling, config.k, &im.rotation, samplers.get(im.object), rng)
         }
         Method::Ipdf => sample_rotations(
             &SamplingStrategy::Uniform,
@@ -172,14 +153,13 @@ fn mean_log_targets(
     config: &TrainConfig,
     set: &TrainingSet,
     n: usize,
-    search: Option<&ModeSearch>,
-    modes_cache: &mut [Option<ExpertModes>],
+    samplers: &[ModeSampler],
 ) -> (f32, f32) {
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed ^ 0xB1A5);
     let (mut sdf, mut se, mut count) = (0.0f64, 0.0f64, 0usize);
     for _ in 0..n {
         let id = rng.random_range(0..set.images.len());
-        if let (_, Some(t)) = sample_image(config, set, id, search, modes_cache, &mut rng) {
+        if let (_, Some(t)) = sample_image(config, set, id, samplers, &mut rng) {
             sdf += t.log_a_sdf.iter().map(|&l| (l as f64).exp()).sum::<f64>();
             se += t.log_a_se.iter().map(|&l| (l as f64).exp()).sum::<f64>();
             count += t.log_a_sdf.len();
@@ -187,6 +167,28 @@ fn mean_log_targets(
     }
     let mean_log = |total: f64| (total / count.max(1) as f64).max(1e-12).ln() as f32;
     (mean_log(sdf), mean_log(se))
+}
+
+/// One sampler per object for mode-focused sampling (none otherwise).
+fn mode_samplers(config: &TrainConfig, set: &TrainingSet) -> Result<Vec<ModeSampler>, TrainError> {
+    let Method::Alignist {
+        sampling: SamplingStrategy::ModeFocused { temperature, .. },
+        ..
+    } = config.method
+    else {
+        return Ok(Vec::new());
+    };
+    if set.modes.len() != set.objects.len() {
+        return Err(TrainError::Data(format!(
+            "mode-focused sampling needs a mode table per object: {} tables for {} objects",
+            set.modes.len(),
+            set.objects.len()
+        )));
+    }
+    set.modes
+        .iter()
+        .map(|t| ModeSampler::new(t, temperature).map_err(TrainError::from))
+        .collect()
 }
 
 /// Trains (or resumes, when `checkpoints` holds one and `resume` is set) and returns the network
@@ -216,26 +218,9 @@ pub fn train(
         optim = opt;
         start = state.step;
     }
-    let search = match config.method {
-        Method::Alignist {
-            sampling:
-                SamplingStrategy::ModeFocused {
-                    level,
-                    fine_level,
-                    keep,
-                    ..
-                },
-            ..
-        } => Some(
-            ModeSearch::new(level, fine_level, keep)
-                .map_err(|e| TrainError::Data(e.to_string()))?,
-        ),
-        _ => None,
-    };
-    let mut modes_cache: Vec<Option<ExpertModes>> = vec![None; set.images.len()];
+    let samplers = mode_samplers(config, set)?;
     if start == 0 && matches!(config.method, Method::Alignist { .. }) {
-        let (sdf, se) =
-            mean_log_targets(config, set, config.batch, search.as_ref(), &mut modes_cache);
+        let (sdf, se) = mean_log_targets(config, set, config.batch, &samplers);
         network.head = network.head.with_output_biases(sdf, se);
     }
     let size = config.network.image_size as usize;
@@ -260,8 +245,7 @@ pub fn train(
         let mut log_sdf = Vec::with_capacity(picks.len() * config.k);
         let mut log_se = Vec::with_capacity(picks.len() * config.k);
         for &id in &pick_ids {
-            let (mats, targets) =
-                sample_image(config, set, id, search.as_ref(), &mut modes_cache, &mut rng);
+            let (mats, targets) = sample_image(config, set, id, &samplers, &mut rng);
             if let Some(t) = targets {
                 log_sdf.extend(t.log_a_sdf);
                 log_se.extend(t.log_a_se);
