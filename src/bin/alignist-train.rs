@@ -350,7 +350,7 @@ struct ExpertsArgs {
     #[arg(long, default_value_t = 1024)]
     sdf_batch: usize,
     /// Adam steps of the feature expert.
-    #[arg(long, default_value_t = 600)]
+    #[arg(long, default_value_t = FeatureTrainConfig::default().steps)]
     feature_steps: usize,
     /// Renders per feature step.
     #[arg(long, default_value_t = 8)]
@@ -739,12 +739,26 @@ fn score_cmd(args: &ScoreArgs) -> Result<()> {
 
 #[derive(clap::Args)]
 struct FitArgs {
-    /// A BOP dataset of one object (with `train` and `test` splits); repeat per object.
-    #[arg(long, required = true)]
+    /// A BOP dataset of one object (with `train` and `test` splits); repeat per object. Not with
+    /// --fresh.
+    #[arg(long, required_unless_present = "fresh", conflicts_with = "fresh")]
     data: Vec<PathBuf>,
-    /// The expert set of the object of the `--data` at the same position; repeat per object.
+    /// The expert set of each object (of the `--data` at the same position); repeat per object.
     #[arg(long, required = true)]
     experts: Vec<PathBuf>,
+    /// Render new training crops of the experts' meshes at every step (and fresh evaluation
+    /// crops) instead of reading --data.
+    #[arg(long)]
+    fresh: bool,
+    /// Supersampling per axis of fresh renders (anti-aliasing).
+    #[arg(long, default_value_t = 4)]
+    supersample: u32,
+    /// Seed of the fresh evaluation renders (keep it apart from training seeds).
+    #[arg(long, default_value_t = 1 << 40)]
+    eval_seed: u64,
+    /// Print the time per step in each stage at the end.
+    #[arg(long)]
+    profile: bool,
     /// Output bundle folder (e.g. models/symsol1).
     #[arg(long)]
     out: PathBuf,
@@ -811,20 +825,127 @@ fn parse_layout(s: &str) -> Result<alignist::net::ResNetLayout> {
     })
 }
 
-fn fit_cmd(args: &FitArgs) -> Result<()> {
+/// What `fit` trains and evaluates on.
+struct FitData {
+    objects: Vec<alignist::bundle::model::BundleObject>,
+    sets: Vec<alignist::bundle::experts::ExpertSet>,
+    images: Vec<alignist::train::TrainingImage>,
+    tests: Vec<alignist::train::eval::EvalImage>,
+    fresh: Option<alignist::train::data::FreshRenders>,
+}
+
+/// Training and test images from `--data` BOP datasets.
+fn dataset_fit_data(args: &FitArgs) -> Result<FitData> {
     use alignist::bundle::experts::ExpertSet;
-    use alignist::bundle::model::{
-        BundleObject, GridLevels, MODEL_FORMAT_VERSION, ModelBundle, ModelManifest, Provenance,
-    };
+    use alignist::bundle::model::BundleObject;
     use alignist::data::BopDataset;
-    use alignist::encoding::RotationEncoding;
     use alignist::train::data::{eval_images, training_images};
+
+    let mut data_out = FitData {
+        objects: Vec::new(),
+        sets: Vec::new(),
+        images: Vec::new(),
+        tests: Vec::new(),
+        fresh: None,
+    };
+    for (i, (data, experts)) in args.data.iter().zip(&args.experts).enumerate() {
+        let set =
+            ExpertSet::load(experts).with_context(|| format!("--experts {}", experts.display()))?;
+        let train_ds = BopDataset::open(data, "train")
+            .with_context(|| format!("--data {}", data.display()))?;
+        let imgs = training_images(&train_ds, i, &set.mesh, args.image_size, args.fraction)
+            .with_context(|| format!("reading --data {}", data.display()))?;
+        let name = set.manifest.object.name.clone();
+        eprintln!(
+            "{name}: {} training images from {}",
+            imgs.len(),
+            data.display()
+        );
+        data_out.objects.push(BundleObject {
+            name: name.clone(),
+            experts: format!("experts/{name}"),
+            data: data.display().to_string(),
+            train_images: imgs.len(),
+        });
+        data_out.images.extend(imgs);
+        if args.eval_images > 0 {
+            let test_ds = BopDataset::open(data, "test")
+                .with_context(|| format!("--data {} (test split)", data.display()))?;
+            data_out.tests.extend(eval_images(
+                &test_ds,
+                &name,
+                args.image_size,
+                args.eval_images,
+            )?);
+        }
+        data_out.sets.push(set);
+    }
+    Ok(data_out)
+}
+
+/// Fresh renders of the experts' meshes, and `--eval-images` fresh test crops per object from
+/// `--eval-seed`.
+fn fresh_fit_data(args: &FitArgs) -> Result<FitData> {
+    use alignist::bundle::experts::ExpertSet;
+    use alignist::bundle::model::BundleObject;
+    use alignist::train::data::FreshRenders;
+
+    if !(1..=8).contains(&args.supersample) {
+        bail!("--supersample must be in 1 ..= 8, got {}", args.supersample);
+    }
+    let sets = args
+        .experts
+        .iter()
+        .map(|e| ExpertSet::load(e).with_context(|| format!("--experts {}", e.display())))
+        .collect::<Result<Vec<_>>>()?;
+    let fresh = FreshRenders {
+        meshes: sets.iter().map(|s| s.mesh.clone()).collect(),
+        supersample: args.supersample,
+    };
+    let names: Vec<String> = sets.iter().map(|s| s.manifest.object.name.clone()).collect();
+    let symmetries: Vec<_> = sets.iter().map(|s| s.symmetries()).collect();
+    let tests = fresh.eval_images(
+        &names,
+        &symmetries,
+        args.image_size,
+        args.eval_images,
+        args.eval_seed,
+    );
+    let objects = names
+        .iter()
+        .map(|name| BundleObject {
+            name: name.clone(),
+            experts: format!("experts/{name}"),
+            data: format!("fresh renders ({}x supersampled)", args.supersample),
+            train_images: 0,
+        })
+        .collect();
+    eprintln!(
+        "{} objects, fresh renders every step; {} fresh test crops (seed {})",
+        sets.len(),
+        tests.len(),
+        args.eval_seed
+    );
+    Ok(FitData {
+        objects,
+        sets,
+        images: Vec::new(),
+        tests,
+        fresh: Some(fresh),
+    })
+}
+
+fn fit_cmd(args: &FitArgs) -> Result<()> {
+    use alignist::bundle::model::{
+        GridLevels, MODEL_FORMAT_VERSION, ModelBundle, ModelManifest, Provenance,
+    };
+    use alignist::encoding::RotationEncoding;
     use alignist::train::eval::evaluate;
     use alignist::train::{
         MeasureLoss, Method, NetworkConfig, SamplingStrategy, TrainConfig, TrainingSet, train,
     };
 
-    if args.data.len() != args.experts.len() {
+    if !args.fresh && args.data.len() != args.experts.len() {
         bail!(
             "give one --experts per --data ({} --data, {} --experts)",
             args.data.len(),
@@ -875,42 +996,17 @@ fn fit_cmd(args: &FitArgs) -> Result<()> {
     };
     let network =
         NetworkConfig::new(parse_layout(&args.layout)?, encoding).with_image_size(args.image_size);
-    let mut objects = Vec::new();
-    let mut sets = Vec::new();
-    let mut images = Vec::new();
-    let mut tests = Vec::new();
-    for (i, (data, experts)) in args.data.iter().zip(&args.experts).enumerate() {
-        let set =
-            ExpertSet::load(experts).with_context(|| format!("--experts {}", experts.display()))?;
-        let train_ds = BopDataset::open(data, "train")
-            .with_context(|| format!("--data {}", data.display()))?;
-        let imgs = training_images(&train_ds, i, &set.mesh, args.image_size, args.fraction)
-            .with_context(|| format!("reading --data {}", data.display()))?;
-        let name = set.manifest.object.name.clone();
-        eprintln!(
-            "{name}: {} training images from {}",
-            imgs.len(),
-            data.display()
-        );
-        objects.push(BundleObject {
-            name: name.clone(),
-            experts: format!("experts/{name}"),
-            data: data.display().to_string(),
-            train_images: imgs.len(),
-        });
-        images.extend(imgs);
-        if args.eval_images > 0 {
-            let test_ds = BopDataset::open(data, "test")
-                .with_context(|| format!("--data {} (test split)", data.display()))?;
-            tests.extend(eval_images(
-                &test_ds,
-                &name,
-                args.image_size,
-                args.eval_images,
-            )?);
-        }
-        sets.push(set);
-    }
+    let FitData {
+        objects,
+        sets,
+        images,
+        tests,
+        fresh,
+    } = if args.fresh {
+        fresh_fit_data(args)?
+    } else {
+        dataset_fit_data(args)?
+    };
     let baked: Vec<_> = sets.iter().map(|s| s.bake()).collect();
     let modes = sets
         .iter()
@@ -922,6 +1018,7 @@ fn fit_cmd(args: &FitArgs) -> Result<()> {
         objects: baked,
         modes,
         images,
+        fresh,
     };
     let config = TrainConfig {
         network: network.clone(),
@@ -944,19 +1041,24 @@ fn fit_cmd(args: &FitArgs) -> Result<()> {
         ProgressStyle::with_template("train {bar:40} {pos}/{len}  {msg}  {per_sec}  eta {eta}")
             .expect("static progress template"),
     );
+    let mut log = ProgressLog::new();
     let (trained, report) = train(
         &config,
         &training,
         Some(&checkpoints),
         args.resume,
-        |step, _, loss| {
+        |step, steps, loss| {
             bar.set_position(step as u64);
             bar.set_message(format!("loss {loss:.4}"));
+            log_progress(&mut log, step, steps, loss);
             std::ops::ControlFlow::Continue(())
         },
     )
     .context("training")?;
     bar.finish();
+    if args.profile {
+        print_profile(&report.profile);
+    }
     let evaluation = if tests.is_empty() {
         None
     } else {
@@ -1161,4 +1263,68 @@ fn write_grid(level: u8, out: &Path) -> Result<()> {
         out.display()
     );
     Ok(())
+}
+
+/// Progress lines for logs (a bar is drawn only on a terminal): every 2 % of the run or every
+/// 60 s, with the loss, the rate and the time left.
+struct ProgressLog {
+    started: std::time::Instant,
+    last: std::time::Instant,
+    first_step: Option<usize>,
+    on_terminal: bool,
+}
+
+impl ProgressLog {
+    fn new() -> Self {
+        use std::io::IsTerminal;
+        let now = std::time::Instant::now();
+        ProgressLog {
+            started: now,
+            last: now,
+            first_step: None,
+            on_terminal: std::io::stderr().is_terminal(),
+        }
+    }
+}
+
+fn log_progress(log: &mut ProgressLog, step: usize, steps: usize, loss: f64) {
+    if log.on_terminal {
+        return;
+    }
+    let first = *log.first_step.get_or_insert(step.saturating_sub(1));
+    let every = (steps / 50).max(1);
+    if !(step.is_multiple_of(every) || step == steps || log.last.elapsed().as_secs() >= 60) {
+        return;
+    }
+    log.last = std::time::Instant::now();
+    let elapsed = log.started.elapsed().as_secs_f64();
+    let per_step = elapsed / (step - first).max(1) as f64;
+    eprintln!(
+        "step {step}/{steps}  loss {loss:.4}  {:.0} ms/step  elapsed {:.0} s  left {:.0} s",
+        per_step * 1e3,
+        elapsed,
+        per_step * (steps - step) as f64
+    );
+}
+
+fn print_profile(p: &alignist::train::trainer::StepProfile) {
+    println!("step profile (ms per step, mean of {} steps):", p.steps);
+    for (name, v) in [
+        ("data", p.data),
+        ("sampling", p.sampling),
+        ("targets", p.targets),
+        ("encoder forward", p.encoder_forward),
+        ("head forward + loss", p.head_forward),
+        ("backward", p.backward),
+        ("optimiser", p.optimiser),
+    ] {
+        println!("  {name:<20} {v:8.1}  {:5.1} %", 100.0 * v / p.total.max(1e-9));
+    }
+    println!(
+        "  {:<20} {:8.1}  (stages sum {:.1}; supervision = sampling + targets = {:.1} %)",
+        "step",
+        p.total,
+        p.stages(),
+        100.0 * (p.sampling + p.targets) / p.total.max(1e-9)
+    );
 }

@@ -139,7 +139,7 @@ pub struct FeatureTrainConfig {
 impl Default for FeatureTrainConfig {
     fn default() -> Self {
         FeatureTrainConfig {
-            steps: 600,
+            steps: 1500,
             images: 8,
             image_size: 32,
             pixels: 128,

@@ -61,14 +61,24 @@ impl Network {
         rotations: &[Vec<[f32; 9]>],
         encoding: &RotationEncoding,
     ) -> BranchScores {
-        let device = images.device();
+        self.scores_of_features(self.encoder.forward(images), rotations, encoding)
+    }
+
+    /// As [`Network::scores`], from image features `[B, D]` already encoded.
+    pub fn scores_of_features(
+        &self,
+        features: Tensor<2>,
+        rotations: &[Vec<[f32; 9]>],
+        encoding: &RotationEncoding,
+    ) -> BranchScores {
+        let device = features.device();
         let b = rotations.len();
         let k = rotations.first().map_or(0, |r| r.len());
         let flat: Vec<[f32; 9]> = rotations.iter().flatten().copied().collect();
         let enc = encoding
             .encode_tensor(&flat, &device)
             .reshape([b, k, encoding.dim()]);
-        self.head.forward(self.encoder.forward(images), enc)
+        self.head.forward(features, enc)
     }
 }
 

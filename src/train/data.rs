@@ -1,9 +1,16 @@
-//! Training and evaluation images from BOP datasets: object-centred crops, ground truths, and the
-//! visible canonical points the experts score.
+//! Training and evaluation images — from BOP datasets, or rendered fresh — as object-centred
+//! crops, ground truths, and the visible canonical points the experts score.
 
-use crate::cad::Mesh;
+use nalgebra::Rotation3;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+use crate::cad::{Mesh, RenderOptions};
+use crate::data::fresh::render_crop;
 use crate::data::{BopDataset, DataError};
-use crate::experts::select::visible_points_at;
+use crate::experts::energy::visible_points;
+use crate::experts::select::{VISIBLE_POINTS, visible_points_at};
+use crate::so3::{equivalents, haar_rotations};
 
 use super::eval::EvalImage;
 use super::trainer::TrainingImage;
@@ -54,4 +61,69 @@ pub fn eval_images(
             })
         })
         .collect()
+}
+
+/// Training and evaluation images rendered on demand ([`crate::data::fresh`]): every step sees
+/// new poses, so a run never sees an image twice.
+#[derive(Debug, Clone)]
+pub struct FreshRenders {
+    /// The objects' meshes in NOCS, in object order.
+    pub meshes: Vec<Mesh>,
+    /// Supersampling factor per axis (anti-aliasing).
+    pub supersample: u32,
+}
+
+impl FreshRenders {
+    /// The crop of object `object` at rotation `r`, with the visible points of its render.
+    pub fn training_image(
+        &self,
+        object: usize,
+        r: &Rotation3<f64>,
+        size: u32,
+        seed: u64,
+    ) -> TrainingImage {
+        let crop = render_crop(
+            &self.meshes[object],
+            r,
+            size,
+            self.supersample,
+            &RenderOptions::default(),
+        );
+        TrainingImage {
+            object,
+            rgb: crop.rgb,
+            rotation: *r,
+            visible: visible_points(
+                &crop.render,
+                VISIBLE_POINTS,
+                &mut ChaCha8Rng::seed_from_u64(seed),
+            ),
+        }
+    }
+
+    /// `per_object` fresh evaluation crops of each object at Haar-random rotations drawn from
+    /// `seed`, with every equivalent ground truth (`symmetries[i]` of object `i`, `names[i]` its
+    /// name).
+    pub fn eval_images(
+        &self,
+        names: &[String],
+        symmetries: &[Vec<Rotation3<f64>>],
+        size: u32,
+        per_object: usize,
+        seed: u64,
+    ) -> Vec<EvalImage> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0xe7a1);
+        let mut out = Vec::with_capacity(per_object * self.meshes.len());
+        for (i, mesh) in self.meshes.iter().enumerate() {
+            for r in haar_rotations(&mut rng, per_object) {
+                let crop = render_crop(mesh, &r, size, self.supersample, &RenderOptions::default());
+                out.push(EvalImage {
+                    object: names[i].clone(),
+                    rgb: crop.rgb,
+                    equivalents: equivalents(&r, &symmetries[i]),
+                });
+            }
+        }
+        out
+    }
 }

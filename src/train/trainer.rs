@@ -20,6 +20,8 @@ use super::checkpoint::{CheckpointState, latest_checkpoint, load_checkpoint, sav
 use super::sampling::{ModeSampler, SamplingStrategy, sample_rotations};
 use crate::experts::energy::{BakedExperts, LogTargets};
 use crate::experts::modes::ModeTable;
+use super::data::FreshRenders;
+use rayon::prelude::*;
 use crate::net::{Network, NetworkConfig, images_tensor};
 use crate::net::{gkl_loss, ipdf_loss, l1_measure_loss};
 use crate::so3::to_row_major_f32;
@@ -100,6 +102,8 @@ pub struct TrainingSet {
     pub objects: Vec<BakedExperts>,
     /// Mode table per object (needed by mode-focused sampling; may be empty otherwise).
     pub modes: Vec<ModeTable>,
+    /// When set, every step renders new images instead of drawing from `images`.
+    pub fresh: Option<FreshRenders>,
     /// The images.
     pub images: Vec<TrainingImage>,
 }
@@ -115,18 +119,76 @@ pub struct TrainReport {
     pub final_loss: f64,
     /// Wall time of this call.
     pub seconds: f64,
+    /// Mean milliseconds per step in each stage.
+    #[serde(default)]
+    pub profile: StepProfile,
+}
+
+/// Time per training step in each stage (seconds summed while training; milliseconds per step
+/// in [`TrainReport::profile`]). The stages run one after the other, so they add up to the step
+/// time but for the checkpoints and the loop itself (`total` is measured around the whole step).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct StepProfile {
+    /// Steps measured.
+    pub steps: usize,
+    /// Drawing or rendering the images and making their tensor.
+    pub data: f64,
+    /// Drawing the K rotations per image.
+    pub sampling: f64,
+    /// The experts' targets of the K rotations.
+    pub targets: f64,
+    /// Image encoder forward.
+    pub encoder_forward: f64,
+    /// Rotation encoding, head forward and the loss.
+    pub head_forward: f64,
+    /// Backward through head and encoder.
+    pub backward: f64,
+    /// The Adam step.
+    pub optimiser: f64,
+    /// The whole step, checkpoints included.
+    pub total: f64,
+}
+
+impl StepProfile {
+    /// Seconds summed → milliseconds per step.
+    pub fn mean_ms(&self) -> StepProfile {
+        let k = 1e3 / self.steps.max(1) as f64;
+        StepProfile {
+            steps: self.steps,
+            data: self.data * k,
+            sampling: self.sampling * k,
+            targets: self.targets * k,
+            encoder_forward: self.encoder_forward * k,
+            head_forward: self.head_forward * k,
+            backward: self.backward * k,
+            optimiser: self.optimiser * k,
+            total: self.total * k,
+        }
+    }
+
+    /// Sum of the stages (everything but `total`).
+    pub fn stages(&self) -> f64 {
+        self.data
+            + self.sampling
+            + self.targets
+            + self.encoder_forward
+            + self.head_forward
+            + self.backward
+            + self.optimiser
+    }
 }
 
 /// The K rotations of image `id` for one step, and (Alignist) their expert targets.
 fn sample_image(
     config: &TrainConfig,
     set: &TrainingSet,
-    id: usize,
+    im: &TrainingImage,
     samplers: &[ModeSampler],
     rng: &mut ChaCha8Rng,
+    profile: &mut StepProfile,
 ) -> (Vec<[f32; 9]>, Option<LogTargets>) {
-    let im = &set.images[id];
     let experts = &set.objects[im.object];
+    let started = Instant::now();
     let samples = match &config.method {
         Method::Alignist { sampling, .. } => {
             sample_rotations(sampling, config.k, &im.rotation, samplers.get(im.object), rng)
@@ -140,11 +202,38 @@ fn sample_image(
         ),
     };
     let mats: Vec<[f32; 9]> = samples.iter().map(to_row_major_f32).collect();
+    profile.sampling += started.elapsed().as_secs_f64();
+    let started = Instant::now();
     let targets = match config.method {
         Method::Alignist { .. } => Some(experts.log_targets(&im.rotation, &im.visible, &mats)),
         Method::Ipdf => None,
     };
+    profile.targets += started.elapsed().as_secs_f64();
     (mats, targets)
+}
+
+/// The images of one step: `batch` draws from the fixed set, or (with [`TrainingSet::fresh`])
+/// `batch` new renders of random objects at Haar-random rotations, all from `rng`.
+fn step_images(config: &TrainConfig, set: &TrainingSet, rng: &mut ChaCha8Rng) -> Vec<TrainingImage> {
+    match &set.fresh {
+        None => (0..config.batch)
+            .map(|_| set.images[rng.random_range(0..set.images.len())].clone())
+            .collect(),
+        Some(fresh) => {
+            let draws: Vec<(usize, Rotation3<f64>, u64)> = (0..config.batch)
+                .map(|_| {
+                    let object = rng.random_range(0..fresh.meshes.len());
+                    (object, crate::so3::haar_rotation(rng), rng.random::<u64>())
+                })
+                .collect();
+            draws
+                .par_iter()
+                .map(|(object, r, seed)| {
+                    fresh.training_image(*object, r, config.network.image_size, *seed)
+                })
+                .collect()
+        }
+    }
 }
 
 /// Log of the mean target of each branch over the samples of up to `n` images (the seed's
@@ -157,9 +246,9 @@ fn mean_log_targets(
 ) -> (f32, f32) {
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed ^ 0xB1A5);
     let (mut sdf, mut se, mut count) = (0.0f64, 0.0f64, 0usize);
-    for _ in 0..n {
-        let id = rng.random_range(0..set.images.len());
-        if let (_, Some(t)) = sample_image(config, set, id, samplers, &mut rng) {
+    let mut profile = StepProfile::default();
+    for im in step_images(&TrainConfig { batch: n, ..config.clone() }, set, &mut rng) {
+        if let (_, Some(t)) = sample_image(config, set, &im, samplers, &mut rng, &mut profile) {
             sdf += t.log_a_sdf.iter().map(|&l| (l as f64).exp()).sum::<f64>();
             se += t.log_a_se.iter().map(|&l| (l as f64).exp()).sum::<f64>();
             count += t.log_a_sdf.len();
@@ -201,8 +290,18 @@ pub fn train(
     resume: bool,
     mut progress: impl FnMut(usize, usize, f64) -> ControlFlow<()>,
 ) -> Result<(Network, TrainReport), TrainError> {
-    if set.images.is_empty() {
-        return Err(TrainError::Data("the training set has no images".into()));
+    match &set.fresh {
+        None if set.images.is_empty() => {
+            return Err(TrainError::Data("the training set has no images".into()));
+        }
+        Some(fresh) if fresh.meshes.len() != set.objects.len() => {
+            return Err(TrainError::Data(format!(
+                "fresh renders need one mesh per object: {} meshes for {} objects",
+                fresh.meshes.len(),
+                set.objects.len()
+            )));
+        }
+        _ => {}
     }
     let started = Instant::now();
     let device = crate::backend::device_for(crate::backend::Workload::Conv).autodiff();
@@ -228,31 +327,36 @@ pub fn train(
     let (mut tail_sum, mut tail_n) = (0.0, 0usize);
     let mut steps_run = 0;
 
+    let mut profile = StepProfile::default();
     for step in start..config.steps {
+        let step_started = Instant::now();
         let mut rng = ChaCha8Rng::seed_from_u64(
             config
                 .seed
                 .wrapping_mul(1_000_003)
                 .wrapping_add(step as u64),
         );
-        let pick_ids: Vec<usize> = (0..config.batch)
-            .map(|_| rng.random_range(0..set.images.len()))
-            .collect();
-        let picks: Vec<&TrainingImage> = pick_ids.iter().map(|&i| &set.images[i]).collect();
+        let started = Instant::now();
+        let picks = step_images(config, set, &mut rng);
         let crops: Vec<&[u8]> = picks.iter().map(|im| im.rgb.as_slice()).collect();
         let images = images_tensor(&crops, size, &device);
+        profile.data += started.elapsed().as_secs_f64();
         let mut rotations = Vec::with_capacity(picks.len());
         let mut log_sdf = Vec::with_capacity(picks.len() * config.k);
         let mut log_se = Vec::with_capacity(picks.len() * config.k);
-        for &id in &pick_ids {
-            let (mats, targets) = sample_image(config, set, id, &samplers, &mut rng);
+        for im in &picks {
+            let (mats, targets) = sample_image(config, set, im, &samplers, &mut rng, &mut profile);
             if let Some(t) = targets {
                 log_sdf.extend(t.log_a_sdf);
                 log_se.extend(t.log_a_se);
             }
             rotations.push(mats);
         }
-        let scores = network.scores(images, &rotations, &config.network.encoding);
+        let started = Instant::now();
+        let features = network.encoder.forward(images);
+        profile.encoder_forward += started.elapsed().as_secs_f64();
+        let started = Instant::now();
+        let scores = network.scores_of_features(features, &rotations, &config.network.encoding);
         let b = picks.len();
         let loss = match &config.method {
             Method::Alignist { loss, .. } => {
@@ -268,6 +372,7 @@ pub fn train(
             Method::Ipdf => ipdf_loss(scores.combined()),
         };
         let loss_value = loss.clone().into_scalar::<f32>() as f64;
+        profile.head_forward += started.elapsed().as_secs_f64();
         if !loss_value.is_finite() {
             return Err(TrainError::Diverged {
                 step,
@@ -278,8 +383,12 @@ pub fn train(
             tail_sum += loss_value;
             tail_n += 1;
         }
+        let started = Instant::now();
         let grads = GradientsParams::from_grads(loss.backward(), &network);
+        profile.backward += started.elapsed().as_secs_f64();
+        let started = Instant::now();
         network = optim.step(learning_rate(config, step), network, grads);
+        profile.optimiser += started.elapsed().as_secs_f64();
         let done = step + 1;
         if let Some(dir) = checkpoints
             && (done % config.checkpoint_every.max(1) == 0 || done == config.steps)
@@ -296,6 +405,8 @@ pub fn train(
             )?;
         }
         steps_run += 1;
+        profile.steps += 1;
+        profile.total += step_started.elapsed().as_secs_f64();
         if progress(done, config.steps, loss_value).is_break() {
             break;
         }
@@ -308,6 +419,7 @@ pub fn train(
             resumed_from: start,
             final_loss: tail_sum / tail_n.max(1) as f64,
             seconds: started.elapsed().as_secs_f64(),
+            profile: profile.mean_ms(),
         },
     ))
 }
