@@ -76,6 +76,7 @@ fn main() {
         objects: vec![baked],
         modes,
         images,
+        fresh: None,
     };
     let cfg = TrainConfig {
         network: NetworkConfig::new(ResNetLayout::Tiny, RotationEncoding::Cube)

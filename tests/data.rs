@@ -203,3 +203,63 @@ fn corrupt_dataset_files_are_named_in_the_error() {
             .contains("test")
     );
 }
+
+#[test]
+fn the_perspective_crop_of_an_off_centre_object_is_the_virtual_cameras_view() {
+    use alignist::cad::Pose;
+    use alignist::data::virtual_crop::{
+        box_filter, frame_camera, object_box, perspective_crop, render_crop,
+    };
+    use nalgebra::Vector3;
+    let mesh = Shape::Cube.mesh().normalised().0;
+    let camera = frame_camera();
+    let rotations = haar_rotations(&mut ChaCha8Rng::seed_from_u64(3), 3);
+    // At the centre, mid-way to the corner, and near the edge of the 640×480 frame.
+    for ((u, v), r) in [(320.0, 240.0), (480.0, 360.0), (550.0, 395.0)]
+        .into_iter()
+        .zip(rotations)
+    {
+        let z = 6.0;
+        let pose = Pose {
+            rotation: r,
+            translation: Vector3::new((u - camera.cx) / camera.fx * z, (v - camera.cy) / camera.fy * z, z),
+        };
+        // The crop cut (warped) out of the full frame, at 128² then 4×-box-filtered…
+        let full = render(&mesh, &camera, &pose, &RenderOptions::default());
+        let bbox = object_box(&mesh, &pose, &camera);
+        let (warped, view) =
+            perspective_crop(&full.rgb, camera.width, camera.height, &camera.k(), bbox, 128)
+                .unwrap();
+        let warped = box_filter(&warped, 128, 4);
+        // …and the virtual camera's view rendered directly, 4× supersampled.
+        let direct = render_crop(&mesh, &pose, &camera, 32, 4, &RenderOptions::default());
+        let mad = direct
+            .rgb
+            .iter()
+            .zip(&warped)
+            .map(|(a, b)| (*a as f64 - *b as f64).abs())
+            .sum::<f64>()
+            / warped.len() as f64;
+        assert!(mad < 2.0, "({u}, {v}): mean absolute difference {mad} grey levels");
+        let total = |rgb: &[u8]| rgb.iter().map(|&c| c as f64).sum::<f64>();
+        assert!(total(&direct.rgb) > 0.2 * 255.0 * 32.0 * 32.0, "the object fills the crop");
+        // The label is the rotation in the virtual camera; R_ray turns it back exactly.
+        assert!(geodesic_angle(&(view.r_ray * direct.r_virtual), &r) < 1e-9);
+        let off_axis = geodesic_angle(&view.r_ray, &alignist::so3::rot_z(0.0)).to_degrees();
+        if u != 320.0 {
+            assert!(off_axis > 10.0, "({u}, {v}): ray {off_axis}° off the axis");
+        }
+    }
+}
+
+#[test]
+fn virtual_cameras_refuse_boxes_and_intrinsics_without_area() {
+    use alignist::data::virtual_crop::VirtualCamera;
+    let k = [500.0, 0.0, 320.0, 0.0, 500.0, 240.0, 0.0, 0.0, 1.0];
+    assert!(VirtualCamera::looking_at(&k, [10.0, 10.0, 50.0, 40.0], 64).is_some());
+    assert!(VirtualCamera::looking_at(&k, [10.0, 10.0, 0.0, 40.0], 64).is_none());
+    assert!(VirtualCamera::looking_at(&k, [10.0, f64::NAN, 5.0, 40.0], 64).is_none());
+    let mut bad = k;
+    bad[0] = -1.0;
+    assert!(VirtualCamera::looking_at(&bad, [10.0, 10.0, 50.0, 40.0], 64).is_none());
+}

@@ -13,6 +13,7 @@ use alignist::experts::select::visible_points_at;
 use alignist::net::ResNetLayout;
 use alignist::net::images_tensor;
 use alignist::so3::{GridLevel, haar_rotations};
+use alignist::train::data::FreshRenders;
 use alignist::train::{
     MeasureLoss, Method, Network, NetworkConfig, SamplingStrategy, TrainConfig, TrainingImage,
     TrainingSet, train,
@@ -70,6 +71,18 @@ fn tiny_set() -> TrainingSet {
         objects: vec![baked],
         modes: vec![modes],
         images,
+        fresh: None,
+    }
+}
+
+/// [`tiny_set`], but every step renders new crops (its fixed images are only for fingerprints).
+fn tiny_fresh_set() -> TrainingSet {
+    TrainingSet {
+        fresh: Some(FreshRenders {
+            meshes: vec![Shape::Cube.mesh()],
+            supersample: 2,
+        }),
+        ..tiny_set()
     }
 }
 
@@ -138,7 +151,15 @@ fn tensors(path: &std::path::Path) -> std::collections::BTreeMap<String, Vec<u8>
 
 #[test]
 fn training_is_deterministic_and_resumes_exactly() {
-    let set = tiny_set();
+    deterministic_and_resumes_exactly(tiny_set());
+}
+
+#[test]
+fn training_on_fresh_renders_is_deterministic_and_resumes_exactly() {
+    deterministic_and_resumes_exactly(tiny_fresh_set());
+}
+
+fn deterministic_and_resumes_exactly(set: TrainingSet) {
     let cfg = config(alignist_method());
     let mut losses = Vec::new();
     let (a, report) = train(&cfg, &set, None, false, |_, _, l| {
@@ -236,7 +257,8 @@ fn a_few_hundred_real_steps_lower_the_loss_and_beat_uniform_on_held_out_renders(
     use alignist::bundle::experts::{ExpertsJob, train_expert_set};
     use alignist::experts::feature::FeatureTrainConfig;
     use alignist::experts::sdf::SdfTrainConfig;
-    use alignist::train::eval::{EvalImage, evaluate};
+    use alignist::so3::metrics::chance_accuracy;
+    use alignist::train::eval::evaluate;
 
     // Real (small) experts for the cube.
     let shape = Shape::Cube;
@@ -273,30 +295,15 @@ fn a_few_hundred_real_steps_lower_the_loss_and_beat_uniform_on_held_out_renders(
         experts.manifest.energy,
         &device,
     );
-    let camera = alignist::cad::Camera::square(SIZE);
-    let render_at = |r| {
-        alignist::cad::render(
-            &mesh,
-            &camera,
-            &alignist::data::symsol_pose(r),
-            &alignist::cad::RenderOptions::default(),
-        )
-        .rgb
+    let fresh = FreshRenders {
+        meshes: vec![mesh.clone()],
+        supersample: 2,
     };
-    let images = haar_rotations(&mut ChaCha8Rng::seed_from_u64(21), 600)
-        .into_iter()
-        .enumerate()
-        .map(|(i, r)| TrainingImage {
-            object: 0,
-            rgb: render_at(r),
-            rotation: r,
-            visible: visible_points_at(&mesh, &r, i as u64),
-        })
-        .collect();
     let set = TrainingSet {
         objects: vec![baked],
         modes: vec![experts.modes.clone().unwrap()],
-        images,
+        images: Vec::new(),
+        fresh: Some(fresh.clone()),
     };
     let cfg = TrainConfig {
         steps: 300,
@@ -310,7 +317,7 @@ fn a_few_hundred_real_steps_lower_the_loss_and_beat_uniform_on_held_out_renders(
         })
     };
     let mut losses = Vec::new();
-    let (network, _) = train(&cfg, &set, None, false, |_, _, l| {
+    let (network, train_report) = train(&cfg, &set, None, false, |_, _, l| {
         losses.push(l);
         ControlFlow::Continue(())
     })
@@ -318,17 +325,30 @@ fn a_few_hundred_real_steps_lower_the_loss_and_beat_uniform_on_held_out_renders(
     let first: f64 = losses[..30].iter().sum::<f64>() / 30.0;
     let last: f64 = losses[losses.len() - 30..].iter().sum::<f64>() / 30.0;
     assert!(last < 0.95 * first, "loss {first} → {last}");
-    let held_out: Vec<EvalImage> = haar_rotations(&mut ChaCha8Rng::seed_from_u64(77), 20)
-        .into_iter()
-        .map(|r| EvalImage {
-            object: "cube".into(),
-            rgb: render_at(r),
-            equivalents: alignist::so3::equivalents(&r, &shape.symmetries()),
-        })
-        .collect();
+    let held_out = fresh.eval_images(&["cube".into()], &[shape.symmetries()], SIZE, 40, 77);
     let report = evaluate(&network, &cfg.network, &held_out, 2, |_| {}).unwrap();
-    eprintln!("loss {first:.3} → {last:.3}; held-out {:?}", report.overall);
-    // Better than uniform (LL 0) on renders it never saw.
+    eprintln!(
+        "loss {first:.3} → {last:.3}; held-out {:?}; profile {:?}",
+        report.overall, train_report.profile
+    );
+    // Better than uniform (LL 0) and than an argmax that ignores the image, on renders it never
+    // saw.
     assert!(report.overall.log_likelihood > 0.0, "{:?}", report.overall);
-    assert_eq!(report.overall.images, 20);
+    assert_eq!(report.overall.images, 40);
+    let chance = chance_accuracy(&shape.symmetries(), 30.0, 20_000, 1);
+    assert!((0.15..0.21).contains(&chance), "cube chance AR@30 {chance}");
+    assert!(
+        report.overall.accuracy_at[0].1 > chance + 0.1,
+        "AR@30 {:?} vs chance {chance}",
+        report.overall.accuracy_at
+    );
+    // The profile's stages add up to the step (within 10 %).
+    let p = train_report.profile;
+    assert_eq!(p.steps, 300);
+    assert!(
+        (p.stages() - p.total).abs() < 0.1 * p.total,
+        "stages {} vs step {}",
+        p.stages(),
+        p.total
+    );
 }

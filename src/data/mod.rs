@@ -1,7 +1,7 @@
 //! Datasets: renders written and read in the BOP layout, object-centred crops.
 
 pub mod bop;
-pub mod fresh;
+pub mod virtual_crop;
 mod render_set;
 
 pub use bop::{BopDataset, BopSample, BopWriter, Crop, crop};

@@ -227,3 +227,23 @@ pub fn mass_near_equivalents(
         outside: (1.0 - inside).max(0.0),
     }
 }
+
+/// `AR@θ` of an argmax that ignores the image: the probability that a Haar-random rotation lies
+/// within `threshold_deg` of one of `symmetries` (estimated from `samples` seeded draws).
+pub fn chance_accuracy(
+    symmetries: &[Rotation3<f64>],
+    threshold_deg: f64,
+    samples: usize,
+    seed: u64,
+) -> f64 {
+    use rand::SeedableRng;
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let rotations = super::haar_rotations(&mut rng, samples);
+    let group: Vec<[f64; 4]> = symmetries.iter().map(to_quaternion).collect();
+    let threshold = threshold_deg.to_radians();
+    let hits = rotations
+        .par_iter()
+        .filter(|r| min_angle(&to_quaternion(r), &group) < threshold)
+        .count();
+    hits as f64 / samples.max(1) as f64
+}

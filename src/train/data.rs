@@ -2,15 +2,15 @@
 //! crops, ground truths, and the visible canonical points the experts score.
 
 use nalgebra::Rotation3;
-use rand::SeedableRng;
+use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use crate::cad::{Mesh, RenderOptions};
-use crate::data::fresh::render_crop;
+use crate::data::virtual_crop::{frame_camera, random_placement, render_crop};
 use crate::data::{BopDataset, DataError};
 use crate::experts::energy::visible_points;
 use crate::experts::select::{VISIBLE_POINTS, visible_points_at};
-use crate::so3::{equivalents, haar_rotations};
+use crate::so3::equivalents;
 
 use super::eval::EvalImage;
 use super::trainer::TrainingImage;
@@ -74,17 +74,19 @@ pub struct FreshRenders {
 }
 
 impl FreshRenders {
-    /// The crop of object `object` at rotation `r`, with the visible points of its render.
-    pub fn training_image(
+    /// A crop of object `object` placed at random in the frame (from `rng`), with its label in
+    /// the virtual camera and the visible points of its render.
+    pub fn training_image<R: Rng + ?Sized>(
         &self,
         object: usize,
-        r: &Rotation3<f64>,
         size: u32,
-        seed: u64,
+        rng: &mut R,
     ) -> TrainingImage {
+        let pose = random_placement(rng);
         let crop = render_crop(
             &self.meshes[object],
-            r,
+            &pose,
+            &frame_camera(),
             size,
             self.supersample,
             &RenderOptions::default(),
@@ -92,18 +94,14 @@ impl FreshRenders {
         TrainingImage {
             object,
             rgb: crop.rgb,
-            rotation: *r,
-            visible: visible_points(
-                &crop.render,
-                VISIBLE_POINTS,
-                &mut ChaCha8Rng::seed_from_u64(seed),
-            ),
+            rotation: crop.r_virtual,
+            visible: visible_points(&crop.render, VISIBLE_POINTS, rng),
         }
     }
 
-    /// `per_object` fresh evaluation crops of each object at Haar-random rotations drawn from
-    /// `seed`, with every equivalent ground truth (`symmetries[i]` of object `i`, `names[i]` its
-    /// name).
+    /// `per_object` fresh evaluation crops of each object placed at random from `seed`, with
+    /// every equivalent ground truth in the virtual camera (`symmetries[i]` of object `i`,
+    /// `names[i]` its name).
     pub fn eval_images(
         &self,
         names: &[String],
@@ -115,12 +113,20 @@ impl FreshRenders {
         let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0xe7a1);
         let mut out = Vec::with_capacity(per_object * self.meshes.len());
         for (i, mesh) in self.meshes.iter().enumerate() {
-            for r in haar_rotations(&mut rng, per_object) {
-                let crop = render_crop(mesh, &r, size, self.supersample, &RenderOptions::default());
+            for _ in 0..per_object {
+                let pose = random_placement(&mut rng);
+                let crop = render_crop(
+                    mesh,
+                    &pose,
+                    &frame_camera(),
+                    size,
+                    self.supersample,
+                    &RenderOptions::default(),
+                );
                 out.push(EvalImage {
                     object: names[i].clone(),
                     rgb: crop.rgb,
-                    equivalents: equivalents(&r, &symmetries[i]),
+                    equivalents: equivalents(&crop.r_virtual, &symmetries[i]),
                 });
             }
         }

@@ -9,7 +9,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::net::{Network, NetworkConfig, ProjectedGrid, images_tensor};
 use crate::so3::So3Error;
-use crate::so3::metrics::{ImageMetrics, MetricsSummary, image_metrics, summarize};
+use crate::so3::metrics::{
+    ImageMetrics, MetricsSummary, chance_accuracy, image_metrics, summarize,
+};
 
 /// A test image: crop and every equivalent ground truth.
 #[derive(Debug, Clone)]
@@ -35,6 +37,11 @@ pub struct EvalReport {
     pub overall: MetricsSummary,
     /// Images per second (encoder + head over the full grid + metrics).
     pub images_per_second: f64,
+    /// Per object, the AR@30 of an argmax that ignores the image (the symmetry group's chance
+    /// level). With Haar-uniform test poses the best image-independent distribution is uniform:
+    /// LL 0 and this AR@30.
+    #[serde(default)]
+    pub chance_ar30: Vec<(String, f64)>,
 }
 
 /// Evaluates `network` on `images` at grid `level`.
@@ -67,7 +74,7 @@ pub fn evaluate(
     let mut objects: Vec<String> = per_image.iter().map(|(o, _)| o.clone()).collect();
     objects.sort();
     objects.dedup();
-    let per_object = objects
+    let per_object: Vec<(String, MetricsSummary)> = objects
         .into_iter()
         .map(|o| {
             let m: Vec<ImageMetrics> = per_image
@@ -79,11 +86,26 @@ pub fn evaluate(
         })
         .collect();
     let all: Vec<ImageMetrics> = per_image.iter().map(|(_, m)| *m).collect();
+    let chance_ar30 = per_object
+        .iter()
+        .filter_map(|(name, _)| {
+            let im = images.iter().find(|i| i.object == *name)?;
+            // The equivalents are R_gt·S with the identity first: S_j = G_0ᵀ·G_j.
+            let first = im.equivalents.first()?;
+            let group: Vec<Rotation3<f64>> = im
+                .equivalents
+                .iter()
+                .map(|g| first.inverse() * g)
+                .collect();
+            Some((name.clone(), chance_accuracy(&group, 30.0, 20_000, 0)))
+        })
+        .collect();
     Ok(EvalReport {
         level,
         ll_ceiling: ceiling / images.len().max(1) as f64,
         per_object,
         overall: summarize(&all, &thresholds),
         images_per_second: images.len() as f64 / started.elapsed().as_secs_f64(),
+        chance_ar30,
     })
 }

@@ -220,16 +220,18 @@ fn step_images(config: &TrainConfig, set: &TrainingSet, rng: &mut ChaCha8Rng) ->
             .map(|_| set.images[rng.random_range(0..set.images.len())].clone())
             .collect(),
         Some(fresh) => {
-            let draws: Vec<(usize, Rotation3<f64>, u64)> = (0..config.batch)
-                .map(|_| {
-                    let object = rng.random_range(0..fresh.meshes.len());
-                    (object, crate::so3::haar_rotation(rng), rng.random::<u64>())
-                })
+            // One seed per image drawn in order, then rendered in parallel: deterministic.
+            let draws: Vec<(usize, u64)> = (0..config.batch)
+                .map(|_| (rng.random_range(0..fresh.meshes.len()), rng.random::<u64>()))
                 .collect();
             draws
                 .par_iter()
-                .map(|(object, r, seed)| {
-                    fresh.training_image(*object, r, config.network.image_size, *seed)
+                .map(|&(object, seed)| {
+                    fresh.training_image(
+                        object,
+                        config.network.image_size,
+                        &mut ChaCha8Rng::seed_from_u64(seed),
+                    )
                 })
                 .collect()
         }
