@@ -42,14 +42,17 @@ fn main() {
             b.params.lambda_se *= lambda_scale;
             (b, modes)
         }
-        None => (bake_experts(
-            &SirenConfig::new(3, 8, 1, 1).init(&device),
-            &key_siren_config().init(&device),
-            8,
-            1.05,
-            EnergyParams::default(),
-            &device,
-        ), Vec::new()),
+        None => (
+            bake_experts(
+                &SirenConfig::new(3, 8, 1, 1).init(&device),
+                &key_siren_config().init(&device),
+                8,
+                1.05,
+                EnergyParams::default(),
+                &device,
+            ),
+            Vec::new(),
+        ),
     };
     let size = 32;
     let camera = alignist::cad::Camera::square(size);

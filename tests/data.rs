@@ -4,7 +4,8 @@ use std::path::Path;
 use std::process::Command;
 
 use alignist::cad::{Camera, RenderOptions, Shape, render};
-use alignist::data::{BopDataset, crop, symsol_pose};
+use alignist::data::virtual_crop::{object_box, perspective_crop};
+use alignist::data::{BopDataset, symsol_pose};
 use alignist::so3::{from_quaternion, geodesic_angle, haar_rotations, to_quaternion};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -87,20 +88,16 @@ fn a_rendered_dataset_reads_back_with_the_same_rotations_and_crops() {
                 .fold(9.0, f64::min);
             assert!(best < 1e-9, "{best}");
         }
-        // The crop from disk equals the crop of the same render made in memory.
+        // The crop from disk equals the perspective crop of the same render made in memory, at
+        // the box of the projected mesh, and its labels are in that crop's virtual camera.
         let image = render(&mesh, &camera, &symsol_pose(*r), &RenderOptions::default());
         let from_disk = ds.crop(sample, 32).unwrap();
-        let radius_mm = ds.models[&1].diameter / 2.0;
-        let in_memory = crop(
-            &image.rgb,
-            64,
-            64,
-            &sample.cam_k,
-            &sample.translation,
-            radius_mm,
-            32,
-        );
-        assert_eq!(from_disk, in_memory);
+        let bbox = object_box(&mesh, &symsol_pose(*r), &camera);
+        let (in_memory, view) =
+            perspective_crop(&image.rgb, 64, 64, &sample.cam_k, bbox, 32).unwrap();
+        assert_eq!(from_disk.rgb, in_memory);
+        assert!(geodesic_angle(&(view.r_ray * from_disk.rotation), r) < 1e-9);
+        assert_eq!(from_disk.equivalents.len(), 24);
         // And the object fills the crop's centre.
         let centre = ((16 * 32 + 16) * 3) as usize;
         assert_ne!(&from_disk.rgb[centre..centre + 3], &[0, 0, 0]);
@@ -222,14 +219,24 @@ fn the_perspective_crop_of_an_off_centre_object_is_the_virtual_cameras_view() {
         let z = 6.0;
         let pose = Pose {
             rotation: r,
-            translation: Vector3::new((u - camera.cx) / camera.fx * z, (v - camera.cy) / camera.fy * z, z),
+            translation: Vector3::new(
+                (u - camera.cx) / camera.fx * z,
+                (v - camera.cy) / camera.fy * z,
+                z,
+            ),
         };
         // The crop cut (warped) out of the full frame, at 128² then 4×-box-filtered…
         let full = render(&mesh, &camera, &pose, &RenderOptions::default());
         let bbox = object_box(&mesh, &pose, &camera);
-        let (warped, view) =
-            perspective_crop(&full.rgb, camera.width, camera.height, &camera.k(), bbox, 128)
-                .unwrap();
+        let (warped, view) = perspective_crop(
+            &full.rgb,
+            camera.width,
+            camera.height,
+            &camera.k(),
+            bbox,
+            128,
+        )
+        .unwrap();
         let warped = box_filter(&warped, 128, 4);
         // …and the virtual camera's view rendered directly, 4× supersampled.
         let direct = render_crop(&mesh, &pose, &camera, 32, 4, &RenderOptions::default());
@@ -240,9 +247,15 @@ fn the_perspective_crop_of_an_off_centre_object_is_the_virtual_cameras_view() {
             .map(|(a, b)| (*a as f64 - *b as f64).abs())
             .sum::<f64>()
             / warped.len() as f64;
-        assert!(mad < 2.0, "({u}, {v}): mean absolute difference {mad} grey levels");
+        assert!(
+            mad < 2.0,
+            "({u}, {v}): mean absolute difference {mad} grey levels"
+        );
         let total = |rgb: &[u8]| rgb.iter().map(|&c| c as f64).sum::<f64>();
-        assert!(total(&direct.rgb) > 0.2 * 255.0 * 32.0 * 32.0, "the object fills the crop");
+        assert!(
+            total(&direct.rgb) > 0.2 * 255.0 * 32.0 * 32.0,
+            "the object fills the crop"
+        );
         // The label is the rotation in the virtual camera; R_ray turns it back exactly.
         assert!(geodesic_angle(&(view.r_ray * direct.r_virtual), &r) < 1e-9);
         let off_axis = geodesic_angle(&view.r_ray, &alignist::so3::rot_z(0.0)).to_degrees();
@@ -262,4 +275,51 @@ fn virtual_cameras_refuse_boxes_and_intrinsics_without_area() {
     let mut bad = k;
     bad[0] = -1.0;
     assert!(VirtualCamera::looking_at(&bad, [10.0, 10.0, 50.0, 40.0], 64).is_none());
+}
+
+#[test]
+fn frames_with_off_centre_objects_read_back_as_virtual_camera_crops() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().join("frames");
+    let out = train(
+        &[
+            "render", "--shape", "cube", "--count", "4", "--seed", "5", "--frame", "320x240",
+        ],
+        &root,
+    );
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let info: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(root.join("train/000000/scene_gt_info.json")).unwrap(),
+    )
+    .unwrap();
+    let ds = BopDataset::open(&root, "train").unwrap();
+    assert_eq!(ds.samples.len(), 4);
+    let mut off_axis = 0;
+    for s in &ds.samples {
+        let entry = &info[s.im_id.to_string()][0];
+        assert_eq!(entry["visib_fract"].as_f64(), Some(1.0), "{entry}");
+        let b = s.bbox_obj.expect("bbox_obj read from scene_gt_info.json");
+        assert!(b[0] >= 0.0 && b[1] >= 0.0 && b[0] + b[2] <= 320.0 && b[1] + b[3] <= 240.0);
+        let crop = ds.crop(s, 32).unwrap();
+        // The object fills the crop's centre, and the label turns back to the camera's.
+        let centre = (16 * 32 + 16) * 3;
+        assert_ne!(&crop.rgb[centre..centre + 3], &[0, 0, 0]);
+        let k = s.cam_k;
+        let view = alignist::data::virtual_crop::VirtualCamera::looking_at(&k, b, 32).unwrap();
+        assert!(geodesic_angle(&(view.r_ray * crop.rotation), &s.rotation) < 1e-9);
+        if view.r_ray.angle() > 5f64.to_radians() {
+            off_axis += 1;
+        }
+    }
+    assert!(
+        off_axis >= 2,
+        "the objects are placed away from the optical axis"
+    );
+    let bad = train(&["render", "--shape", "cube", "--frame", "640by480"], &root);
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("--frame"));
 }

@@ -10,8 +10,8 @@ use alignist::bundle::experts::{ExpertSet, ExpertsJob, train_expert_set};
 use alignist::cad::Shape;
 use alignist::experts::feature::{FeatureTrainConfig, symmetry_ratio};
 use alignist::experts::modes::ModeTableConfig;
-use alignist::experts::select::WidthCriterion;
 use alignist::experts::sdf::SdfTrainConfig;
+use alignist::experts::select::WidthCriterion;
 use alignist::experts::select::visible_points_at;
 use alignist::so3::{
     GridLevel, SymmetryGroup, equivalents, geodesic_angle, haar_rotation, to_row_major_f32,
@@ -455,7 +455,10 @@ fn lambda_selection_and_mode_table_never_read_the_symmetry_group() {
     ] {
         let other = train_expert_set(tiny_job(wrong), &mut |_, _, _, _| {}).unwrap();
         assert_eq!(other.manifest.energy, right.manifest.energy);
-        assert_eq!(other.manifest.energy_selection, right.manifest.energy_selection);
+        assert_eq!(
+            other.manifest.energy_selection,
+            right.manifest.energy_selection
+        );
         assert_eq!(other.modes, right.modes);
     }
     let selection = &right.manifest.energy_selection;
@@ -499,7 +502,10 @@ fn cube_mode_table_holds_every_symmetry_and_sampling_reaches_every_equivalent() 
             .iter()
             .filter(|r| geodesic_angle(r, &e) < 8f64.to_radians())
             .count();
-        assert!(hits >= 10, "{hits} of 2000 samples within 8° of an equivalent");
+        assert!(
+            hits >= 10,
+            "{hits} of 2000 samples within 8° of an equivalent"
+        );
     }
 }
 

@@ -239,6 +239,23 @@ struct RenderArgs {
     /// BOP object id.
     #[arg(long, default_value_t = 1)]
     obj_id: u32,
+    /// WxH: render full frames of this size with each object at a random position and distance
+    /// (seeded by --seed), instead of centred `--size` squares.
+    #[arg(long, value_parser = parse_frame)]
+    frame: Option<(u32, u32)>,
+}
+
+fn parse_frame(s: &str) -> std::result::Result<(u32, u32), String> {
+    let bad = || format!("'{s}': expected WxH, e.g. 640x480, each side in 16 ..= 4096");
+    let (w, h) = s.split_once(['x', 'X']).ok_or_else(bad)?;
+    let (w, h): (u32, u32) = (
+        w.trim().parse().map_err(|_| bad())?,
+        h.trim().parse().map_err(|_| bad())?,
+    );
+    if !(16..=4096).contains(&w) || !(16..=4096).contains(&h) {
+        return Err(bad());
+    }
+    Ok((w, h))
 }
 
 fn render_cmd(args: &RenderArgs) -> Result<()> {
@@ -272,6 +289,7 @@ fn render_cmd(args: &RenderArgs) -> Result<()> {
         ProgressStyle::with_template("{bar:40} {pos}/{len} images  {per_sec}  eta {eta}")
             .expect("static progress template"),
     );
+    let frame = args.frame;
     let job = RenderJob {
         mesh: &mesh,
         symmetries: &symmetries,
@@ -280,6 +298,8 @@ fn render_cmd(args: &RenderArgs) -> Result<()> {
         units_mm: args.units_mm,
         split: &args.split,
         obj_id: args.obj_id,
+        frame,
+        seed: args.seed,
     };
     let started = std::time::Instant::now();
     render_dataset(&job, &args.out, |done| bar.set_position(done as u64))
@@ -902,7 +922,10 @@ fn fresh_fit_data(args: &FitArgs) -> Result<FitData> {
         meshes: sets.iter().map(|s| s.mesh.clone()).collect(),
         supersample: args.supersample,
     };
-    let names: Vec<String> = sets.iter().map(|s| s.manifest.object.name.clone()).collect();
+    let names: Vec<String> = sets
+        .iter()
+        .map(|s| s.manifest.object.name.clone())
+        .collect();
     let symmetries: Vec<_> = sets.iter().map(|s| s.symmetries()).collect();
     let tests = fresh.eval_images(
         &names,
@@ -1194,7 +1217,12 @@ fn eval_cmd(args: &EvalArgs) -> Result<()> {
             meshes: bundle.experts.iter().map(|s| s.mesh.clone()).collect(),
             supersample: args.supersample,
         };
-        let names: Vec<String> = bundle.manifest.objects.iter().map(|o| o.name.clone()).collect();
+        let names: Vec<String> = bundle
+            .manifest
+            .objects
+            .iter()
+            .map(|o| o.name.clone())
+            .collect();
         let symmetries: Vec<_> = bundle.experts.iter().map(|s| s.symmetries()).collect();
         tests = fresh.eval_images(&names, &symmetries, size, args.images, args.seed);
     }
@@ -1354,7 +1382,10 @@ fn print_profile(p: &alignist::train::trainer::StepProfile) {
         ("backward", p.backward),
         ("optimiser", p.optimiser),
     ] {
-        println!("  {name:<20} {v:8.1}  {:5.1} %", 100.0 * v / p.total.max(1e-9));
+        println!(
+            "  {name:<20} {v:8.1}  {:5.1} %",
+            100.0 * v / p.total.max(1e-9)
+        );
     }
     println!(
         "  {:<20} {:8.1}  (stages sum {:.1}; supervision = sampling + targets = {:.1} %)",

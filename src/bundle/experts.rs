@@ -20,8 +20,8 @@ use crate::experts::energy::{BakedExperts, EnergyParams};
 use crate::experts::feature::{
     FEATURE_DIM, FeatureFit, FeatureTrainConfig, QueryNet, QueryNetConfig,
 };
-use crate::experts::sdf::{SdfFit, SdfTrainConfig};
 use crate::experts::modes::{ModeTable, ModeTableConfig};
+use crate::experts::sdf::{SdfFit, SdfTrainConfig};
 use crate::experts::select::{EnergySelection, WidthCriterion};
 use crate::experts::{Siren, SirenConfig, run_batched};
 use crate::so3::{from_row_major, to_row_major};

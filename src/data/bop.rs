@@ -3,8 +3,13 @@
 //! ```text
 //! <root>/models/obj_NNNNNN.ply, models_info.json
 //! <root>/<split>/<scene>/rgb/NNNNNN.png, depth/NNNNNN.png, mask_visib/NNNNNN_GGGGGG.png,
-//!                         scene_gt.json, scene_camera.json, scene_gt_equivalents.json (ours)
+//!                         scene_gt.json, scene_gt_info.json, scene_camera.json,
+//!                         scene_gt_equivalents.json (ours)
 //! ```
+//!
+//! Crops follow the project's one convention ([`super::virtual_crop`]): the virtual camera of the
+//! object's box `bbox_obj` from `scene_gt_info.json`, and the labels of a crop are the rotations
+//! in that virtual camera.
 //!
 //! Units follow BOP: model coordinates and `cam_t_m2c` in millimetres, depth PNGs in
 //! `depth_scale` millimetres. `scene_gt_equivalents.json` is our addition: for every image and
@@ -20,6 +25,7 @@ use nalgebra::{Rotation3, Unit, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::DataError;
+use super::virtual_crop::perspective_crop;
 use crate::cad::{Camera, Mesh, Pose, Render, write_ply};
 use crate::so3::{CONTINUOUS_STEPS, So3Error, from_row_major, to_row_major};
 
@@ -33,6 +39,17 @@ pub struct SceneGt {
     pub cam_t_m2c: [f64; 3],
     /// Object id (`models/obj_{obj_id:06}.ply`).
     pub obj_id: u32,
+}
+
+/// One entry of `scene_gt_info.json` (BOP field names; boxes `(x, y, w, h)` in pixels).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct SceneGtInfo {
+    /// Box of the whole projected object.
+    pub bbox_obj: [f64; 4],
+    /// Box of its visible pixels.
+    pub bbox_visib: [f64; 4],
+    /// Fraction of the object's pixels that are visible.
+    pub visib_fract: f64,
 }
 
 /// One camera of `scene_camera.json`.
@@ -117,6 +134,7 @@ pub struct BopWriter {
     root: PathBuf,
     scene_dir: PathBuf,
     gts: BTreeMap<u32, Vec<SceneGt>>,
+    infos: BTreeMap<u32, Vec<SceneGtInfo>>,
     cameras: BTreeMap<u32, SceneCamera>,
     equivalents: BTreeMap<u32, Vec<Vec<[f64; 9]>>>,
     models: BTreeMap<u32, ModelInfo>,
@@ -141,6 +159,7 @@ impl BopWriter {
             root: root.to_path_buf(),
             scene_dir,
             gts: BTreeMap::new(),
+            infos: BTreeMap::new(),
             cameras: BTreeMap::new(),
             equivalents: BTreeMap::new(),
             models: BTreeMap::new(),
@@ -195,17 +214,22 @@ impl BopWriter {
         Ok(())
     }
 
-    /// Writes image `im_id` (RGB, depth, the mask of its one object) with its ground truth and
-    /// every equivalent rotation.
+    /// Writes image `im_id` (RGB, depth, the mask of its one object) with its ground truth, its
+    /// `scene_gt_info.json` entry (`bbox_obj`: the box of the projected `mesh`) and every
+    /// equivalent rotation.
+    #[allow(clippy::too_many_arguments)]
     pub fn add_image(
         &mut self,
         im_id: u32,
         obj_id: u32,
+        mesh: &Mesh,
         render: &Render,
         camera: &Camera,
         pose: &Pose,
         equivalents: &[Rotation3<f64>],
     ) -> Result<(), DataError> {
+        self.infos
+            .insert(im_id, vec![gt_info(mesh, render, camera, pose)]);
         let (w, h) = (render.width, render.height);
         let rgb_path = self.scene_dir.join("rgb").join(format!("{im_id:06}.png"));
         image::save_buffer(&rgb_path, &render.rgb, w, h, image::ExtendedColorType::Rgb8)
@@ -263,6 +287,7 @@ impl BopWriter {
     /// Writes the scene's JSON files and `models_info.json`.
     pub fn finish(self) -> Result<(), DataError> {
         write_json(&self.scene_dir.join("scene_gt.json"), &self.gts)?;
+        write_json(&self.scene_dir.join("scene_gt_info.json"), &self.infos)?;
         write_json(&self.scene_dir.join("scene_camera.json"), &self.cameras)?;
         write_json(
             &self.scene_dir.join("scene_gt_equivalents.json"),
@@ -272,6 +297,39 @@ impl BopWriter {
             &self.root.join("models").join("models_info.json"),
             &self.models,
         )
+    }
+}
+
+/// The `scene_gt_info.json` entry of the one object of a render: its projected box, the box of
+/// its mask, and the fraction of its projection that the frame shows (the projected box's area
+/// inside the frame over its whole area; one object, so nothing occludes it).
+fn gt_info(mesh: &Mesh, render: &Render, camera: &Camera, pose: &Pose) -> SceneGtInfo {
+    let bbox_obj = super::virtual_crop::object_box(mesh, pose, camera);
+    let (w, h) = (render.width as usize, render.height as usize);
+    let (mut lo, mut hi) = ([usize::MAX; 2], [0usize; 2]);
+    for (k, _) in render.mask.iter().enumerate().filter(|(_, m)| **m) {
+        let (x, y) = (k % w, k / w);
+        lo = [lo[0].min(x), lo[1].min(y)];
+        hi = [hi[0].max(x), hi[1].max(y)];
+    }
+    let bbox_visib = if lo[0] == usize::MAX {
+        [0.0; 4]
+    } else {
+        [
+            lo[0] as f64,
+            lo[1] as f64,
+            (hi[0] - lo[0] + 1) as f64,
+            (hi[1] - lo[1] + 1) as f64,
+        ]
+    };
+    let [x, y, bw, bh] = bbox_obj;
+    let inside_w = ((x + bw).min(w as f64) - x.max(0.0)).max(0.0);
+    let inside_h = ((y + bh).min(h as f64) - y.max(0.0)).max(0.0);
+    let visib_fract = (inside_w * inside_h / (bw * bh).max(1e-12)).min(1.0);
+    SceneGtInfo {
+        bbox_obj,
+        bbox_visib,
+        visib_fract,
     }
 }
 
@@ -312,6 +370,8 @@ pub struct BopSample {
     pub translation: Vector3<f64>,
     /// Every equivalent ground-truth rotation (at least `rotation` itself).
     pub equivalents: Vec<Rotation3<f64>>,
+    /// The object's box from `scene_gt_info.json`, when the dataset has one.
+    pub bbox_obj: Option<[f64; 4]>,
 }
 
 /// An object-centred square crop.
@@ -321,6 +381,10 @@ pub struct Crop {
     pub size: u32,
     /// RGB8, `size × size × 3`.
     pub rgb: Vec<u8>,
+    /// The ground truth in the crop's virtual camera: `R_rayᵀ·R_cam`.
+    pub rotation: Rotation3<f64>,
+    /// Every equivalent ground truth in the crop's virtual camera.
+    pub equivalents: Vec<Rotation3<f64>>,
 }
 
 /// A BOP dataset split, read from disk.
@@ -361,6 +425,12 @@ impl BopDataset {
             let gts: BTreeMap<u32, Vec<SceneGt>> = read_json(&gt_file)?;
             let cam_file = dir.join("scene_camera.json");
             let cams: BTreeMap<u32, SceneCamera> = read_json(&cam_file)?;
+            let info_file = dir.join("scene_gt_info.json");
+            let infos: Option<BTreeMap<u32, Vec<SceneGtInfo>>> = if info_file.exists() {
+                Some(read_json(&info_file)?)
+            } else {
+                None
+            };
             let eq_file = dir.join("scene_gt_equivalents.json");
             let eqs: Option<BTreeMap<u32, Vec<Vec<[f64; 9]>>>> = if eq_file.exists() {
                 Some(read_json(&eq_file)?)
@@ -417,6 +487,11 @@ impl BopDataset {
                         rotation,
                         translation: Vector3::from(gt.cam_t_m2c),
                         equivalents,
+                        bbox_obj: infos
+                            .as_ref()
+                            .and_then(|i| i.get(&im_id))
+                            .and_then(|list| list.get(gt_index))
+                            .map(|i| i.bbox_obj),
                     });
                 }
             }
@@ -428,70 +503,49 @@ impl BopDataset {
         })
     }
 
-    /// The object-centred square crop of `sample`, resized to `size × size` (see [`crop`]).
+    /// The crop of `sample` as the virtual camera of its box sees it, `size × size`
+    /// ([`super::virtual_crop::perspective_crop`]), and the ground truths in that camera. The box
+    /// is `bbox_obj` from `scene_gt_info.json`; datasets without one get the square box of the
+    /// projected bounding sphere.
     pub fn crop(&self, sample: &BopSample, size: u32) -> Result<Crop, DataError> {
         let img = image::open(&sample.rgb_path)
             .map_err(|e| DataError::image(&sample.rgb_path, e))?
             .to_rgb8();
-        let radius = self
-            .models
-            .get(&sample.obj_id)
-            .map(|m| m.diameter / 2.0)
-            .unwrap_or(1.0);
+        let bbox = match sample.bbox_obj {
+            Some(b) => b,
+            None => {
+                let radius = self
+                    .models
+                    .get(&sample.obj_id)
+                    .map_or(1.0, |m| m.diameter / 2.0);
+                sphere_box(&sample.cam_k, &sample.translation, radius)
+            }
+        };
         let (w, h) = img.dimensions();
-        Ok(crop(
-            img.as_raw(),
-            w,
-            h,
-            &sample.cam_k,
-            &sample.translation,
-            radius,
+        let (rgb, view) = perspective_crop(img.as_raw(), w, h, &sample.cam_k, bbox, size)
+            .ok_or_else(|| DataError::Invalid {
+                file: sample.rgb_path.display().to_string(),
+                message: format!(
+                    "image {} gt {}: box {bbox:?} or cam_K {:?} has no area",
+                    sample.im_id, sample.gt_index, sample.cam_k
+                ),
+            })?;
+        let back = view.r_ray.inverse();
+        Ok(Crop {
             size,
-        ))
+            rgb,
+            rotation: back * sample.rotation,
+            equivalents: sample.equivalents.iter().map(|e| back * e).collect(),
+        })
     }
 }
 
-/// Crops the square around the object's projected bounding sphere (centre = projection of `t`,
-/// half-side = the sphere's projected radius × 1.1) and resamples it bilinearly to `size × size`;
-/// outside the image is black. Object rotation labels are unchanged by the crop.
-pub fn crop(
-    rgb: &[u8],
-    width: u32,
-    height: u32,
-    cam_k: &[f64; 9],
-    translation: &Vector3<f64>,
-    radius: f64,
-    size: u32,
-) -> Crop {
-    let (fx, cx, fy, cy) = (cam_k[0], cam_k[2], cam_k[4], cam_k[5]);
-    let z = translation.z.max(1e-9);
-    let (u0, v0) = (fx * translation.x / z + cx, fy * translation.y / z + cy);
+/// The square box around the projection of a sphere of `radius` centred at `t`.
+fn sphere_box(k: &[f64; 9], t: &Vector3<f64>, radius: f64) -> [f64; 4] {
+    let (fx, cx, fy, cy) = (k[0], k[2], k[4], k[5]);
+    let z = t.z.max(1e-9);
+    let (u, v) = (fx * t.x / z + cx, fy * t.y / z + cy);
     let r = radius.min(z * 0.999);
-    let half = 1.1 * fx * r / (z * z - r * r).sqrt();
-    let scale = 2.0 * half / size as f64;
-    let mut out = vec![0u8; (size * size * 3) as usize];
-    let at = |x: i64, y: i64, c: usize| -> f64 {
-        if x < 0 || y < 0 || x >= width as i64 || y >= height as i64 {
-            0.0
-        } else {
-            rgb[((y as usize * width as usize) + x as usize) * 3 + c] as f64
-        }
-    };
-    for j in 0..size {
-        for i in 0..size {
-            // Source pixel centre coordinates of the output pixel centre.
-            let sx = u0 - half + (i as f64 + 0.5) * scale - 0.5;
-            let sy = v0 - half + (j as f64 + 0.5) * scale - 0.5;
-            let (x0, y0) = (sx.floor() as i64, sy.floor() as i64);
-            let (ax, ay) = (sx - x0 as f64, sy - y0 as f64);
-            for c in 0..3 {
-                let v = at(x0, y0, c) * (1.0 - ax) * (1.0 - ay)
-                    + at(x0 + 1, y0, c) * ax * (1.0 - ay)
-                    + at(x0, y0 + 1, c) * (1.0 - ax) * ay
-                    + at(x0 + 1, y0 + 1, c) * ax * ay;
-                out[((j * size + i) * 3) as usize + c] = v.round().clamp(0.0, 255.0) as u8;
-            }
-        }
-    }
-    Crop { size, rgb: out }
+    let half = fx * r / (z * z - r * r).sqrt();
+    [u - half, v - half, 2.0 * half, 2.0 * half]
 }

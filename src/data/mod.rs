@@ -1,10 +1,10 @@
 //! Datasets: renders written and read in the BOP layout, object-centred crops.
 
 pub mod bop;
-pub mod virtual_crop;
 mod render_set;
+pub mod virtual_crop;
 
-pub use bop::{BopDataset, BopSample, BopWriter, Crop, crop};
+pub use bop::{BopDataset, BopSample, BopWriter, Crop, SceneGtInfo};
 pub use render_set::{RenderJob, SYMSOL_DISTANCE, render_dataset, symsol_pose};
 
 use std::path::Path;

@@ -5,6 +5,10 @@ use std::path::Path;
 
 use nalgebra::{Rotation3, Vector3};
 
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+use super::virtual_crop::{frame_camera_of, random_placement_in};
 use super::{BopWriter, DataError};
 use crate::cad::{Camera, Mesh, Pose, RenderOptions, render};
 use crate::so3::equivalents;
@@ -37,6 +41,12 @@ pub struct RenderJob<'a> {
     pub split: &'a str,
     /// BOP object id.
     pub obj_id: u32,
+    /// `Some((W, H))`: place each object at a random position and distance inside a `W × H`
+    /// frame ([`super::virtual_crop::random_placement_in`], seeded by `seed`) instead of centring
+    /// it in a `size × size` image.
+    pub frame: Option<(u32, u32)>,
+    /// Seed of the placements in a frame.
+    pub seed: u64,
 }
 
 /// Renders `job` into `root` in BOP layout (scene 0), calling `progress` after each image.
@@ -47,14 +57,25 @@ pub fn render_dataset(
 ) -> Result<(), DataError> {
     let mut writer = BopWriter::create(root, job.split, 0, job.units_mm)?;
     writer.write_model(job.obj_id, job.mesh, job.symmetries)?;
-    let camera = Camera::square(job.size);
+    let camera = match job.frame {
+        Some((w, h)) => frame_camera_of(w, h),
+        None => Camera::square(job.size),
+    };
     let options = RenderOptions::default();
+    let mut rng = ChaCha8Rng::seed_from_u64(job.seed ^ 0xf4a3e);
     for (i, r) in job.rotations.iter().enumerate() {
-        let pose = symsol_pose(*r);
+        let pose = match job.frame {
+            Some(_) => Pose {
+                rotation: *r,
+                ..random_placement_in(&camera, &mut rng)
+            },
+            None => symsol_pose(*r),
+        };
         let image = render(job.mesh, &camera, &pose, &options);
         writer.add_image(
             i as u32,
             job.obj_id,
+            job.mesh,
             &image,
             &camera,
             &pose,

@@ -36,13 +36,20 @@ pub const FRAME_DISTANCE: (f64, f64) = (3.0, 8.0);
 
 /// The camera of the frame fresh renders are placed in.
 pub fn frame_camera() -> Camera {
+    frame_camera_of(FRAME_WIDTH, FRAME_HEIGHT)
+}
+
+/// A `width × height` camera with the principal point at the centre and the field of view of
+/// [`frame_camera`] (focal length `FRAME_FOCAL · width / FRAME_WIDTH`).
+pub fn frame_camera_of(width: u32, height: u32) -> Camera {
+    let f = FRAME_FOCAL * width as f64 / FRAME_WIDTH as f64;
     Camera {
-        fx: FRAME_FOCAL,
-        fy: FRAME_FOCAL,
-        cx: FRAME_WIDTH as f64 / 2.0,
-        cy: FRAME_HEIGHT as f64 / 2.0,
-        width: FRAME_WIDTH,
-        height: FRAME_HEIGHT,
+        fx: f,
+        fy: f,
+        cx: width as f64 / 2.0,
+        cy: height as f64 / 2.0,
+        width,
+        height,
     }
 }
 
@@ -76,7 +83,10 @@ impl VirtualCamera {
         let r_ray = if axis.norm() < 1e-12 {
             Rotation3::identity()
         } else {
-            Rotation3::from_axis_angle(&Unit::new_normalize(axis), ray.dot(&z).clamp(-1.0, 1.0).acos())
+            Rotation3::from_axis_angle(
+                &Unit::new_normalize(axis),
+                ray.dot(&z).clamp(-1.0, 1.0).acos(),
+            )
         };
         // The box's longer side in units of the focal length, spread over the crop.
         let extent = CROP_MARGIN * (w / fx).max(h / fy);
@@ -136,18 +146,37 @@ pub fn object_box(mesh: &Mesh, pose: &Pose, camera: &Camera) -> [f64; 4] {
 }
 
 /// A random placement of a NOCS object in the frame of [`frame_camera`]: a Haar-random
-/// rotation, a distance in [`FRAME_DISTANCE`], and a position such that the bounding sphere's
-/// centre projects inside the frame with a margin of its radius.
+/// rotation and [`random_placement_in`] that frame.
 pub fn random_placement<R: Rng + ?Sized>(rng: &mut R) -> Pose {
     let rotation = haar_rotation(rng);
-    let z = rng.random_range(FRAME_DISTANCE.0..FRAME_DISTANCE.1);
-    let cam = frame_camera();
-    let r_px = FRAME_FOCAL / z;
-    let u = rng.random_range(r_px..cam.width as f64 - r_px);
-    let v = rng.random_range(r_px..cam.height as f64 - r_px);
     Pose {
         rotation,
-        translation: Vector3::new((u - cam.cx) / cam.fx * z, (v - cam.cy) / cam.fy * z, z),
+        ..random_placement_in(&frame_camera(), rng)
+    }
+}
+
+/// A random position of a NOCS object (radius 1) in `camera`'s frame, the identity rotation: a
+/// distance in [`FRAME_DISTANCE`] and a centre whose projection lies at least the projected
+/// sphere's radius from every edge, so the whole object is in the frame.
+pub fn random_placement_in<R: Rng + ?Sized>(camera: &Camera, rng: &mut R) -> Pose {
+    let z = rng.random_range(FRAME_DISTANCE.0..FRAME_DISTANCE.1);
+    let r_px = camera.fx.max(camera.fy) / (z * z - 1.0).sqrt();
+    let mut span = |extent: f64| {
+        let (lo, hi) = (r_px, extent - r_px);
+        if lo < hi {
+            rng.random_range(lo..hi)
+        } else {
+            extent / 2.0
+        }
+    };
+    let (u, v) = (span(camera.width as f64), span(camera.height as f64));
+    Pose {
+        rotation: Rotation3::identity(),
+        translation: Vector3::new(
+            (u - camera.cx) / camera.fx * z,
+            (v - camera.cy) / camera.fy * z,
+            z,
+        ),
     }
 }
 

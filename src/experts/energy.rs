@@ -76,9 +76,7 @@ pub fn sdf_energy(sdf_values: &[f32], params: &EnergyParams) -> f64 {
         SdfNorm::L0 => sdf_values.iter().filter(|v| v.abs() > eps).count() as f64 / n,
         SdfNorm::L1 => sdf_values.iter().map(|v| v.abs() as f64).sum::<f64>() / n / params.epsilon,
         SdfNorm::L2 => {
-            sdf_values.iter().map(|&v| (v as f64).powi(2)).sum::<f64>()
-                / n
-                / params.epsilon.powi(2)
+            sdf_values.iter().map(|&v| (v as f64).powi(2)).sum::<f64>() / n / params.epsilon.powi(2)
         }
     };
     params.lambda_sdf * norm

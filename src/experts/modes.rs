@@ -70,7 +70,12 @@ fn relative_log_measure(
     let mut mats = vec![to_row_major_f32(r_gt)];
     mats.extend(relative.iter().map(|q| to_row_major_f32(&(r_gt * q))));
     let t = experts.log_targets(r_gt, x0, &mats);
-    let total: Vec<f32> = t.log_a_sdf.iter().zip(&t.log_a_se).map(|(a, b)| a + b).collect();
+    let total: Vec<f32> = t
+        .log_a_sdf
+        .iter()
+        .zip(&t.log_a_se)
+        .map(|(a, b)| a + b)
+        .collect();
     total[1..].iter().map(|v| v - total[0]).collect()
 }
 
@@ -109,8 +114,9 @@ impl ModeTable {
             })
             .filter(|(_, x0)| !x0.is_empty())
             .collect();
-        let coarse_q: Vec<Rotation3<f64>> =
-            (0..coarse.len() as u64).map(|c| coarse.rotation(c)).collect();
+        let coarse_q: Vec<Rotation3<f64>> = (0..coarse.len() as u64)
+            .map(|c| coarse.rotation(c))
+            .collect();
         let mut coarse_best = vec![f32::NEG_INFINITY; coarse.len()];
         for (r_gt, x0) in &views {
             max_into(

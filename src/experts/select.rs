@@ -123,9 +123,7 @@ fn mean_rises(
         if x0.is_empty() {
             continue;
         }
-        let axes: Vec<_> = (0..criterion.axes)
-            .map(|_| random_axis(&mut rng))
-            .collect();
+        let axes: Vec<_> = (0..criterion.axes).map(|_| random_axis(&mut rng)).collect();
         let mut rotations = vec![to_row_major_f32(&r_gt)];
         for angle in angles_deg {
             for a in &axes {
@@ -144,7 +142,9 @@ fn mean_rises(
                 .clone()
                 .map(|k| (log_a_sdf[0] - log_a_sdf[k]) as f64)
                 .sum::<f64>();
-            sum.1 += range.map(|k| (log_a_se[0] - log_a_se[k]) as f64).sum::<f64>();
+            sum.1 += range
+                .map(|k| (log_a_se[0] - log_a_se[k]) as f64)
+                .sum::<f64>();
         }
         count += axes.len();
     }

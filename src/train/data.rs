@@ -32,11 +32,12 @@ pub fn training_images(
         .take(n)
         .enumerate()
         .map(|(i, s)| {
+            let crop = dataset.crop(s, size)?;
             Ok(TrainingImage {
                 object,
-                rgb: dataset.crop(s, size)?.rgb,
-                rotation: s.rotation,
-                visible: visible_points_at(mesh, &s.rotation, i as u64),
+                rgb: crop.rgb,
+                rotation: crop.rotation,
+                visible: visible_points_at(mesh, &crop.rotation, i as u64),
             })
         })
         .collect()
@@ -54,10 +55,11 @@ pub fn eval_images(
         .iter()
         .take(limit)
         .map(|s| {
+            let crop = dataset.crop(s, size)?;
             Ok(EvalImage {
                 object: name.to_string(),
-                rgb: dataset.crop(s, size)?.rgb,
-                equivalents: s.equivalents.clone(),
+                rgb: crop.rgb,
+                equivalents: crop.equivalents,
             })
         })
         .collect()

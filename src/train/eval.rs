@@ -92,11 +92,8 @@ pub fn evaluate(
             let im = images.iter().find(|i| i.object == *name)?;
             // The equivalents are R_gt·S with the identity first: S_j = G_0ᵀ·G_j.
             let first = im.equivalents.first()?;
-            let group: Vec<Rotation3<f64>> = im
-                .equivalents
-                .iter()
-                .map(|g| first.inverse() * g)
-                .collect();
+            let group: Vec<Rotation3<f64>> =
+                im.equivalents.iter().map(|g| first.inverse() * g).collect();
             Some((name.clone(), chance_accuracy(&group, 30.0, 20_000, 0)))
         })
         .collect();

@@ -17,14 +17,14 @@ use serde::{Deserialize, Serialize};
 
 use super::TrainError;
 use super::checkpoint::{CheckpointState, latest_checkpoint, load_checkpoint, save_checkpoint};
+use super::data::FreshRenders;
 use super::sampling::{ModeSampler, SamplingStrategy, sample_rotations};
 use crate::experts::energy::{BakedExperts, LogTargets};
 use crate::experts::modes::ModeTable;
-use super::data::FreshRenders;
-use rayon::prelude::*;
 use crate::net::{Network, NetworkConfig, images_tensor};
 use crate::net::{gkl_loss, ipdf_loss, l1_measure_loss};
 use crate::so3::to_row_major_f32;
+use rayon::prelude::*;
 
 /// The measure loss of the Alignist objective.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -190,9 +190,13 @@ fn sample_image(
     let experts = &set.objects[im.object];
     let started = Instant::now();
     let samples = match &config.method {
-        Method::Alignist { sampling, .. } => {
-            sample_rotations(sampling, config.k, &im.rotation, samplers.get(im.object), rng)
-        }
+        Method::Alignist { sampling, .. } => sample_rotations(
+            sampling,
+            config.k,
+            &im.rotation,
+            samplers.get(im.object),
+            rng,
+        ),
         Method::Ipdf => sample_rotations(
             &SamplingStrategy::Uniform,
             config.k,
@@ -214,7 +218,11 @@ fn sample_image(
 
 /// The images of one step: `batch` draws from the fixed set, or (with [`TrainingSet::fresh`])
 /// `batch` new renders of random objects at Haar-random rotations, all from `rng`.
-fn step_images(config: &TrainConfig, set: &TrainingSet, rng: &mut ChaCha8Rng) -> Vec<TrainingImage> {
+fn step_images(
+    config: &TrainConfig,
+    set: &TrainingSet,
+    rng: &mut ChaCha8Rng,
+) -> Vec<TrainingImage> {
     match &set.fresh {
         None => (0..config.batch)
             .map(|_| set.images[rng.random_range(0..set.images.len())].clone())
@@ -249,7 +257,14 @@ fn mean_log_targets(
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed ^ 0xB1A5);
     let (mut sdf, mut se, mut count) = (0.0f64, 0.0f64, 0usize);
     let mut profile = StepProfile::default();
-    for im in step_images(&TrainConfig { batch: n, ..config.clone() }, set, &mut rng) {
+    for im in step_images(
+        &TrainConfig {
+            batch: n,
+            ..config.clone()
+        },
+        set,
+        &mut rng,
+    ) {
         if let (_, Some(t)) = sample_image(config, set, &im, samplers, &mut rng, &mut profile) {
             sdf += t.log_a_sdf.iter().map(|&l| (l as f64).exp()).sum::<f64>();
             se += t.log_a_se.iter().map(|&l| (l as f64).exp()).sum::<f64>();
