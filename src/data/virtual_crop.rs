@@ -70,9 +70,9 @@ impl VirtualCamera {
     pub fn looking_at(k: &[f64; 9], bbox: [f64; 4], size: u32) -> Option<VirtualCamera> {
         let (fx, fy, cx, cy) = (k[0], k[4], k[2], k[5]);
         let [x, y, w, h] = bbox;
-        if !(fx > 0.0 && fy > 0.0 && w > 0.0 && h > 0.0 && size > 0)
-            || !bbox.iter().chain(k).all(|v| v.is_finite())
-        {
+        let finite = bbox.iter().chain(k).all(|v| v.is_finite());
+        let positive = fx > 0.0 && fy > 0.0 && w > 0.0 && h > 0.0 && size > 0;
+        if !(finite && positive) {
             return None;
         }
         // The ray through the box centre, in the real camera.

@@ -154,13 +154,13 @@ mod tests {
         let mut fixed = [0f32; 12];
         wide.sample_into(&p, &mut fixed);
         let (offsets, weights) = wide.corners(&p);
-        for k in 0..12 {
+        for (k, got) in fixed.iter().enumerate() {
             let generic: f32 = offsets
                 .iter()
                 .zip(&weights)
                 .map(|(&o, &w)| w * wide.data[o + k])
                 .sum();
-            assert!((fixed[k] - generic).abs() < 1e-5);
+            assert!((got - generic).abs() < 1e-5);
         }
         // Outside the grid the value is clamped to the boundary.
         let out = grid.sample(&[Vector3::new(5.0, 0.0, 0.0)]);

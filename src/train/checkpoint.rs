@@ -17,7 +17,7 @@ use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 
 use super::TrainError;
-use super::trainer::TrainConfig;
+use super::config::TrainConfig;
 use crate::net::Network;
 
 /// What a checkpoint records besides the weights.

@@ -1,0 +1,133 @@
+//! `alignist-train eval`: evaluate a bundle at a grid level.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use indicatif::ProgressBar;
+
+pub(crate) fn print_eval(e: &alignist::train::eval::EvalReport) {
+    eprintln!(
+        "evaluation at level {} (LL ceiling {:.2}), {:.1} images/s:",
+        e.level, e.ll_ceiling, e.images_per_second
+    );
+    for (name, m) in e
+        .per_object
+        .iter()
+        .map(|(n, m)| (n.as_str(), m))
+        .chain([("all", &e.overall)])
+    {
+        let chance = if name == "all" {
+            let n = e.chance_ar30.len().max(1) as f64;
+            e.chance_ar30.iter().map(|c| c.1).sum::<f64>() / n
+        } else {
+            e.chance_ar30
+                .iter()
+                .find(|c| c.0 == name)
+                .map_or(f64::NAN, |c| c.1)
+        };
+        eprintln!(
+            "  {name:8} LL {:6.2}  spread {:6.1}°  AR@30 {:.3} (chance {:.3})  median {:6.1}°  ({} images)",
+            m.log_likelihood,
+            m.spread_deg,
+            m.accuracy_at.first().map_or(f64::NAN, |a| a.1),
+            chance,
+            m.median_error_deg,
+            m.images
+        );
+    }
+    eprintln!(
+        "  (uniform, the best image-independent answer for Haar-random poses: LL 0; LL ceiling {:.2})",
+        e.ll_ceiling
+    );
+}
+
+#[derive(clap::Args)]
+pub(crate) struct EvalArgs {
+    /// A model bundle folder.
+    #[arg(long)]
+    model: PathBuf,
+    /// OBJECT=DIR: a BOP dataset of one of the bundle's objects; repeat per object.
+    #[arg(long, required_unless_present = "fresh", conflicts_with = "fresh")]
+    data: Vec<String>,
+    /// Render --images fresh test crops of every object of the bundle (from its expert set's
+    /// mesh, at Haar-random rotations drawn from --seed) instead of reading --data.
+    #[arg(long)]
+    fresh: bool,
+    /// Seed of the fresh test renders: use one that no training run used.
+    #[arg(long, default_value_t = 1 << 40)]
+    seed: u64,
+    /// Supersampling per axis of fresh test renders.
+    #[arg(long, default_value_t = 4)]
+    supersample: u32,
+    /// Grid level.
+    #[arg(long, default_value_t = 4)]
+    level: u8,
+    /// Test images per object.
+    #[arg(long, default_value_t = 50)]
+    images: usize,
+    /// Output JSON report.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+pub(crate) fn eval_cmd(args: &EvalArgs) -> Result<()> {
+    use alignist::bundle::model::ModelBundle;
+    use alignist::data::BopDataset;
+    use alignist::train::data::eval_images;
+    use alignist::train::eval::evaluate;
+
+    if args.level > 5 {
+        bail!("--level {} is above 5", args.level);
+    }
+    let bundle = ModelBundle::load(&args.model)
+        .with_context(|| format!("loading --model {}", args.model.display()))?;
+    let size = bundle.manifest.network.image_size;
+    let mut tests = Vec::new();
+    if args.fresh {
+        if !(1..=8).contains(&args.supersample) {
+            bail!("--supersample must be in 1 ..= 8, got {}", args.supersample);
+        }
+        let fresh = alignist::train::data::FreshRenders {
+            meshes: bundle.experts.iter().map(|s| s.mesh.clone()).collect(),
+            supersample: args.supersample,
+        };
+        let names: Vec<String> = bundle
+            .manifest
+            .objects
+            .iter()
+            .map(|o| o.name.clone())
+            .collect();
+        let symmetries: Vec<_> = bundle.experts.iter().map(|s| s.symmetries()).collect();
+        tests = fresh.eval_images(&names, &symmetries, size, args.images, args.seed);
+    }
+    for spec in &args.data {
+        let (name, dir) = spec
+            .split_once('=')
+            .with_context(|| format!("--data '{spec}' is not OBJECT=DIR"))?;
+        if !bundle.manifest.objects.iter().any(|o| o.name == name) {
+            let known: Vec<&str> = bundle
+                .manifest
+                .objects
+                .iter()
+                .map(|o| o.name.as_str())
+                .collect();
+            bail!("--data '{spec}': the bundle has no object '{name}' (it has {known:?})");
+        }
+        let ds =
+            BopDataset::open(Path::new(dir), "test").with_context(|| format!("--data {spec}"))?;
+        tests.extend(eval_images(&ds, name, size, args.images)?);
+    }
+    let bar = ProgressBar::new(tests.len() as u64);
+    let report = evaluate(
+        &bundle.network,
+        &bundle.manifest.network,
+        &tests,
+        args.level,
+        |n| bar.set_position(n as u64),
+    )?;
+    bar.finish_and_clear();
+    let text = serde_json::to_string_pretty(&report)?;
+    std::fs::write(&args.out, text).with_context(|| format!("writing {}", args.out.display()))?;
+    print_eval(&report);
+    Ok(())
+}

@@ -1,0 +1,449 @@
+//! `alignist-train fit`: train the distribution network and write a bundle.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::eval::print_eval;
+
+#[derive(clap::Args)]
+pub(crate) struct FitArgs {
+    /// A BOP dataset of one object (with `train` and `test` splits); repeat per object. Not with
+    /// --fresh.
+    #[arg(long, required_unless_present = "fresh", conflicts_with = "fresh")]
+    data: Vec<PathBuf>,
+    /// The expert set of each object (of the `--data` at the same position); repeat per object.
+    #[arg(long, required = true)]
+    experts: Vec<PathBuf>,
+    /// Render new training crops of the experts' meshes at every step (and fresh evaluation
+    /// crops) instead of reading --data.
+    #[arg(long)]
+    fresh: bool,
+    /// Supersampling per axis of fresh renders (anti-aliasing).
+    #[arg(long, default_value_t = 4)]
+    supersample: u32,
+    /// Seed of the fresh evaluation renders (keep it apart from training seeds).
+    #[arg(long, default_value_t = 1 << 40)]
+    eval_seed: u64,
+    /// Print the time per step in each stage at the end.
+    #[arg(long)]
+    profile: bool,
+    /// Output bundle folder (e.g. models/symsol1).
+    #[arg(long)]
+    out: PathBuf,
+    /// alignist (GKL from the experts, both branches) or ipdf (the baseline).
+    #[arg(long, default_value = "alignist")]
+    method: String,
+    /// Measure loss of the alignist method: gkl or l1.
+    #[arg(long, default_value = "gkl")]
+    loss: String,
+    /// Sampling of the alignist method: modes (mode-focused) or random (uniform).
+    #[arg(long, default_value = "modes")]
+    sampling: String,
+    /// Encoder layout: tiny, resnet18, resnet50.
+    #[arg(long, default_value = "tiny")]
+    layout: String,
+    /// Rotation encoding: cube or ipdf.
+    #[arg(long, default_value = "cube")]
+    encoding: String,
+    /// Crop side in pixels.
+    #[arg(long, default_value_t = 64)]
+    image_size: u32,
+    /// Adam steps.
+    #[arg(long, default_value_t = 1000)]
+    steps: usize,
+    /// Images per step.
+    #[arg(long, default_value_t = 8)]
+    batch: usize,
+    /// Rotations per image (the paper: 4096).
+    #[arg(long, default_value_t = 256)]
+    k: usize,
+    /// Peak learning rate.
+    #[arg(long, default_value_t = 1e-3)]
+    lr: f64,
+    /// Fraction of each training split used (the paper's low-data regime: 0.1).
+    #[arg(long, default_value_t = 1.0)]
+    fraction: f64,
+    /// Seed.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Checkpoint folder (default: <out>.checkpoints).
+    #[arg(long)]
+    checkpoints: Option<PathBuf>,
+    /// Steps between checkpoints.
+    #[arg(long, default_value_t = 100)]
+    checkpoint_every: usize,
+    /// Continue from the last checkpoint.
+    #[arg(long)]
+    resume: bool,
+    /// Grid level of the evaluation.
+    #[arg(long, default_value_t = 4)]
+    eval_level: u8,
+    /// Test images per object in the evaluation (0 skips it).
+    #[arg(long, default_value_t = 50)]
+    eval_images: usize,
+}
+
+pub(crate) fn parse_layout(s: &str) -> Result<alignist::net::ResNetLayout> {
+    use alignist::net::ResNetLayout;
+    Ok(match s {
+        "tiny" => ResNetLayout::Tiny,
+        "resnet18" => ResNetLayout::Resnet18,
+        "resnet50" => ResNetLayout::Resnet50,
+        _ => bail!("--layout must be tiny, resnet18 or resnet50, got '{s}'"),
+    })
+}
+
+/// What `fit` trains and evaluates on.
+pub(crate) struct FitData {
+    objects: Vec<alignist::bundle::model::BundleObject>,
+    sets: Vec<alignist::bundle::experts::ExpertSet>,
+    images: Vec<alignist::train::TrainingImage>,
+    tests: Vec<alignist::train::eval::EvalImage>,
+    fresh: Option<alignist::train::data::FreshRenders>,
+}
+
+/// Training and test images from `--data` BOP datasets.
+pub(crate) fn dataset_fit_data(args: &FitArgs) -> Result<FitData> {
+    use alignist::bundle::experts::ExpertSet;
+    use alignist::bundle::model::BundleObject;
+    use alignist::data::BopDataset;
+    use alignist::train::data::{eval_images, training_images};
+
+    let mut data_out = FitData {
+        objects: Vec::new(),
+        sets: Vec::new(),
+        images: Vec::new(),
+        tests: Vec::new(),
+        fresh: None,
+    };
+    for (i, (data, experts)) in args.data.iter().zip(&args.experts).enumerate() {
+        let set =
+            ExpertSet::load(experts).with_context(|| format!("--experts {}", experts.display()))?;
+        let train_ds = BopDataset::open(data, "train")
+            .with_context(|| format!("--data {}", data.display()))?;
+        let imgs = training_images(&train_ds, i, &set.mesh, args.image_size, args.fraction)
+            .with_context(|| format!("reading --data {}", data.display()))?;
+        let name = set.manifest.object.name.clone();
+        eprintln!(
+            "{name}: {} training images from {}",
+            imgs.len(),
+            data.display()
+        );
+        data_out.objects.push(BundleObject {
+            name: name.clone(),
+            experts: format!("experts/{name}"),
+            data: data.display().to_string(),
+            train_images: imgs.len(),
+        });
+        data_out.images.extend(imgs);
+        if args.eval_images > 0 {
+            let test_ds = BopDataset::open(data, "test")
+                .with_context(|| format!("--data {} (test split)", data.display()))?;
+            data_out.tests.extend(eval_images(
+                &test_ds,
+                &name,
+                args.image_size,
+                args.eval_images,
+            )?);
+        }
+        data_out.sets.push(set);
+    }
+    Ok(data_out)
+}
+
+/// Fresh renders of the experts' meshes, and `--eval-images` fresh test crops per object from
+/// `--eval-seed`.
+pub(crate) fn fresh_fit_data(args: &FitArgs) -> Result<FitData> {
+    use alignist::bundle::experts::ExpertSet;
+    use alignist::bundle::model::BundleObject;
+    use alignist::train::data::FreshRenders;
+
+    if !(1..=8).contains(&args.supersample) {
+        bail!("--supersample must be in 1 ..= 8, got {}", args.supersample);
+    }
+    let sets = args
+        .experts
+        .iter()
+        .map(|e| ExpertSet::load(e).with_context(|| format!("--experts {}", e.display())))
+        .collect::<Result<Vec<_>>>()?;
+    let fresh = FreshRenders {
+        meshes: sets.iter().map(|s| s.mesh.clone()).collect(),
+        supersample: args.supersample,
+    };
+    let names: Vec<String> = sets
+        .iter()
+        .map(|s| s.manifest.object.name.clone())
+        .collect();
+    let symmetries: Vec<_> = sets.iter().map(|s| s.symmetries()).collect();
+    let tests = fresh.eval_images(
+        &names,
+        &symmetries,
+        args.image_size,
+        args.eval_images,
+        args.eval_seed,
+    );
+    let objects = names
+        .iter()
+        .map(|name| BundleObject {
+            name: name.clone(),
+            experts: format!("experts/{name}"),
+            data: format!("fresh renders ({}x supersampled)", args.supersample),
+            train_images: 0,
+        })
+        .collect();
+    eprintln!(
+        "{} objects, fresh renders every step; {} fresh test crops (seed {})",
+        sets.len(),
+        tests.len(),
+        args.eval_seed
+    );
+    Ok(FitData {
+        objects,
+        sets,
+        images: Vec::new(),
+        tests,
+        fresh: Some(fresh),
+    })
+}
+
+pub(crate) fn fit_cmd(args: &FitArgs) -> Result<()> {
+    use alignist::bundle::model::{
+        GridLevels, MODEL_FORMAT_VERSION, ModelBundle, ModelManifest, Provenance,
+    };
+    use alignist::encoding::RotationEncoding;
+    use alignist::train::eval::evaluate;
+    use alignist::train::{
+        MeasureLoss, Method, NetworkConfig, SamplingStrategy, TrainConfig, TrainingSet, train,
+    };
+
+    if !args.fresh && args.data.len() != args.experts.len() {
+        bail!(
+            "give one --experts per --data ({} --data, {} --experts)",
+            args.data.len(),
+            args.experts.len()
+        );
+    }
+    if !(args.fraction > 0.0 && args.fraction <= 1.0) {
+        bail!("--fraction must be in (0, 1], got {}", args.fraction);
+    }
+    if args.image_size < 16 || !args.image_size.is_multiple_of(8) {
+        bail!(
+            "--image-size must be a multiple of 8 and at least 16, got {}",
+            args.image_size
+        );
+    }
+    if args.eval_level > 5 {
+        bail!("--eval-level {} is above 5", args.eval_level);
+    }
+    for (flag, v) in [
+        ("--steps", args.steps),
+        ("--batch", args.batch),
+        ("--k", args.k),
+    ] {
+        if v == 0 {
+            bail!("{flag} must be at least 1");
+        }
+    }
+    let method = match args.method.as_str() {
+        "alignist" => Method::Alignist {
+            loss: match args.loss.as_str() {
+                "gkl" => MeasureLoss::Gkl,
+                "l1" => MeasureLoss::L1,
+                other => bail!("--loss must be gkl or l1, got '{other}'"),
+            },
+            sampling: match args.sampling.as_str() {
+                "modes" => SamplingStrategy::mode_focused(args.k),
+                "random" => SamplingStrategy::Uniform,
+                other => bail!("--sampling must be modes or random, got '{other}'"),
+            },
+        },
+        "ipdf" => Method::Ipdf,
+        other => bail!("--method must be alignist or ipdf, got '{other}'"),
+    };
+    let encoding = match args.encoding.as_str() {
+        "cube" => RotationEncoding::Cube,
+        "ipdf" => RotationEncoding::Ipdf { frequencies: 3 },
+        other => bail!("--encoding must be cube or ipdf, got '{other}'"),
+    };
+    let network =
+        NetworkConfig::new(parse_layout(&args.layout)?, encoding).with_image_size(args.image_size);
+    let FitData {
+        objects,
+        sets,
+        images,
+        tests,
+        fresh,
+    } = if args.fresh {
+        fresh_fit_data(args)?
+    } else {
+        dataset_fit_data(args)?
+    };
+    let baked: Vec<_> = sets.iter().map(|s| s.bake()).collect();
+    let modes = sets
+        .iter()
+        .zip(&baked)
+        .map(|(s, b)| s.mode_table(b))
+        .collect::<Result<Vec<_>, _>>()
+        .context("building the mode tables")?;
+    let training = TrainingSet {
+        objects: baked,
+        modes,
+        images,
+        fresh,
+    };
+    let config = TrainConfig {
+        network: network.clone(),
+        method,
+        steps: args.steps,
+        batch: args.batch,
+        k: args.k,
+        lr: args.lr,
+        warmup: (args.steps / 20).max(1),
+        seed: args.seed,
+        checkpoint_every: args.checkpoint_every,
+    };
+    let checkpoints = args
+        .checkpoints
+        .clone()
+        .unwrap_or_else(|| args.out.with_extension("checkpoints"));
+    std::fs::create_dir_all(&checkpoints)
+        .with_context(|| format!("creating {}", checkpoints.display()))?;
+    let bar = ProgressBar::new(args.steps as u64).with_style(
+        ProgressStyle::with_template("train {bar:40} {pos}/{len}  {msg}  {per_sec}  eta {eta}")
+            .expect("static progress template"),
+    );
+    let mut log = ProgressLog::new();
+    let (trained, report) = train(
+        &config,
+        &training,
+        Some(&checkpoints),
+        args.resume,
+        |step, steps, loss| {
+            bar.set_position(step as u64);
+            bar.set_message(format!("loss {loss:.4}"));
+            log_progress(&mut log, step, steps, loss);
+            std::ops::ControlFlow::Continue(())
+        },
+    )
+    .context("training")?;
+    bar.finish();
+    if args.profile {
+        print_profile(&report.profile);
+    }
+    let evaluation = if tests.is_empty() {
+        None
+    } else {
+        let bar = ProgressBar::new(tests.len() as u64);
+        let r = evaluate(&trained, &network, &tests, args.eval_level, |n| {
+            bar.set_position(n as u64)
+        })?;
+        bar.finish_and_clear();
+        Some(r)
+    };
+    let mut manifest = ModelManifest {
+        format_version: MODEL_FORMAT_VERSION,
+        name: args
+            .out
+            .file_name()
+            .and_then(|n| n.to_str())
+            .unwrap_or("model")
+            .to_string(),
+        network,
+        input: "RGB crop centred on the object, side image_size, values / 255".into(),
+        objects,
+        levels: GridLevels {
+            full_max: 4,
+            search_max: 5,
+        },
+        provenance: Provenance {
+            command: std::env::args().collect::<Vec<_>>().join(" "),
+            train: config,
+            report: report.clone(),
+        },
+        evaluation: evaluation.clone(),
+        files: Default::default(),
+    };
+    let dirs: Vec<&Path> = args.experts.iter().map(|p| p.as_path()).collect();
+    ModelBundle::save(&mut manifest, &trained, &dirs, &args.out)
+        .with_context(|| format!("writing the bundle to {}", args.out.display()))?;
+    eprintln!(
+        "trained {} steps in {:.0} s (final loss {:.4}); bundle written to {}",
+        report.steps_run,
+        report.seconds,
+        report.final_loss,
+        args.out.display()
+    );
+    if let Some(e) = evaluation {
+        print_eval(&e);
+    }
+    Ok(())
+}
+
+/// Progress lines for logs (a bar is drawn only on a terminal): every 2 % of the run or every
+/// 60 s, with the loss, the rate and the time left.
+pub(crate) struct ProgressLog {
+    started: std::time::Instant,
+    last: std::time::Instant,
+    first_step: Option<usize>,
+    on_terminal: bool,
+}
+
+impl ProgressLog {
+    fn new() -> Self {
+        use std::io::IsTerminal;
+        let now = std::time::Instant::now();
+        ProgressLog {
+            started: now,
+            last: now,
+            first_step: None,
+            on_terminal: std::io::stderr().is_terminal(),
+        }
+    }
+}
+
+pub(crate) fn log_progress(log: &mut ProgressLog, step: usize, steps: usize, loss: f64) {
+    if log.on_terminal {
+        return;
+    }
+    let first = *log.first_step.get_or_insert(step.saturating_sub(1));
+    let every = (steps / 50).max(1);
+    if !(step.is_multiple_of(every) || step == steps || log.last.elapsed().as_secs() >= 60) {
+        return;
+    }
+    log.last = std::time::Instant::now();
+    let elapsed = log.started.elapsed().as_secs_f64();
+    let per_step = elapsed / (step - first).max(1) as f64;
+    eprintln!(
+        "step {step}/{steps}  loss {loss:.4}  {:.0} ms/step  elapsed {:.0} s  left {:.0} s",
+        per_step * 1e3,
+        elapsed,
+        per_step * (steps - step) as f64
+    );
+}
+
+pub(crate) fn print_profile(p: &alignist::train::trainer::StepProfile) {
+    println!("step profile (ms per step, mean of {} steps):", p.steps);
+    for (name, v) in [
+        ("data", p.data),
+        ("sampling", p.sampling),
+        ("targets", p.targets),
+        ("encoder forward", p.encoder_forward),
+        ("head forward + loss", p.head_forward),
+        ("backward", p.backward),
+        ("optimiser", p.optimiser),
+    ] {
+        println!(
+            "  {name:<20} {v:8.1}  {:5.1} %",
+            100.0 * v / p.total.max(1e-9)
+        );
+    }
+    println!(
+        "  {:<20} {:8.1}  (stages sum {:.1}; supervision = sampling + targets = {:.1} %)",
+        "step",
+        p.total,
+        p.stages(),
+        100.0 * (p.sampling + p.targets) / p.total.max(1e-9)
+    );
+}

@@ -1,0 +1,92 @@
+//! `alignist-train`: the offline side of alignist — grids, renders, experts, training, evaluation.
+
+//! Each subcommand lives in its own module; this file parses the command line and dispatches.
+
+mod bench;
+mod eval;
+mod experts;
+mod fit;
+mod grid;
+mod object;
+mod render;
+mod results;
+mod score;
+
+use std::path::PathBuf;
+
+use anyhow::Result;
+use clap::{Parser, Subcommand};
+
+use eval::EvalArgs;
+use experts::ExpertsArgs;
+use fit::FitArgs;
+use render::RenderArgs;
+use score::ScoreArgs;
+
+/// Trains and inspects alignist models.
+#[derive(Parser)]
+#[command(name = "alignist-train", version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Write the centres of one level of the nested SO(3) grid as CSV
+    /// (`index,qw,qx,qy,qz`, index order, w ≥ 0).
+    Grid {
+        /// Grid level L (0 ..= 6): 72·8^L cells.
+        #[arg(long)]
+        level: u8,
+        /// Output CSV file (written to a temporary name, then renamed).
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Render a dataset of one object in BOP layout (SYMSOL style: centred, fully in view,
+    /// every equivalent ground truth recorded in scene_gt_equivalents.json).
+    Render(RenderArgs),
+    /// Train the two CAD experts of an object (SDF and SurfEmb features), bake them, choose λ by
+    /// the LL of their targets, and write the expert set.
+    Experts(ExpertsArgs),
+    /// Write the target distribution the experts give for one rotation on every cell of a grid
+    /// level (`index,log_a_sdf,log_a_se`).
+    Score(ScoreArgs),
+    /// Train the distribution network on BOP datasets (one per object, with its expert set),
+    /// evaluate it on their test splits, and write a model bundle.
+    Fit(FitArgs),
+    /// Evaluate a model bundle on the test split of BOP datasets.
+    Eval(EvalArgs),
+    /// Print the evaluation figures of model bundles as Markdown tables (per object and
+    /// averaged, with the ceiling of the level, the training budget and wall time).
+    Results {
+        /// Model bundle folders.
+        #[arg(required = true)]
+        bundles: Vec<PathBuf>,
+    },
+    /// Print performance figures of a model bundle: the backend's matmul peak, full-grid head
+    /// throughput at levels 3 and 4 against it, coarse-to-fine top-k latency, encoder images/s,
+    /// and gRPC against in-process Predict throughput.
+    Bench {
+        /// Model bundle folder.
+        #[arg(long, default_value = "models/symsol1")]
+        model: PathBuf,
+        /// Test images rendered from the bundle's first object.
+        #[arg(long, default_value_t = 8)]
+        images: usize,
+    },
+}
+
+fn main() -> Result<()> {
+    let cli = Cli::parse();
+    match cli.command {
+        Command::Grid { level, out } => grid::write_grid(level, &out),
+        Command::Render(args) => render::render_cmd(&args),
+        Command::Experts(args) => experts::experts_cmd(&args),
+        Command::Score(args) => score::score_cmd(&args),
+        Command::Fit(args) => fit::fit_cmd(&args),
+        Command::Eval(args) => eval::eval_cmd(&args),
+        Command::Results { bundles } => results::results_cmd(&bundles),
+        Command::Bench { model, images } => bench::bench_cmd(&model, images),
+    }
+}

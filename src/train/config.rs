@@ -1,0 +1,64 @@
+//! What a training run is: the objective, the budget, the schedule. Shared by the trainer and
+//! the checkpoints (which record it), so neither imports the other.
+
+use serde::{Deserialize, Serialize};
+
+use super::sampling::SamplingStrategy;
+use crate::net::NetworkConfig;
+
+/// The measure loss of the Alignist objective.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MeasureLoss {
+    /// Generalised KL (paper Eq. 5).
+    Gkl,
+    /// L1 between measures (ablation).
+    L1,
+}
+
+/// What the network is trained to do.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum Method {
+    /// Both branches fit the experts' measures.
+    Alignist {
+        /// The loss per branch.
+        loss: MeasureLoss,
+        /// How the K rotations are drawn.
+        sampling: SamplingStrategy,
+    },
+    /// IPDF: one score (both branches summed), `−log softmax` of the GT among uniform samples.
+    Ipdf,
+}
+
+/// How to train.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainConfig {
+    /// The network.
+    pub network: NetworkConfig,
+    /// The objective.
+    pub method: Method,
+    /// Adam steps.
+    pub steps: usize,
+    /// Images per step.
+    pub batch: usize,
+    /// Rotations per image.
+    pub k: usize,
+    /// Peak learning rate.
+    pub lr: f64,
+    /// Linear warm-up steps.
+    pub warmup: usize,
+    /// Seed of everything.
+    pub seed: u64,
+    /// Steps between checkpoints.
+    pub checkpoint_every: usize,
+}
+
+/// Learning rate at `step`: linear warm-up, then cosine decay to 1 % of the peak.
+pub fn learning_rate(config: &TrainConfig, step: usize) -> f64 {
+    if step < config.warmup {
+        return config.lr * (step + 1) as f64 / config.warmup as f64;
+    }
+    let t = (step - config.warmup) as f64 / (config.steps - config.warmup).max(1) as f64;
+    config.lr * (0.01 + 0.99 * 0.5 * (1.0 + (std::f64::consts::PI * t.min(1.0)).cos()))
+}
