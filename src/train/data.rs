@@ -1,7 +1,7 @@
 //! Training and evaluation images — from BOP datasets, or rendered fresh — as object-centred
 //! crops, ground truths, and the visible canonical points the experts score.
 
-use nalgebra::Rotation3;
+use nalgebra::{Rotation3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -13,7 +13,19 @@ use crate::experts::select::{VISIBLE_POINTS, visible_points_at};
 use crate::so3::equivalents;
 
 use super::eval::EvalImage;
-use super::trainer::TrainingImage;
+
+/// One training image: its crop, ground truth, object, and visible canonical points.
+#[derive(Debug, Clone)]
+pub struct TrainingImage {
+    /// Index of the object in [`TrainingSet::objects`].
+    pub object: usize,
+    /// RGB8 crop, `image_size² × 3`.
+    pub rgb: Vec<u8>,
+    /// Ground-truth rotation.
+    pub rotation: Rotation3<f64>,
+    /// Visible canonical points `x⁰` (from a NOCS render at the ground truth).
+    pub visible: Vec<Vector3<f32>>,
+}
 
 /// The first `⌈fraction·N⌉` images of `dataset` (all of one object) as training images of
 /// object index `object`, with crops of `size` and visible points from `mesh` (NOCS).

@@ -10,7 +10,6 @@ use std::time::Instant;
 use burn::module::Module;
 use burn::optim::{AdamConfig, GradientsParams};
 use burn::tensor::{Tensor, TensorData};
-use nalgebra::{Rotation3, Vector3};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -18,7 +17,7 @@ use serde::{Deserialize, Serialize};
 use super::TrainError;
 use super::checkpoint::{CheckpointState, latest_checkpoint, load_checkpoint, save_checkpoint};
 pub use super::config::{MeasureLoss, Method, TrainConfig, learning_rate};
-use super::data::FreshRenders;
+pub use super::data::{FreshRenders, TrainingImage};
 use super::sampling::{ModeSampler, SamplingStrategy, sample_rotations};
 use crate::experts::energy::{BakedExperts, LogTargets};
 use crate::experts::modes::ModeTable;
@@ -26,19 +25,6 @@ use crate::net::{Network, images_tensor};
 use crate::net::{gkl_loss, ipdf_loss, l1_measure_loss};
 use crate::so3::to_row_major_f32;
 use rayon::prelude::*;
-
-/// One training image: its crop, ground truth, object, and visible canonical points.
-#[derive(Debug, Clone)]
-pub struct TrainingImage {
-    /// Index of the object in [`TrainingSet::objects`].
-    pub object: usize,
-    /// RGB8 crop, `image_size² × 3`.
-    pub rgb: Vec<u8>,
-    /// Ground-truth rotation.
-    pub rotation: Rotation3<f64>,
-    /// Visible canonical points `x⁰` (from a NOCS render at the ground truth).
-    pub visible: Vec<Vector3<f32>>,
-}
 
 /// Images and the baked experts of their objects.
 pub struct TrainingSet {
