@@ -290,13 +290,13 @@ pub fn bake_experts(
     params: EnergyParams,
     device: &Device,
 ) -> BakedExperts {
-    BakedExperts {
-        sdf: VoxelGrid::bake(resolution, bound, 1, |p| run_batched(sdf, p, 1, device)),
-        keys: VoxelGrid::bake(resolution, bound, FEATURE_DIM, |p| {
+    BakedExperts::new(
+        VoxelGrid::bake(resolution, bound, 1, |p| run_batched(sdf, p, 1, device)),
+        VoxelGrid::bake(resolution, bound, FEATURE_DIM, |p| {
             run_batched(keys, p, FEATURE_DIM, device)
         }),
         params,
-    }
+    )
 }
 
 /// Row-major symmetries for the manifest.

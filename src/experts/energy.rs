@@ -152,9 +152,22 @@ pub struct BakedExperts {
     pub keys: VoxelGrid,
     /// λ, ε, norm.
     pub params: EnergyParams,
+    /// `sdf` and `keys` interleaved (13 channels), made on first use: one lookup per point
+    /// instead of two, and one memory access pattern (the targets are bound by these lookups).
+    pub(crate) joint: std::sync::OnceLock<Option<VoxelGrid>>,
 }
 
 impl BakedExperts {
+    /// Baked experts from their grids and energy parameters.
+    pub fn new(sdf: VoxelGrid, keys: VoxelGrid, params: EnergyParams) -> Self {
+        BakedExperts {
+            sdf,
+            keys,
+            params,
+            joint: std::sync::OnceLock::new(),
+        }
+    }
+
     /// Scores `candidates` (row-major `f32` matrices) for an image whose ground truth is `r_gt`
     /// and whose visible canonical points are `x0` (parallel over candidates).
     pub fn log_targets(
@@ -166,19 +179,38 @@ impl BakedExperts {
         let dim = self.keys.channels();
         let seen = self.keys.sample(x0);
         let gt: Matrix3<f32> = r_gt.matrix().cast();
+        let joint = self
+            .joint
+            .get_or_init(|| VoxelGrid::interleave(&self.sdf, &self.keys))
+            .as_ref();
         let scored: Vec<(f32, f32)> = candidates
             .par_iter()
             .map_init(
-                || (vec![0f32; x0.len()], vec![0f32; x0.len() * dim]),
-                |(sdf_buf, key_buf), m| {
+                || {
+                    (
+                        vec![0f32; x0.len()],
+                        vec![0f32; x0.len() * dim],
+                        vec![0f32; 1 + dim],
+                    )
+                },
+                |(sdf_buf, key_buf, both), m| {
                     // x' = Rᵀ·R_gt·x⁰.
                     let r = Matrix3::from_row_slice(m);
                     let map = r.transpose() * gt;
                     for (i, x) in x0.iter().enumerate() {
                         let moved = map * x;
-                        self.sdf.sample_into(&moved, &mut sdf_buf[i..i + 1]);
-                        self.keys
-                            .sample_into(&moved, &mut key_buf[i * dim..(i + 1) * dim]);
+                        let keys = &mut key_buf[i * dim..(i + 1) * dim];
+                        match joint {
+                            Some(joint) => {
+                                joint.sample_into(&moved, both);
+                                sdf_buf[i] = both[0];
+                                keys.copy_from_slice(&both[1..]);
+                            }
+                            None => {
+                                self.sdf.sample_into(&moved, &mut sdf_buf[i..i + 1]);
+                                self.keys.sample_into(&moved, keys);
+                            }
+                        }
                     }
                     (
                         -sdf_energy(sdf_buf, &self.params) as f32,
