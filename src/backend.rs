@@ -70,3 +70,23 @@ pub fn seeded_init<M: burn::module::Module>(
         .expect("an in-memory store accepts any module");
     module
 }
+
+/// GFLOP/s of an f32 `[m, k]·[k, n]` matmul on `device` (best of 20, after one warm-up).
+pub fn matmul_gflops(device: &Device, m: usize, k: usize, n: usize) -> f64 {
+    use burn::tensor::{Distribution, Tensor};
+    let a = Tensor::<2>::random([m, k], Distribution::Default, device);
+    let b = Tensor::<2>::random([k, n], Distribution::Default, device);
+    let run = || {
+        let c = a.clone().matmul(b.clone());
+        let _ = c.into_data();
+    };
+    run();
+    let best = (0..20)
+        .map(|_| {
+            let t = std::time::Instant::now();
+            run();
+            t.elapsed().as_secs_f64()
+        })
+        .fold(f64::MAX, f64::min);
+    2.0 * (m * k * n) as f64 / best / 1e9
+}

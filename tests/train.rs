@@ -352,3 +352,32 @@ fn a_few_hundred_real_steps_lower_the_loss_and_beat_uniform_on_held_out_renders(
         p.total
     );
 }
+
+#[test]
+fn the_training_bench_prints_both_steps_and_their_ratio() {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_alignist-train"))
+        .args([
+            "bench",
+            "--training",
+            "--batch",
+            "2",
+            "--k",
+            "16",
+            "--steps",
+            "2",
+        ])
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    for line in ["ipdf step: ", "alignist step: ", "head forward: "] {
+        assert!(text.contains(line), "{line} missing in {text}");
+    }
+    let last = text.lines().last().unwrap();
+    let ratio: f64 = last
+        .strip_prefix("alignist/ipdf step time ratio: ")
+        .expect("the ratio is the last line")
+        .parse()
+        .unwrap();
+    assert!(ratio > 0.0 && ratio.is_finite());
+}

@@ -6,8 +6,6 @@ use std::path::Path;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use burn::tensor::{Distribution, Tensor};
-
 use super::BatchConfig;
 use super::proto::{ImageInput, PredictRequest};
 use super::server::{ServerConfig, run};
@@ -24,17 +22,6 @@ fn best_of(reps: usize, mut f: impl FnMut()) -> f64 {
             t.elapsed().as_secs_f64()
         })
         .fold(f64::MAX, f64::min)
-}
-
-/// GFLOP/s of `[m, k]·[k, n]` on `device`.
-pub fn matmul_gflops(device: &burn::tensor::Device, m: usize, k: usize, n: usize) -> f64 {
-    let a = Tensor::<2>::random([m, k], Distribution::Default, device);
-    let b = Tensor::<2>::random([k, n], Distribution::Default, device);
-    let s = best_of(20, || {
-        let c = a.clone().matmul(b.clone());
-        let _ = c.into_data();
-    });
-    2.0 * (m * k * n) as f64 / s / 1e9
 }
 
 /// FLOPs of the head per rotation once the rotation half of the first layer is precomputed.
@@ -60,11 +47,11 @@ pub fn bench(bundle: &Path, images: &[Vec<u8>]) -> anyhow::Result<()> {
     // The engine runs the head on the dense backend and the encoder on the convolution one.
     let dense = crate::backend::device_for(crate::backend::Workload::Dense);
     let conv = crate::backend::device_for(crate::backend::Workload::Conv);
-    let peak = matmul_gflops(&dense, 4096, 256, 256);
+    let peak = crate::backend::matmul_gflops(&dense, 4096, 256, 256);
     println!(
         "matmul 4096×256·256×256 f32: {peak:.1} GFLOP/s on the head's backend ({}); {:.1} GFLOP/s on the encoder's ({})",
         crate::backend::backend_for(crate::backend::Workload::Dense),
-        matmul_gflops(&conv, 4096, 256, 256),
+        crate::backend::matmul_gflops(&conv, 4096, 256, 256),
         crate::backend::backend_for(crate::backend::Workload::Conv)
     );
     let crops: Vec<Vec<u8>> = images

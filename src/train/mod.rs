@@ -1,6 +1,7 @@
 //! Training the distribution network: sampling, the Alignist (GKL from the experts) and IPDF
 //! objectives, Adam with warm-up and cosine decay, atomic checkpoints and resume.
 
+pub mod bench;
 pub mod checkpoint;
 pub mod config;
 pub mod data;

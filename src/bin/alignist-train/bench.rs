@@ -1,33 +1,106 @@
-//! `alignist-train bench`: performance figures of a bundle.
+//! `alignist-train bench`: performance figures of a bundle, or of the training step.
 
-use std::path::Path;
+use std::path::PathBuf;
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
 
-pub(crate) fn bench_cmd(bundle: &Path, count: usize) -> Result<()> {
-    let loaded = alignist::bundle::model::ModelBundle::load(bundle)
-        .with_context(|| format!("--model {}", bundle.display()))?;
+#[derive(clap::Args)]
+pub(crate) struct BenchArgs {
+    /// Model bundle folder.
+    #[arg(long, default_value = "models/symsol1")]
+    model: PathBuf,
+    /// Test images rendered from the bundle's first object.
+    #[arg(long, default_value_t = 8)]
+    images: usize,
+    /// Measure the training step instead (IPDF and Alignist, with their profiles), on a small
+    /// set the benchmark makes itself.
+    #[arg(long)]
+    training: bool,
+    /// Training: images per step.
+    #[arg(long, default_value_t = 16)]
+    batch: usize,
+    /// Training: rotations per image.
+    #[arg(long, default_value_t = 256)]
+    k: usize,
+    /// Training: crop side (a multiple of 8).
+    #[arg(long, default_value_t = 32)]
+    image_size: u32,
+    /// Training: encoder layout.
+    #[arg(long, value_enum, default_value_t = crate::fit::Layout::Tiny)]
+    layout: crate::fit::Layout,
+    /// Training: measured steps per method.
+    #[arg(long, default_value_t = 30)]
+    steps: usize,
+}
+
+pub(crate) fn bench_cmd(args: &BenchArgs) -> Result<()> {
+    if args.training {
+        return bench_training(args);
+    }
+    let loaded = alignist::bundle::model::ModelBundle::load(&args.model)
+        .with_context(|| format!("--model {}", args.model.display()))?;
     let size = loaded.manifest.network.image_size;
-    let mesh = &loaded.experts[0].mesh;
-    let camera = alignist::cad::Camera::square(size);
-    let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(99);
-    let images: Vec<Vec<u8>> = alignist::so3::haar_rotations(&mut rng, count.max(1))
+    let fresh = alignist::train::data::FreshRenders {
+        meshes: vec![loaded.experts[0].mesh.clone()],
+        supersample: 4,
+    };
+    let names = vec![loaded.manifest.objects[0].name.clone()];
+    let images: Vec<Vec<u8>> = fresh
+        .eval_images(
+            &names,
+            &[loaded.experts[0].symmetries()],
+            size,
+            args.images.max(1),
+            99,
+        )
         .into_iter()
-        .map(|r| {
-            let rgb = alignist::cad::render(
-                mesh,
-                &camera,
-                &alignist::data::symsol_pose(r),
-                &alignist::cad::RenderOptions::default(),
-            )
-            .rgb;
+        .map(|im| {
             let mut png = Vec::new();
-            image::RgbImage::from_raw(size, size, rgb)
+            image::RgbImage::from_raw(size, size, im.rgb)
                 .context("render size")?
                 .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)?;
             Ok(png)
         })
         .collect::<Result<_>>()?;
     drop(loaded);
-    alignist::serve::bench::bench(bundle, &images)
+    alignist::serve::bench::bench(&args.model, &images)
+}
+
+fn bench_training(args: &BenchArgs) -> Result<()> {
+    use alignist::train::bench::{TrainingBenchConfig, bench_training};
+    if args.batch == 0 || args.k < 2 || args.steps == 0 {
+        bail!("--batch and --steps must be at least 1 and --k at least 2");
+    }
+    if args.image_size < 16 || !args.image_size.is_multiple_of(8) {
+        bail!(
+            "--image-size must be a multiple of 8 and at least 16, got {}",
+            args.image_size
+        );
+    }
+    let config = TrainingBenchConfig {
+        batch: args.batch,
+        k: args.k,
+        image_size: args.image_size,
+        layout: args.layout.into(),
+        steps: args.steps,
+        ..TrainingBenchConfig::default()
+    };
+    eprintln!(
+        "training step: batch {}, K {}, {} px crops, {:?} encoder, {} steps per method after {} \
+         warm-up steps",
+        config.batch, config.k, config.image_size, config.layout, config.steps, config.warmup
+    );
+    let b = bench_training(&config).context("running the training steps")?;
+    println!("ipdf step: {:.1} ms", b.ipdf.total);
+    crate::fit::print_profile(&b.ipdf);
+    println!("alignist step: {:.1} ms", b.alignist.total);
+    crate::fit::print_profile(&b.alignist);
+    println!(
+        "head forward: {:.1} GFLOP/s = {:.0} % of the training backend's matmul peak ({:.1} GFLOP/s)",
+        b.head_forward_gflops(),
+        100.0 * b.head_forward_gflops() / b.matmul_peak_gflops,
+        b.matmul_peak_gflops
+    );
+    println!("alignist/ipdf step time ratio: {:.2}", b.ratio());
+    Ok(())
 }

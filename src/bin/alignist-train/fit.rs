@@ -41,9 +41,9 @@ pub(crate) struct FitArgs {
     /// Sampling of the alignist method: modes (mode-focused) or random (uniform).
     #[arg(long, default_value = "modes")]
     sampling: String,
-    /// Encoder layout: tiny, resnet18, resnet50.
-    #[arg(long, default_value = "tiny")]
-    layout: String,
+    /// Encoder layout.
+    #[arg(long, value_enum, default_value_t = Layout::Tiny)]
+    layout: Layout,
     /// Rotation encoding: cube or ipdf.
     #[arg(long, default_value = "cube")]
     encoding: String,
@@ -85,14 +85,25 @@ pub(crate) struct FitArgs {
     eval_images: usize,
 }
 
-pub(crate) fn parse_layout(s: &str) -> Result<alignist::net::ResNetLayout> {
-    use alignist::net::ResNetLayout;
-    Ok(match s {
-        "tiny" => ResNetLayout::Tiny,
-        "resnet18" => ResNetLayout::Resnet18,
-        "resnet50" => ResNetLayout::Resnet50,
-        _ => bail!("--layout must be tiny, resnet18 or resnet50, got '{s}'"),
-    })
+/// Encoder layouts on the command line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub(crate) enum Layout {
+    /// Basic blocks [1, 1, 1, 1], widths 16 … 128 (the CPU default).
+    Tiny,
+    /// ResNet-18.
+    Resnet18,
+    /// ResNet-50.
+    Resnet50,
+}
+
+impl From<Layout> for alignist::net::ResNetLayout {
+    fn from(l: Layout) -> Self {
+        match l {
+            Layout::Tiny => Self::Tiny,
+            Layout::Resnet18 => Self::Resnet18,
+            Layout::Resnet50 => Self::Resnet50,
+        }
+    }
 }
 
 /// What `fit` trains and evaluates on.
@@ -267,8 +278,7 @@ pub(crate) fn fit_cmd(args: &FitArgs) -> Result<()> {
         "ipdf" => RotationEncoding::Ipdf { frequencies: 3 },
         other => bail!("--encoding must be cube or ipdf, got '{other}'"),
     };
-    let network =
-        NetworkConfig::new(parse_layout(&args.layout)?, encoding).with_image_size(args.image_size);
+    let network = NetworkConfig::new(args.layout.into(), encoding).with_image_size(args.image_size);
     let FitData {
         objects,
         sets,

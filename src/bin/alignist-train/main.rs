@@ -64,17 +64,10 @@ enum Command {
         #[arg(required = true)]
         bundles: Vec<PathBuf>,
     },
-    /// Print performance figures of a model bundle: the backend's matmul peak, full-grid head
+    /// Print performance figures of a model bundle (the backend's matmul peak, full-grid head
     /// throughput at levels 3 and 4 against it, coarse-to-fine top-k latency, encoder images/s,
-    /// and gRPC against in-process Predict throughput.
-    Bench {
-        /// Model bundle folder.
-        #[arg(long, default_value = "models/symsol1")]
-        model: PathBuf,
-        /// Test images rendered from the bundle's first object.
-        #[arg(long, default_value_t = 8)]
-        images: usize,
-    },
+    /// gRPC against in-process Predict throughput), or with --training, of the training step.
+    Bench(bench::BenchArgs),
 }
 
 fn main() -> Result<()> {
@@ -87,6 +80,6 @@ fn main() -> Result<()> {
         Command::Fit(args) => fit::fit_cmd(&args),
         Command::Eval(args) => eval::eval_cmd(&args),
         Command::Results { bundles } => results::results_cmd(&bundles),
-        Command::Bench { model, images } => bench::bench_cmd(&model, images),
+        Command::Bench(args) => bench::bench_cmd(&args),
     }
 }

@@ -1,0 +1,144 @@
+//! The training step benchmark (`alignist-train bench --training`): the IPDF and the Alignist
+//! step on the same network, batch, K and crops, each with its stage profile, on a small set it
+//! makes itself (fresh cube renders, experts of random SIRENs baked at the real resolution, so
+//! the targets cost what they cost in a real run).
+
+use std::ops::ControlFlow;
+
+use serde::{Deserialize, Serialize};
+
+use super::TrainError;
+use super::config::{MeasureLoss, Method, TrainConfig};
+use super::data::FreshRenders;
+use super::sampling::SamplingStrategy;
+use super::trainer::{StepProfile, TrainingSet, train};
+use crate::bundle::experts::{bake_experts, key_siren_config};
+use crate::cad::Shape;
+use crate::encoding::RotationEncoding;
+use crate::experts::SirenConfig;
+use crate::experts::energy::EnergyParams;
+use crate::experts::modes::{ModeTable, ModeTableConfig};
+use crate::net::{NetworkConfig, ResNetLayout};
+
+/// What the benchmark runs.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct TrainingBenchConfig {
+    /// Images per step.
+    pub batch: usize,
+    /// Rotations per image.
+    pub k: usize,
+    /// Crop side.
+    pub image_size: u32,
+    /// Encoder layout.
+    pub layout: ResNetLayout,
+    /// Measured steps per method (after `warmup` unmeasured ones).
+    pub steps: usize,
+    /// Unmeasured steps first.
+    pub warmup: usize,
+}
+
+impl Default for TrainingBenchConfig {
+    fn default() -> Self {
+        TrainingBenchConfig {
+            batch: 16,
+            k: 256,
+            image_size: 32,
+            layout: ResNetLayout::Tiny,
+            steps: 30,
+            warmup: 5,
+        }
+    }
+}
+
+/// The figures of one run.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainingBench {
+    /// Mean ms per stage of the IPDF step.
+    pub ipdf: StepProfile,
+    /// Mean ms per stage of the Alignist step.
+    pub alignist: StepProfile,
+    /// FLOPs of the head's forward pass in one step (both branches, all `batch · K` rows).
+    pub head_forward_flops: f64,
+    /// The training backend's f32 matmul peak (`4096×256·256×256`), GFLOP/s.
+    pub matmul_peak_gflops: f64,
+}
+
+impl TrainingBench {
+    /// GFLOP/s of the head's forward pass in the Alignist step.
+    pub fn head_forward_gflops(&self) -> f64 {
+        self.head_forward_flops / (self.alignist.head_forward * 1e-3) / 1e9
+    }
+
+    /// Alignist step time over IPDF step time.
+    pub fn ratio(&self) -> f64 {
+        self.alignist.total / self.ipdf.total
+    }
+}
+
+/// Runs both methods and returns their profiles.
+pub fn bench_training(config: &TrainingBenchConfig) -> Result<TrainingBench, TrainError> {
+    let device = crate::backend::device();
+    let mesh = Shape::Cube.mesh();
+    let baked = bake_experts(
+        &SirenConfig::new(3, 32, 2, 1).init(&device),
+        &key_siren_config().init(&device),
+        64,
+        1.05,
+        EnergyParams::default(),
+        &device,
+    );
+    let modes = ModeTable::build(
+        &baked,
+        &mesh,
+        &ModeTableConfig {
+            views: 2,
+            coarse_level: 2,
+            level: 3,
+            keep_fraction: 0.01,
+            seed: 0,
+        },
+    )?;
+    let set = TrainingSet {
+        objects: vec![baked],
+        modes: vec![modes],
+        images: Vec::new(),
+        fresh: Some(FreshRenders {
+            meshes: vec![mesh],
+            supersample: 4,
+        }),
+    };
+    let network = NetworkConfig::new(config.layout, RotationEncoding::Cube)
+        .with_image_size(config.image_size);
+    let run = |method: Method, steps: usize| {
+        let cfg = TrainConfig {
+            network: network.clone(),
+            method,
+            steps,
+            batch: config.batch,
+            k: config.k,
+            lr: 1e-3,
+            warmup: 1,
+            seed: 0,
+            checkpoint_every: usize::MAX,
+        };
+        train(&cfg, &set, None, false, |_, _, _| ControlFlow::Continue(()))
+            .map(|(_, report)| report.profile)
+    };
+    let alignist = Method::Alignist {
+        loss: MeasureLoss::Gkl,
+        sampling: SamplingStrategy::mode_focused(config.k),
+    };
+    run(Method::Ipdf, config.warmup)?;
+    let ipdf = run(Method::Ipdf, config.steps)?;
+    run(alignist, config.warmup)?;
+    let alignist = run(alignist, config.steps)?;
+    let (h, e) = (network.hidden as f64, RotationEncoding::Cube.dim() as f64);
+    let per_row = 2.0 * (e * h + 2.0 * ((network.layers - 1) as f64 * h * h + h));
+    let train_device = crate::backend::device_for(crate::backend::Workload::Conv);
+    Ok(TrainingBench {
+        ipdf,
+        alignist,
+        head_forward_flops: per_row * (config.batch * config.k) as f64,
+        matmul_peak_gflops: crate::backend::matmul_gflops(&train_device, 4096, 256, 256),
+    })
+}
