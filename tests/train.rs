@@ -369,7 +369,11 @@ fn the_training_bench_prints_both_steps_and_their_ratio() {
         .output()
         .unwrap();
     let text = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     for line in ["ipdf step: ", "alignist step: ", "head forward: "] {
         assert!(text.contains(line), "{line} missing in {text}");
     }

@@ -1,10 +1,12 @@
-//! Request images: PNG, JPEG or raw RGB8, size limits checked before decoding, an optional crop
-//! box, resized to the model's square input.
+//! Request images: PNG, JPEG or raw RGB8, size limits checked before decoding, an optional box
+//! of the object (cut as the crop convention's square around it), padded to a square (never
+//! stretched) and resized to the model's input.
 
 use image::imageops::FilterType;
 use image::{ImageReader, RgbImage};
 
 use super::EngineError;
+use crate::data::virtual_crop::CROP_MARGIN;
 
 /// Limits on request images.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -166,8 +168,27 @@ pub fn prepare_image(
                     ),
                 ));
             }
-            image::imageops::crop_imm(&image, c.x, c.y, c.width, c.height).to_image()
+            // The crop convention's scale rule (DESIGN.md §1): a square of CROP_MARGIN × the
+            // box's longer side around its centre. Without intrinsics this is a plain cut (a
+            // camera looking through the image centre), black where it leaves the image.
+            let side = (CROP_MARGIN * c.width.max(c.height) as f64)
+                .round()
+                .max(1.0) as u32;
+            let cx = c.x as f64 + c.width as f64 / 2.0;
+            let cy = c.y as f64 + c.height as f64 / 2.0;
+            let left = (cx - side as f64 / 2.0).round() as i64;
+            let top = (cy - side as f64 / 2.0).round() as i64;
+            cut_square(&image, left, top, side)
         }
+    };
+    // Never stretch: a non-square image is padded (black) to a square around its centre.
+    let image = if image.width() == image.height() {
+        image
+    } else {
+        let side = image.width().max(image.height());
+        let left = (image.width() as i64 - side as i64) / 2;
+        let top = (image.height() as i64 - side as i64) / 2;
+        cut_square(&image, left, top, side)
     };
     let image = if image.width() == size && image.height() == size {
         image
@@ -175,4 +196,69 @@ pub fn prepare_image(
         image::imageops::resize(&image, size, size, FilterType::Triangle)
     };
     Ok(image.into_raw())
+}
+
+/// The `side × side` square of `image` whose top-left corner is `(left, top)` (which may lie
+/// outside the image); black where it leaves the image.
+fn cut_square(image: &RgbImage, left: i64, top: i64, side: u32) -> RgbImage {
+    let mut out = RgbImage::new(side, side);
+    image::imageops::overlay(&mut out, image, -left, -top);
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn raw(w: u32, h: u32, f: impl Fn(u32, u32) -> [u8; 3]) -> Vec<u8> {
+        let f = &f;
+        (0..h)
+            .flat_map(|y| (0..w).flat_map(move |x| f(x, y)))
+            .collect()
+    }
+
+    #[test]
+    fn non_square_images_are_padded_not_stretched() {
+        // A white 40×20 image: padded to 40×40, the top and bottom quarters are black.
+        let data = raw(40, 20, |_, _| [255, 255, 255]);
+        let request = ImageRequest {
+            data: &data,
+            raw_size: Some((40, 20)),
+            crop: None,
+        };
+        let out = prepare_image(&request, 40, &ImageLimits::default()).unwrap();
+        let at = |x: usize, y: usize| out[(y * 40 + x) * 3];
+        assert_eq!(at(20, 2), 0);
+        assert_eq!(at(20, 37), 0);
+        assert_eq!(at(20, 20), 255);
+        assert_eq!(at(1, 20), 255);
+    }
+
+    #[test]
+    fn a_box_is_cut_as_the_square_of_the_crop_convention() {
+        // A white 10×20 box at (20, 10) in a black 60×40 image: the crop is the 24×24 square
+        // around its centre (25, 20), so the box spans the middle 10/24 of the crop's width.
+        let data = raw(60, 40, |x, y| {
+            if (20..30).contains(&x) && (10..30).contains(&y) {
+                [255, 255, 255]
+            } else {
+                [0, 0, 0]
+            }
+        });
+        let request = ImageRequest {
+            data: &data,
+            raw_size: Some((60, 40)),
+            crop: Some(CropBox {
+                x: 20,
+                y: 10,
+                width: 10,
+                height: 20,
+            }),
+        };
+        let out = prepare_image(&request, 24, &ImageLimits::default()).unwrap();
+        let white: Vec<usize> = (0..24).filter(|&x| out[(12 * 24 + x) * 3] > 128).collect();
+        assert_eq!(white, (7..17).collect::<Vec<_>>());
+        let column: Vec<usize> = (0..24).filter(|&y| out[(y * 24 + 12) * 3] > 128).collect();
+        assert_eq!(column, (2..22).collect::<Vec<_>>());
+    }
 }
