@@ -129,20 +129,32 @@ impl ProjectedGrid {
 
     /// As [`ProjectedGrid::log_weights`], from image features `[B, D]` already encoded.
     pub fn log_weights_of_features(&self, network: &Network, features: Tensor<2>) -> Vec<Vec<f32>> {
+        self.branch_log_weights_of_features(network, features)
+            .into_iter()
+            .map(|(shape, feature)| shape.iter().zip(&feature).map(|(a, b)| a + b).collect())
+            .collect()
+    }
+
+    /// Each branch's log-weights `(s_θ, s_φ)` of every cell, per image, from image features.
+    pub fn branch_log_weights_of_features(
+        &self,
+        network: &Network,
+        features: Tensor<2>,
+    ) -> Vec<(Vec<f32>, Vec<f32>)> {
         let b = features.dims()[0];
-        let mut out = vec![Vec::with_capacity(self.grid.len()); b];
+        let n = self.grid.len();
+        let mut out = vec![(Vec::with_capacity(n), Vec::with_capacity(n)); b];
+        let read =
+            |t: Tensor<2>| -> Vec<f32> { t.into_data().try_to_vec::<f32>().expect("float scores") };
         for chunk in &self.chunks {
             let scores = network
                 .head
                 .forward_projected(features.clone(), chunk.clone());
             let k = chunk.dims()[1];
-            let flat: Vec<f32> = scores
-                .combined()
-                .into_data()
-                .try_to_vec::<f32>()
-                .expect("float scores");
-            for (i, row) in out.iter_mut().enumerate() {
-                row.extend_from_slice(&flat[i * k..(i + 1) * k]);
+            let (shape, feature) = (read(scores.shape), read(scores.feature));
+            for (i, (s, f)) in out.iter_mut().enumerate() {
+                s.extend_from_slice(&shape[i * k..(i + 1) * k]);
+                f.extend_from_slice(&feature[i * k..(i + 1) * k]);
             }
         }
         out

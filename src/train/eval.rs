@@ -37,6 +37,9 @@ pub struct EvalReport {
     pub overall: MetricsSummary,
     /// Images per second (encoder + head over the full grid + metrics).
     pub images_per_second: f64,
+    /// Over all images, the shape branch alone (`s_θ`) and the feature branch alone (`s_φ`).
+    #[serde(default)]
+    pub per_branch: Option<(MetricsSummary, MetricsSummary)>,
     /// Per object, the AR@30 of an argmax that ignores the image (the symmetry group's chance
     /// level). With Haar-uniform test poses the best image-independent distribution is uniform:
     /// LL 0 and this AR@30.
@@ -57,15 +60,21 @@ pub fn evaluate(
     let projected = ProjectedGrid::new(network, config, level, &device)?;
     let centres = projected.grid.quaternions();
     let mut per_image: Vec<(String, ImageMetrics)> = Vec::with_capacity(images.len());
+    let (mut shape_only, mut feature_only) = (Vec::new(), Vec::new());
     let mut ceiling = 0.0;
     for (n, batch) in images.chunks(4).enumerate() {
         let crops: Vec<&[u8]> = batch.iter().map(|i| i.rgb.as_slice()).collect();
         let tensor = images_tensor(&crops, config.image_size as usize, &device);
-        for (im, w) in batch.iter().zip(projected.log_weights(network, tensor)) {
-            per_image.push((
-                im.object.clone(),
-                image_metrics(&projected.grid, &centres, &w, &im.equivalents)?,
-            ));
+        let features = network.encoder.forward(tensor);
+        for (im, (s, f)) in batch
+            .iter()
+            .zip(projected.branch_log_weights_of_features(network, features))
+        {
+            let metrics = |w: &[f32]| image_metrics(&projected.grid, &centres, w, &im.equivalents);
+            let combined: Vec<f32> = s.iter().zip(&f).map(|(a, b)| a + b).collect();
+            per_image.push((im.object.clone(), metrics(&combined)?));
+            shape_only.push(metrics(&s)?);
+            feature_only.push(metrics(&f)?);
             ceiling += crate::so3::metrics::ll_ceiling(&projected.grid, &im.equivalents);
         }
         progress((n + 1) * 4);
@@ -103,6 +112,10 @@ pub fn evaluate(
         per_object,
         overall: summarize(&all, &thresholds),
         images_per_second: images.len() as f64 / started.elapsed().as_secs_f64(),
+        per_branch: Some((
+            summarize(&shape_only, &thresholds),
+            summarize(&feature_only, &thresholds),
+        )),
         chance_ar30,
     })
 }

@@ -35,6 +35,16 @@ pub(crate) fn print_eval(e: &alignist::train::eval::EvalReport) {
             m.images
         );
     }
+    if let Some((shape, feature)) = &e.per_branch {
+        for (name, m) in [("shape branch", shape), ("feature branch", feature)] {
+            eprintln!(
+                "  {name} alone: LL {:.2}  AR@30 {:.3}  median {:.1}°",
+                m.log_likelihood,
+                m.accuracy_at.first().map_or(f64::NAN, |a| a.1),
+                m.median_error_deg
+            );
+        }
+    }
     eprintln!(
         "  (uniform, the best image-independent answer for Haar-random poses: LL 0; LL ceiling {:.2})",
         e.ll_ceiling

@@ -36,8 +36,10 @@ pub(crate) fn results_cmd(bundles: &[PathBuf]) -> Result<()> {
             }
         }
     }
-    println!("| model | object | images | LL | ceiling | spread ° | AR@30 | median ° |");
-    println!("|---|---|---|---|---|---|---|---|");
+    println!(
+        "| model | object | images | LL | ceiling | spread ° | AR@30 | chance AR@30 | median ° |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|");
     for object in objects.iter().map(Some).chain([None]) {
         for (name, m) in &rows {
             let e = m.evaluation.as_ref().expect("checked");
@@ -48,8 +50,15 @@ pub(crate) fn results_cmd(bundles: &[PathBuf]) -> Result<()> {
                 },
                 None => &e.overall,
             };
+            let chance = match object {
+                Some(o) => e.chance_ar30.iter().find(|c| &c.0 == o).map(|c| c.1),
+                None if !e.chance_ar30.is_empty() => Some(
+                    e.chance_ar30.iter().map(|c| c.1).sum::<f64>() / e.chance_ar30.len() as f64,
+                ),
+                None => None,
+            };
             println!(
-                "| {name} | {} | {} | {:.2} | {} | {:.1} | {:.2} | {:.1} |",
+                "| {name} | {} | {} | {:.2} | {} | {:.1} | {:.2} | {} | {:.1} |",
                 object.map_or("**mean**", |o| o.as_str()),
                 summary.images,
                 summary.log_likelihood,
@@ -60,6 +69,7 @@ pub(crate) fn results_cmd(bundles: &[PathBuf]) -> Result<()> {
                 },
                 summary.spread_deg,
                 ar(summary),
+                chance.map_or(String::new(), |c| format!("{c:.2}")),
                 summary.median_error_deg
             );
         }
@@ -71,11 +81,13 @@ pub(crate) fn results_cmd(bundles: &[PathBuf]) -> Result<()> {
     println!("|---|---|---|---|---|---|---|");
     for (name, m) in &rows {
         let t = &m.provenance.train;
-        let method = match t.method {
-            alignist::train::Method::Alignist { .. } => "alignist (GKL)",
-            alignist::train::Method::Ipdf => "ipdf",
-        };
+        let method = describe_method(&t.method, &t.network.encoding);
         let images: usize = m.objects.iter().map(|o| o.train_images).sum();
+        let images = if images == 0 {
+            "fresh renders".to_string()
+        } else {
+            images.to_string()
+        };
         let e = m.evaluation.as_ref().expect("checked");
         println!(
             "| {name} | {method} | {images} | {} × {} × {} | {:.0} s | {} | {:.2} |",
@@ -83,4 +95,31 @@ pub(crate) fn results_cmd(bundles: &[PathBuf]) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// The method as the results table names it, from what the bundle was trained with.
+pub(crate) fn describe_method(
+    method: &alignist::train::Method,
+    encoding: &alignist::encoding::RotationEncoding,
+) -> String {
+    use alignist::encoding::RotationEncoding;
+    use alignist::train::{MeasureLoss, Method, SamplingStrategy};
+    let encoding = match encoding {
+        RotationEncoding::Cube => "cube PE",
+        RotationEncoding::Ipdf { .. } => "IPDF PE",
+    };
+    match method {
+        Method::Alignist { loss, sampling } => format!(
+            "alignist ({}, {}, {encoding})",
+            match loss {
+                MeasureLoss::Gkl => "GKL",
+                MeasureLoss::L1 => "L1",
+            },
+            match sampling {
+                SamplingStrategy::ModeFocused { .. } => "mode-focused",
+                SamplingStrategy::Uniform => "random sampling",
+            }
+        ),
+        Method::Ipdf => format!("ipdf ({encoding})"),
+    }
 }
