@@ -477,12 +477,20 @@ fn cube_mode_table_holds_every_symmetry_and_sampling_reaches_every_equivalent() 
     let grid = table.grid().unwrap();
     let group = SymmetryGroup::Octahedral.rotations();
     for s in &group {
-        // The symmetry's own cell, or (a symmetry on a cell boundary) a cell within 3°.
-        let near = table
+        // A cell whose centre is within 6° of the symmetry. The cube's symmetries sit on cell
+        // boundaries of the grid (their tilts are multiples of 90°, edges of the 7.5° tilt bins
+        // of level 4; 8 have their z axis at a pole, where cells are slivers), so the nearest
+        // centres are 3.0–3.5° away (measured on the default cube experts), not `cell_of`'s.
+        let nearest = table
             .cells
             .iter()
-            .any(|&c| geodesic_angle(&grid.rotation(c), s) < 3f64.to_radians());
-        assert!(near, "symmetry {s:?} is not in the mode table");
+            .map(|&c| geodesic_angle(&grid.rotation(c), s))
+            .fold(f64::INFINITY, f64::min);
+        assert!(
+            nearest < 6f64.to_radians(),
+            "symmetry {s:?}: the nearest table cell is {:.1}° away",
+            nearest.to_degrees()
+        );
     }
     let sampler = ModeSampler::new(&table, 0.0).unwrap();
     let mut rng = ChaCha8Rng::seed_from_u64(404);

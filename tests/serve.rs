@@ -223,6 +223,29 @@ async fn serves_predict_distribution_models_health_and_reflection() {
         names.contains(&"grpc.health.v1.Health".to_string()),
         "{names:?}"
     );
+    // v1alpha as well (Python's grpcio-reflection, older grpcurl and Postman ask it).
+    {
+        use tonic_reflection::pb::v1alpha::server_reflection_client::ServerReflectionClient;
+        use tonic_reflection::pb::v1alpha::server_reflection_request::MessageRequest;
+        use tonic_reflection::pb::v1alpha::server_reflection_response::MessageResponse;
+        let request = tonic_reflection::pb::v1alpha::ServerReflectionRequest {
+            host: String::new(),
+            message_request: Some(MessageRequest::ListServices(String::new())),
+        };
+        let first = ServerReflectionClient::new(ch.clone())
+            .server_reflection_info(tokio_stream::iter(vec![request]))
+            .await
+            .unwrap()
+            .into_inner()
+            .message()
+            .await
+            .unwrap()
+            .unwrap();
+        let Some(MessageResponse::ListServicesResponse(list)) = first.message_response else {
+            panic!("{first:?}")
+        };
+        assert!(list.service.iter().any(|s| s.name == "alignist.v1.Alignist"));
+    }
 
     // The CLI client against the same server.
     let dir = tempfile::tempdir().unwrap();

@@ -158,6 +158,9 @@ pub enum ServeError {
     /// Transport failure.
     #[error("gRPC transport: {0}")]
     Transport(#[from] tonic::transport::Error),
+    /// The reflection service could not be built from the file descriptor sets.
+    #[error("reflection: {0}")]
+    Reflection(#[from] tonic_reflection::server::Error),
 }
 
 /// Sets the health of the Alignist service and of the server as a whole ("").
@@ -222,14 +225,15 @@ pub async fn run(
 
     let (health, health_service) = tonic_health::server::health_reporter();
     report_health(&health, ServingStatus::NotServing).await;
-    let reflection = tonic_reflection::server::Builder::configure()
-        .register_encoded_file_descriptor_set(super::proto::FILE_DESCRIPTOR_SET)
-        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
-        .build_v1()
-        .map_err(|e| ServeError::Models {
-            path: "reflection".into(),
-            message: e.to_string(),
-        })?;
+    // Both reflection versions: v1 for current tools, v1alpha for Python's grpcio-reflection and
+    // older grpcurl/Postman.
+    let reflection_builder = || {
+        tonic_reflection::server::Builder::configure()
+            .register_encoded_file_descriptor_set(super::proto::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+    };
+    let reflection = reflection_builder().build_v1()?;
+    let reflection_v1alpha = reflection_builder().build_v1alpha()?;
 
     let state = ServiceState::default();
     let service = AlignistServer::new(AlignistService::new(state.clone()))
@@ -283,6 +287,7 @@ pub async fn run(
         .max_concurrent_streams(config.max_concurrent_streams)
         .add_service(health_service)
         .add_service(reflection)
+        .add_service(reflection_v1alpha)
         .add_service(service)
         .serve_with_incoming_shutdown(incoming, async {
             let _ = stopped.await;
