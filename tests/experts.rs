@@ -138,13 +138,7 @@ fn cube_targets_rank_every_equivalent_on_top() {
     for seed in [1u64, 2] {
         let r_gt = haar_rotation(&mut ChaCha8Rng::seed_from_u64(seed));
         let x0 = visible_points_at(&set.mesh, &r_gt, seed);
-        let t = baked.log_targets(&r_gt, &x0, &cells);
-        let total: Vec<f32> = t
-            .log_a_sdf
-            .iter()
-            .zip(&t.log_a_se)
-            .map(|(a, b)| a + b)
-            .collect();
+        let total = baked.log_targets(&r_gt, &x0, &cells).combined();
         let eq = equivalents(&r_gt, &SymmetryGroup::Octahedral.rotations());
         let mut sorted = total.clone();
         sorted.sort_by(|a, b| b.total_cmp(a));
@@ -155,12 +149,7 @@ fn cube_targets_rank_every_equivalent_on_top() {
             &x0,
             &eq.iter().map(to_row_major_f32).collect::<Vec<_>>(),
         );
-        let eq_scores: Vec<f32> = at_eq
-            .log_a_sdf
-            .iter()
-            .zip(&at_eq.log_a_se)
-            .map(|(a, b)| a + b)
-            .collect();
+        let eq_scores = at_eq.combined();
         let worst_equivalent = eq_scores.iter().cloned().fold(f32::INFINITY, f32::min);
         for e in &eq {
             let cell = grid.cell_of(e) as usize;

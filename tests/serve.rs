@@ -244,7 +244,11 @@ async fn serves_predict_distribution_models_health_and_reflection() {
         let Some(MessageResponse::ListServicesResponse(list)) = first.message_response else {
             panic!("{first:?}")
         };
-        assert!(list.service.iter().any(|s| s.name == "alignist.v1.Alignist"));
+        assert!(
+            list.service
+                .iter()
+                .any(|s| s.name == "alignist.v1.Alignist")
+        );
     }
 
     // The CLI client against the same server.

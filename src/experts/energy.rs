@@ -143,6 +143,17 @@ pub struct LogTargets {
     pub log_a_se: Vec<f32>,
 }
 
+impl LogTargets {
+    /// `log a^SDF + log a^SE` per candidate: the log of the product of experts (paper Eq. 3–4).
+    pub fn combined(&self) -> Vec<f32> {
+        self.log_a_sdf
+            .iter()
+            .zip(&self.log_a_se)
+            .map(|(a, b)| a + b)
+            .collect()
+    }
+}
+
 /// The experts, baked, with their energy hyper-parameters.
 #[derive(Debug, Clone)]
 pub struct BakedExperts {

@@ -69,13 +69,7 @@ fn relative_log_measure(
 ) -> Vec<f32> {
     let mut mats = vec![to_row_major_f32(r_gt)];
     mats.extend(relative.iter().map(|q| to_row_major_f32(&(r_gt * q))));
-    let t = experts.log_targets(r_gt, x0, &mats);
-    let total: Vec<f32> = t
-        .log_a_sdf
-        .iter()
-        .zip(&t.log_a_se)
-        .map(|(a, b)| a + b)
-        .collect();
+    let total = experts.log_targets(r_gt, x0, &mats).combined();
     total[1..].iter().map(|v| v - total[0]).collect()
 }
 

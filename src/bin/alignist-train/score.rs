@@ -131,12 +131,7 @@ pub(crate) fn score_cmd(args: &ScoreArgs) -> Result<()> {
         }
         if let (Some(group), Some(centres)) = (group, &centres) {
             let eq = equivalents(r_gt, &group.rotations());
-            let combined: Vec<f32> = targets
-                .log_a_sdf
-                .iter()
-                .zip(&targets.log_a_se)
-                .map(|(a, b)| a + b)
-                .collect();
+            let combined = targets.combined();
             let report = |w: &[f32]| -> Result<MassNearEquivalents> {
                 Ok(mass_near_equivalents(
                     &softmax(&grid, w)?,
