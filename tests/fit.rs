@@ -69,6 +69,8 @@ fn render_experts_fit_eval_and_load_a_bundle() {
         "2",
         "--bake-resolution",
         "16",
+        "--table-views",
+        "2",
         "--out",
         s(&experts),
     ]);

@@ -8,7 +8,7 @@ use std::process::{Child, Command, Stdio};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
-use alignist::cad::{Camera, RenderOptions, Shape, render};
+use alignist::cad::{Camera, RenderOptions, Shape};
 use alignist::serve::proto::{ImageInput, PredictRequest};
 use alignist::so3::haar_rotations;
 use rand::SeedableRng;
@@ -63,6 +63,8 @@ pub fn models_dir() -> &'static Path {
             "2",
             "--bake-resolution",
             "16",
+            "--table-views",
+            "2",
             "--out",
             &s(&experts),
         ]);
@@ -89,13 +91,15 @@ pub fn models_dir() -> &'static Path {
     })
 }
 
-/// PNG bytes of a cube render at a random rotation.
+/// PNG bytes of a cube crop at a random rotation, made by the crop convention.
 pub fn cube_png(seed: u64) -> Vec<u8> {
     let r = haar_rotations(&mut ChaCha8Rng::seed_from_u64(seed), 1)[0];
-    let rgb = render(
+    let rgb = alignist::data::virtual_crop::render_crop(
         &Shape::Cube.mesh(),
-        &Camera::square(SIZE),
         &alignist::data::symsol_pose(r),
+        &Camera::square(256),
+        SIZE,
+        2,
         &RenderOptions::default(),
     )
     .rgb;
