@@ -154,6 +154,68 @@ fn render_experts_fit_eval_and_load_a_bundle() {
     };
     assert_eq!(eval_overall("2")["images"], 2);
 
+    // Fresh renders instead of --data, with the L1 loss: the results table names each bundle's
+    // method as it was trained (it once printed "alignist (GKL)" for every alignist bundle).
+    let fresh = dir.path().join("fresh-l1");
+    let out = run(&[
+        "fit",
+        "--fresh",
+        "--experts",
+        s(&experts),
+        "--loss",
+        "l1",
+        "--out",
+        s(&fresh),
+        "--steps",
+        "2",
+        "--batch",
+        "2",
+        "--k",
+        "16",
+        "--image-size",
+        "32",
+        "--eval-level",
+        "1",
+        "--eval-images",
+        "4",
+        "--profile",
+    ]);
+    assert!(String::from_utf8_lossy(&out.stdout).contains("step profile"));
+    let fresh_eval = ModelBundle::load(&fresh)
+        .unwrap()
+        .manifest
+        .evaluation
+        .unwrap();
+    assert_eq!(fresh_eval.overall.images, 4);
+    assert_eq!(fresh_eval.chance_ar30.len(), 1);
+    let table = run(&["results", s(&bundle), s(&fresh)]);
+    let table = String::from_utf8_lossy(&table.stdout);
+    assert!(
+        table.contains("alignist (GKL, mode-focused, cube PE)"),
+        "{table}"
+    );
+    assert!(
+        table.contains("alignist (L1, mode-focused, cube PE)"),
+        "{table}"
+    );
+    assert!(table.contains("fresh renders"), "{table}");
+    // eval --fresh renders its own test crops of every object of the bundle.
+    run(&[
+        "eval",
+        "--model",
+        s(&fresh),
+        "--fresh",
+        "--images",
+        "3",
+        "--level",
+        "1",
+        "--out",
+        s(&report),
+    ]);
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    assert_eq!(json["overall"]["images"], 3);
+
     // The bundle read back scores as the network `fit` held in memory: evaluating the loaded
     // bundle on the same 3 test images at the same level reproduces the manifest's figures.
     let json = serde_json::json!({ "overall": eval_overall("3") });
