@@ -499,8 +499,10 @@ fn cube_mode_table_holds_every_symmetry_and_sampling_reaches_every_equivalent() 
             .iter()
             .filter(|r| geodesic_angle(r, &e) < 8f64.to_radians())
             .count();
+        // ~30 for most equivalents, ~10 for the 8 whose relative rotation has its z axis at a
+        // pole (the table holds 16 cells within 8° of those against 44: polar cells are slivers).
         assert!(
-            hits >= 10,
+            hits >= 3,
             "{hits} of 2000 samples within 8° of an equivalent"
         );
     }
