@@ -1,7 +1,7 @@
 //! The K rotations each training image is scored on (DESIGN.md §2, "Sampling").
 //!
-//! Mode-focused (the paper's): `focused` rotations `R_gt·Q`, with `Q` jittered uniformly inside a
-//! cell drawn from the object's [`ModeTable`] (the relative rotations where the experts' targets
+//! Mode-focused (the paper's): `focused` rotations `R_gt·Q`, with `Q` jittered uniformly in a
+//! small ball around the centre of a cell drawn from the object's [`ModeTable`] (the relative rotations where the experts' targets
 //! have mass, with their shoulders; uniformly over the table's cells by default, or tempered by
 //! their weights), the rest Haar-uniform, the ground truth first. Uniform (IPDF's, and the
 //! "random sampling" ablation): the ground truth, then K − 1 Haar-uniform rotations.
@@ -9,12 +9,12 @@
 //! Why uniform over the table rather than ∝ the targets: the targets are bells a few degrees wide,
 //! and samples drawn ∝ a bell land on its peak and teach nothing about its shoulders.
 
-use nalgebra::Rotation3;
+use nalgebra::{Rotation3, Unit, Vector3};
 use rand::{Rng, RngExt};
 use serde::{Deserialize, Serialize};
 
 use crate::experts::modes::ModeTable;
-use crate::so3::{GridLevel, So3Error, haar_rotation, jitter_in_cell};
+use crate::so3::{GridLevel, So3Error, haar_rotation};
 
 /// How the K rotations of an image are drawn.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -80,7 +80,12 @@ impl ModeSampler {
         })
     }
 
-    /// One relative rotation `Q`, uniform inside a drawn cell.
+    /// One relative rotation `Q`: a drawn cell's centre turned by a rotation drawn uniformly
+    /// (Haar) from the ball of radius [`ModeSampler::radius`] around the identity.
+    ///
+    /// Not uniform inside the cell: cells whose pixel touches a pole are ~90° slivers, and
+    /// samples spread along them missed the modes there (measured on the cube: 2 of 2 000
+    /// samples within 8° of a polar equivalent against ~30 elsewhere).
     pub fn draw<R: Rng + ?Sized>(&self, rng: &mut R) -> Rotation3<f64> {
         let i = match self.cumulative.last() {
             Some(&total) if total > 0.0 => {
@@ -91,8 +96,34 @@ impl ModeSampler {
             }
             _ => rng.random_range(0..self.cells.len()),
         };
-        jitter_in_cell(&self.grid, self.cells[i], rng)
+        self.grid.rotation(self.cells[i]) * ball_rotation(self.radius(), rng)
     }
+
+    /// Radius of the jitter: the edge of a cube of one cell's volume, `(π²/N)^⅓` (1.85° at
+    /// level 4), so that the balls around neighbouring centres overlap.
+    pub fn radius(&self) -> f64 {
+        (std::f64::consts::PI.powi(2) / self.grid.len() as f64).cbrt()
+    }
+}
+
+/// A rotation drawn uniformly (Haar) from the ball of angle `radius` around the identity: a
+/// uniform axis, and an angle with density ∝ `1 − cos θ` on `[0, radius]` (by rejection).
+pub fn ball_rotation<R: Rng + ?Sized>(radius: f64, rng: &mut R) -> Rotation3<f64> {
+    let axis = loop {
+        let v = Vector3::from_fn(|_, _| rng.random_range(-1.0..=1.0));
+        let n = v.norm();
+        if n > 1e-6 && n <= 1.0 {
+            break Unit::new_normalize(v);
+        }
+    };
+    let peak = 1.0 - radius.cos();
+    let angle = loop {
+        let theta = rng.random_range(0.0..=radius);
+        if rng.random_range(0.0..=peak) <= 1.0 - theta.cos() {
+            break theta;
+        }
+    };
+    Rotation3::from_axis_angle(&axis, angle)
 }
 
 /// Draws the K rotations: index 0 is `r_gt`. `modes` (the object's [`ModeSampler`]) is needed by
@@ -117,4 +148,23 @@ pub fn sample_rotations<R: Rng + ?Sized>(
         out.push(haar_rotation(rng));
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+
+    #[test]
+    fn ball_rotations_stay_inside_and_fill_the_ball() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let r = 2f64.to_radians();
+        let angles: Vec<f64> = (0..20_000)
+            .map(|_| ball_rotation(r, &mut rng).angle())
+            .collect();
+        assert!(angles.iter().all(|&a| a <= r + 1e-12));
+        // Haar in a small ball: density ∝ θ², so the mean angle is ¾ of the radius.
+        let mean = angles.iter().sum::<f64>() / angles.len() as f64;
+        assert!((mean / r - 0.75).abs() < 0.01, "mean {mean} of radius {r}");
+    }
 }
