@@ -1,8 +1,25 @@
-#!/bin/bash
-cd /work/main
-E=target/symsol/experts
-exec ./target/release/alignist-train fit --fresh \
-  --experts $E/tet --experts $E/cube --experts $E/icosa --experts $E/cone --experts $E/cyl \
+#!/usr/bin/env bash
+# Trains the shipped model models/symsol1 (one network for the five SYMSOL-I shapes) on fresh
+# renders, the way the shipped bundle was made (its manifest records the fit command).
+#   1. the experts of each shape (default settings; no symmetry is used), ~3 min each;
+#   2. 16 000 steps of batch 16 × K 256 on 32 px crops (~70 min on 2 cores), resumable;
+#   3. the bundle is evaluated on 250 fresh renders at level 3, then copied to models/symsol1.
+# Usage: scripts/train_shipped_model.sh [WORK_DIR]   (default: target/symsol)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+WORK=${1:-target/symsol}
+cargo build --release --bin alignist-train
+BIN=./target/release/alignist-train
+E=$WORK/experts
+for shape in tet cube icosa cone cyl; do
+  if [ ! -f "$E/$shape/manifest.json" ]; then
+    "$BIN" experts --shape "$shape" --out "$E/$shape"
+  fi
+done
+"$BIN" fit --fresh \
+  --experts "$E/tet" --experts "$E/cube" --experts "$E/icosa" --experts "$E/cone" --experts "$E/cyl" \
   --method alignist --image-size 32 --steps 16000 --batch 16 --k 256 --lr 1e-3 \
   --eval-level 3 --eval-images 50 --checkpoint-every 500 --seed 0 --profile --resume \
-  --out target/symsol/models/alignist-fresh
+  --out "$WORK/models/alignist-fresh"
+rm -rf models/symsol1
+cp -r "$WORK/models/alignist-fresh" models/symsol1
