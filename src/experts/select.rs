@@ -10,16 +10,15 @@
 //! pose that the experts cannot tell from the ground truth — its symmetric equivalents included,
 //! whichever they are.
 
-use nalgebra::{Rotation3, Unit, Vector3};
+use nalgebra::{Rotation3, Vector3};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
 
 use super::energy::{BakedExperts, EnergyParams, LogTargets, visible_points};
 use crate::cad::{Camera, Mesh, RenderOptions, render};
 use crate::data::symsol_pose;
-use crate::so3::{haar_rotation, to_row_major_f32};
+use crate::so3::{haar_rotation, random_axis, to_row_major_f32};
 
 /// Side of the NOCS render that visible points are taken from.
 pub const TARGET_RENDER_SIZE: u32 = 128;
@@ -93,16 +92,6 @@ pub struct EnergySelection {
     /// Number of random poses.
     #[serde(default)]
     pub poses: usize,
-}
-
-/// A uniformly random unit vector.
-fn random_axis(rng: &mut ChaCha8Rng) -> Unit<Vector3<f64>> {
-    loop {
-        let v = Vector3::from_fn(|_, _| StandardNormal.sample(rng));
-        if v.norm() > 1e-6 {
-            return Unit::new_normalize(v);
-        }
-    }
 }
 
 /// Mean raw energy rise (`U(R) − U(R_gt)` with λ = 1) of each expert at each angle of

@@ -12,7 +12,7 @@ pub use rotation::{
     from_quaternion, from_row_major, geodesic_angle, quaternion_angle, quaternion_dot, rot_x,
     rot_y, rot_z, to_quaternion, to_row_major, to_row_major_f32,
 };
-pub use sample::{haar_rotation, haar_rotations, jitter_in_cell};
+pub use sample::{haar_rotation, haar_rotations, jitter_in_cell, random_axis};
 pub use symmetry::{
     CONTINUOUS_STEPS, GOLDEN_RATIO, SymmetryGroup, cube_vertices, equivalents,
     icosahedron_vertices, maps_set_to_itself, tetrahedron_vertices,

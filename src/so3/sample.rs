@@ -2,7 +2,7 @@
 
 use std::f64::consts::TAU;
 
-use nalgebra::{Quaternion, Rotation3, UnitQuaternion, Vector3};
+use nalgebra::{Quaternion, Rotation3, Unit, UnitQuaternion, Vector3};
 use rand::{Rng, RngExt};
 use rand_distr::StandardNormal;
 
@@ -72,4 +72,14 @@ pub fn jitter_in_cell<R: Rng + ?Sized>(
 
 fn unit_vector(lon: f64, lat: f64) -> Vector3<f64> {
     Vector3::new(lat.cos() * lon.cos(), lat.cos() * lon.sin(), lat.sin())
+}
+
+/// A uniformly random unit vector (a normalised 3-d standard normal vector).
+pub fn random_axis<R: Rng + ?Sized>(rng: &mut R) -> Unit<Vector3<f64>> {
+    loop {
+        let v: Vector3<f64> = Vector3::from_fn(|_, _| rng.sample(StandardNormal));
+        if v.norm() > 1e-6 {
+            return Unit::new_normalize(v);
+        }
+    }
 }

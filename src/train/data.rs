@@ -6,7 +6,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use crate::cad::{Mesh, RenderOptions};
-use crate::data::virtual_crop::{frame_camera, random_placement, render_crop};
+use crate::data::virtual_crop::{RenderedCrop, frame_camera, random_placement, render_crop};
 use crate::data::{BopDataset, DataError};
 use crate::experts::energy::visible_points;
 use crate::experts::select::{VISIBLE_POINTS, visible_points_at};
@@ -88,6 +88,18 @@ pub struct FreshRenders {
 }
 
 impl FreshRenders {
+    /// The crop of object `object` placed at random in the frame (from `rng`).
+    fn random_crop<R: Rng + ?Sized>(&self, object: usize, size: u32, rng: &mut R) -> RenderedCrop {
+        render_crop(
+            &self.meshes[object],
+            &random_placement(rng),
+            &frame_camera(),
+            size,
+            self.supersample,
+            &RenderOptions::default(),
+        )
+    }
+
     /// A crop of object `object` placed at random in the frame (from `rng`), with its label in
     /// the virtual camera and the visible points of its render.
     pub fn training_image<R: Rng + ?Sized>(
@@ -96,15 +108,7 @@ impl FreshRenders {
         size: u32,
         rng: &mut R,
     ) -> TrainingImage {
-        let pose = random_placement(rng);
-        let crop = render_crop(
-            &self.meshes[object],
-            &pose,
-            &frame_camera(),
-            size,
-            self.supersample,
-            &RenderOptions::default(),
-        );
+        let crop = self.random_crop(object, size, rng);
         TrainingImage {
             object,
             rgb: crop.rgb,
@@ -126,17 +130,9 @@ impl FreshRenders {
     ) -> Vec<EvalImage> {
         let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0xe7a1);
         let mut out = Vec::with_capacity(per_object * self.meshes.len());
-        for (i, mesh) in self.meshes.iter().enumerate() {
+        for i in 0..self.meshes.len() {
             for _ in 0..per_object {
-                let pose = random_placement(&mut rng);
-                let crop = render_crop(
-                    mesh,
-                    &pose,
-                    &frame_camera(),
-                    size,
-                    self.supersample,
-                    &RenderOptions::default(),
-                );
+                let crop = self.random_crop(i, size, &mut rng);
                 out.push(EvalImage {
                     object: names[i].clone(),
                     rgb: crop.rgb,

@@ -9,12 +9,12 @@
 //! Why uniform over the table rather than ∝ the targets: the targets are bells a few degrees wide,
 //! and samples drawn ∝ a bell land on its peak and teach nothing about its shoulders.
 
-use nalgebra::{Rotation3, Unit, Vector3};
+use nalgebra::Rotation3;
 use rand::{Rng, RngExt};
 use serde::{Deserialize, Serialize};
 
 use crate::experts::modes::ModeTable;
-use crate::so3::{GridLevel, So3Error, haar_rotation};
+use crate::so3::{GridLevel, So3Error, haar_rotation, random_axis};
 
 /// How the K rotations of an image are drawn.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -109,13 +109,7 @@ impl ModeSampler {
 /// A rotation drawn uniformly (Haar) from the ball of angle `radius` around the identity: a
 /// uniform axis, and an angle with density ∝ `1 − cos θ` on `[0, radius]` (by rejection).
 pub fn ball_rotation<R: Rng + ?Sized>(radius: f64, rng: &mut R) -> Rotation3<f64> {
-    let axis = loop {
-        let v = Vector3::from_fn(|_, _| rng.random_range(-1.0..=1.0));
-        let n = v.norm();
-        if n > 1e-6 && n <= 1.0 {
-            break Unit::new_normalize(v);
-        }
-    };
+    let axis = random_axis(rng);
     let peak = 1.0 - radius.cos();
     let angle = loop {
         let theta = rng.random_range(0.0..=radius);
