@@ -1,13 +1,41 @@
 //! The nested grid: sizes, exact cells, nesting, equal volumes, the reference centres, the CLI.
 
 use alignist::so3::{
-    GridLevel, geodesic_angle, haar_rotations, jitter_in_cell, quaternion_angle, to_quaternion,
+    GridLevel, covering_radius, geodesic_angle, haar_rotations, jitter_in_cell, quaternion_angle,
+    to_quaternion,
 };
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 fn rng(seed: u64) -> ChaCha8Rng {
     ChaCha8Rng::seed_from_u64(seed)
+}
+
+/// `n` rotations `Rz(φ)·Ry(θ)·Rz(ψ)` whose z axis lies within 1° of the north pole, and `n`
+/// within 1° of the south pole.
+fn near_poles(r: &mut ChaCha8Rng, n: usize) -> Vec<nalgebra::Rotation3<f64>> {
+    use nalgebra::{Rotation3, Vector3};
+    let mut out = Vec::new();
+    for north in [true, false] {
+        for _ in 0..n {
+            let theta = r.random_range(0.0..1f64.to_radians());
+            let theta = if north {
+                theta
+            } else {
+                std::f64::consts::PI - theta
+            };
+            let (phi, psi) = (
+                r.random_range(0.0..std::f64::consts::TAU),
+                r.random_range(0.0..std::f64::consts::TAU),
+            );
+            out.push(
+                Rotation3::from_axis_angle(&Vector3::z_axis(), phi)
+                    * Rotation3::from_axis_angle(&Vector3::y_axis(), theta)
+                    * Rotation3::from_axis_angle(&Vector3::z_axis(), psi),
+            );
+        }
+    }
+    out
 }
 
 #[test]
@@ -64,7 +92,8 @@ fn jitter_fills_the_cell_not_only_its_centre() {
 
 #[test]
 fn cells_nest_exactly_across_levels() {
-    let rots = haar_rotations(&mut rng(3), 10_000);
+    let mut rots = haar_rotations(&mut rng(3), 10_000);
+    rots.extend(near_poles(&mut rng(13), 2_000));
     let grids: Vec<GridLevel> = (0..=6).map(|l| GridLevel::new(l).unwrap()).collect();
     for level in 0..=5usize {
         for r in &rots {
@@ -126,58 +155,58 @@ fn the_same_test_rejects_unequal_cells() {
 }
 
 #[test]
-fn covering_radius_halves_per_level_away_from_the_poles() {
-    // The covering radius is the largest angle from a rotation to its cell's centre. With the
-    // ZYZ construction (DESIGN.md §1), a cell's extent along the azimuth is its pixel's azimuth
-    // width in *angle of rotation* (a left Rz(Δφ) turns by Δφ whatever θ is), so cells near the
-    // poles are long: ~1.3/(N_side·θ) radians at polar angle θ (see `GridLevel::is_polar_cell`).
-    // For rotations whose z axis is at least 30° from both poles the radius halves per level.
-    let rots = haar_rotations(&mut rng(6), 100_000);
-    let min_polar = 30f64.to_radians();
-    let away: Vec<_> = rots
-        .iter()
-        .filter(|r| {
-            let theta = r.matrix()[(2, 2)].clamp(-1.0, 1.0).acos();
-            theta > min_polar && theta < std::f64::consts::PI - min_polar
-        })
-        .collect();
-    let radius = |level: u8, set: &[&nalgebra::Rotation3<f64>]| {
-        let g = GridLevel::new(level).unwrap();
-        set.iter()
-            .map(|r| geodesic_angle(r, &g.rotation(g.cell_of(r))))
-            .fold(0.0f64, f64::max)
-    };
-    let radii: Vec<f64> = (1..=5).map(|l| radius(l, &away)).collect();
-    for w in radii.windows(2) {
-        let ratio = w[0] / w[1];
-        assert!((1.6..2.5).contains(&ratio), "radii {radii:?}");
-    }
-    // Over all of SO(3) the slivers at the poles keep the radius large: checked so that a
-    // change of construction shows up here.
-    let all: Vec<_> = rots.iter().collect();
-    assert!(
-        radius(4, &all) > 4.0 * radii[3],
-        "all {} vs away {}",
-        radius(4, &all),
-        radii[3]
+fn every_rotation_lies_within_the_covering_radius() {
+    // The covering radius is the largest angle from a rotation to its cell's centre. Haar-random
+    // rotations, plus rotations whose z axis lies within 1° of either pole (where plain ZYZ cells
+    // were slivers ~90° long), at every level.
+    let mut rots = haar_rotations(&mut rng(6), 50_000);
+    rots.extend(near_poles(&mut rng(7), 20_000));
+    // Exactly at the poles too.
+    rots.push(nalgebra::Rotation3::from_axis_angle(
+        &nalgebra::Vector3::z_axis(),
+        1.0,
+    ));
+    rots.push(
+        nalgebra::Rotation3::from_axis_angle(&nalgebra::Vector3::y_axis(), std::f64::consts::PI)
+            * nalgebra::Rotation3::from_axis_angle(&nalgebra::Vector3::z_axis(), 1.0),
     );
+    let mut radii = Vec::new();
+    for level in 0..=6u8 {
+        let g = GridLevel::new(level).unwrap();
+        let worst = rots
+            .iter()
+            .map(|r| geodesic_angle(r, &g.rotation(g.cell_of(r))))
+            .fold(0.0f64, f64::max);
+        radii.push(worst.to_degrees());
+        assert!(
+            worst <= covering_radius(level),
+            "level {level}: {:.2}° > {:.2}°",
+            worst.to_degrees(),
+            covering_radius(level).to_degrees()
+        );
+        // And the bound is not loose: the worst case comes within 30 % of it.
+        assert!(
+            worst > 0.7 * covering_radius(level),
+            "level {level}: {radii:?}"
+        );
+    }
+    eprintln!("worst angle to the cell centre per level (deg): {radii:?}");
 }
 
 #[test]
-fn polar_cells_hold_their_share_of_the_volume() {
-    let rots = haar_rotations(&mut rng(16), 100_000);
-    for level in 0..=4u8 {
-        let g = GridLevel::new(level).unwrap();
-        let polar = rots
-            .iter()
-            .filter(|r| g.is_polar_cell(g.cell_of(r)))
-            .count() as f64;
-        // 8 of the 12·4^L pixels touch a pole.
-        let expected = rots.len() as f64 * 8.0 / (12.0 * 4f64.powi(level as i32));
-        assert!(
-            (polar - expected).abs() < 5.0 * expected.sqrt() + 5.0,
-            "level {level}: {polar} vs {expected}"
-        );
+fn polar_cells_are_compact_and_old_centres_stay_readable() {
+    // The old convention (plain ψ) differs only in the polar caps: equatorial cells keep their
+    // centres, and a polar cell's centre keeps its z axis.
+    let g = GridLevel::new(2).unwrap();
+    let per_base = g.len() as u64 / 12;
+    for i in (0..g.len() as u64).step_by(7) {
+        let (new, old) = (g.rotation(i), g.legacy_rotation(i));
+        let base = i / per_base;
+        if (4..8).contains(&base) {
+            assert!(geodesic_angle(&new, &old) < 1e-12, "cell {i}");
+        }
+        let (zn, zo) = (new * nalgebra::Vector3::z(), old * nalgebra::Vector3::z());
+        assert!((zn - zo).norm() < 1e-12, "cell {i}");
     }
 }
 
@@ -206,14 +235,15 @@ fn centres_match_the_healpy_reference() {
         let refs = reference(level);
         assert_eq!(refs.len(), g.len());
         for (i, q) in refs.iter().enumerate() {
-            let ours = to_quaternion(&g.rotation(i as u64));
+            // The reference is IPDF's construction (plain ψ tilt): our legacy centres.
+            let ours = to_quaternion(&g.legacy_rotation(i as u64));
             assert!(quaternion_angle(&ours, q) < 1e-6, "level {level} cell {i}");
         }
     }
 }
 
 #[test]
-fn grid_cli_writes_the_reference_and_refuses_level_7() {
+fn grid_cli_writes_the_centres_and_refuses_level_7() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("level1.csv");
     let exe = env!("CARGO_BIN_EXE_alignist-train");
@@ -226,7 +256,8 @@ fn grid_cli_writes_the_reference_and_refuses_level_7() {
     let text = std::fs::read_to_string(&out).unwrap();
     let mut lines = text.lines();
     assert_eq!(lines.next(), Some("index,qw,qx,qy,qz"));
-    let refs = reference(1);
+    let g = GridLevel::new(1).unwrap();
+    let refs = g.quaternions();
     let rows: Vec<&str> = lines.collect();
     assert_eq!(rows.len(), refs.len());
     for (row, q) in rows.iter().zip(&refs) {

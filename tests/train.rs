@@ -99,6 +99,7 @@ fn config(method: Method) -> TrainConfig {
         warmup: 2,
         seed: 11,
         checkpoint_every: 3,
+        init: None,
     }
 }
 
@@ -384,4 +385,57 @@ fn the_training_bench_prints_both_steps_and_their_ratio() {
         .parse()
         .unwrap();
     assert!(ratio > 0.0 && ratio.is_finite());
+}
+
+#[test]
+fn a_warm_restart_starts_from_the_given_weights_and_checks_them() {
+    use alignist::train::config::InitWeights;
+    let set = tiny_set();
+    let cfg = config(alignist_method());
+    let go = |c: &TrainConfig| train(c, &set, None, false, |_, _, _| ControlFlow::Continue(()));
+    let (a, _) = go(&cfg).unwrap();
+    let files = tempfile::tempdir().unwrap();
+    let path = files.path().join("network.safetensors");
+    let entry = alignist::bundle::save_weights(&a, &path).unwrap();
+    // Learning rate 0: the parameters stay where they started (BatchNorm's running statistics
+    // still move with the batches, so they are left out of the comparison).
+    let warm = TrainConfig {
+        lr: 0.0,
+        seed: 12,
+        init: Some(InitWeights {
+            path: path.display().to_string(),
+            file: entry.clone(),
+            trained_by: "the test's first run".into(),
+        }),
+        ..cfg.clone()
+    };
+    let parameters = |n: &Network, name: &str| {
+        let p = files.path().join(name);
+        alignist::bundle::save_weights(n, &p).unwrap();
+        let mut t = tensors(&p);
+        t.retain(|k, _| !k.contains("running"));
+        t
+    };
+    let (w, _) = go(&warm).unwrap();
+    let (ta, tw) = (
+        parameters(&a, "a.safetensors"),
+        parameters(&w, "w.safetensors"),
+    );
+    assert!(ta.len() > 10);
+    assert_eq!(
+        ta, tw,
+        "a warm restart at lr 0 must keep the weights it started from"
+    );
+    // The same run from a seeded initialisation keeps other weights.
+    let (s, _) = go(&TrainConfig {
+        init: None,
+        ..warm.clone()
+    })
+    .unwrap();
+    assert_ne!(ta, parameters(&s, "s.safetensors"));
+    // A weights file that is not the one recorded is refused, and the error names it.
+    let mut other = warm.clone();
+    other.init.as_mut().unwrap().file.sha256 = "0".repeat(64);
+    let err = go(&other).unwrap_err().to_string();
+    assert!(err.contains("network.safetensors"), "{err}");
 }

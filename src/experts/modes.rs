@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 use super::energy::BakedExperts;
 use super::select::visible_points_at;
 use crate::cad::Mesh;
-use crate::so3::{GridLevel, So3Error, haar_rotation, to_row_major_f32};
+use crate::so3::{GridConvention, GridLevel, So3Error, haar_rotation, to_row_major_f32};
 
 /// How the table is built.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -53,6 +53,10 @@ impl Default for ModeTableConfig {
 pub struct ModeTable {
     /// How it was built.
     pub config: ModeTableConfig,
+    /// The grid convention of `cells` (tables written before compact polar cells have none and
+    /// are read in the old one).
+    #[serde(default)]
+    pub grid: GridConvention,
     /// Cell indices at `config.level`, best first.
     pub cells: Vec<u64>,
     /// `max over views of log a(R_gt·Q) − log a(R_gt)` per cell.
@@ -140,6 +144,7 @@ impl ModeTable {
                 level: fine.level(),
                 ..*config
             },
+            grid: GridConvention::CompactPoles,
             cells: best.iter().map(|&i| candidates[i]).collect(),
             log_weights: best.iter().map(|&i| fine_best[i]).collect(),
         })
@@ -148,6 +153,16 @@ impl ModeTable {
     /// The grid level of the cells.
     pub fn grid(&self) -> Result<GridLevel, So3Error> {
         GridLevel::new(self.config.level)
+    }
+
+    /// The centre rotations of the cells, in the table's grid convention.
+    pub fn centres(&self) -> Result<Vec<Rotation3<f64>>, So3Error> {
+        let grid = self.grid()?;
+        Ok(self
+            .cells
+            .iter()
+            .map(|&c| grid.rotation_in(self.grid, c))
+            .collect())
     }
 
     /// Checks the table against its own level: cells in range, one weight per cell, finite

@@ -7,7 +7,7 @@ mod rotation;
 mod sample;
 mod symmetry;
 
-pub use grid::{GridLevel, MAX_LEVEL};
+pub use grid::{GridConvention, GridLevel, MAX_LEVEL, covering_radius};
 pub use rotation::{
     from_quaternion, from_row_major, geodesic_angle, quaternion_angle, quaternion_dot, rot_x,
     rot_y, rot_z, to_quaternion, to_row_major, to_row_major_f32,

@@ -66,7 +66,9 @@ pub fn jitter_in_cell<R: Rng + ?Sized>(
     let theta = axis.z.clamp(-1.0, 1.0).acos();
     let phi = axis.y.atan2(axis.x);
     let bin = TAU / grid.n_tilts() as f64;
-    let psi = (tilt as f64 + rng.random_range(0.0..1.0)) * bin;
+    let tau = (tilt as f64 + rng.random_range(0.0..1.0)) * bin;
+    // The pixel's tilt rule, τ = ψ + s·φ (grid module docs).
+    let psi = tau - grid.tilt_sign(pixel) * phi;
     Rotation3::from_matrix_unchecked(pixel_frame(theta, phi) * rot_z_matrix(psi))
 }
 

@@ -120,6 +120,7 @@ pub fn bench_training(config: &TrainingBenchConfig) -> Result<TrainingBench, Tra
             warmup: 1,
             seed: 0,
             checkpoint_every: usize::MAX,
+            init: None,
         };
         train(&cfg, &set, None, false, |_, _, _| ControlFlow::Continue(()))
             .map(|(_, report)| report.profile)

@@ -52,6 +52,24 @@ pub struct TrainConfig {
     pub seed: u64,
     /// Steps between checkpoints.
     pub checkpoint_every: usize,
+    /// Weights to start from instead of a seeded initialisation (a warm restart: a new schedule
+    /// from a trained model's weights). `None`: seeded initialisation.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub init: Option<InitWeights>,
+}
+
+/// A trained network's weights file, named with its checksum so that a run records exactly what
+/// it started from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct InitWeights {
+    /// The weights file (a bundle's `network.safetensors`).
+    pub path: String,
+    /// Its checksum and size, checked before loading.
+    pub file: crate::bundle::FileEntry,
+    /// The command that trained it (from its bundle's manifest), so that the chain of runs
+    /// behind a model stays on record.
+    #[serde(default)]
+    pub trained_by: String,
 }
 
 /// Learning rate at `step`: linear warm-up, then cosine decay to 1 % of the peak.

@@ -14,7 +14,7 @@ use rand::{Rng, RngExt};
 use serde::{Deserialize, Serialize};
 
 use crate::experts::modes::ModeTable;
-use crate::so3::{GridLevel, So3Error, haar_rotation, random_axis};
+use crate::so3::{So3Error, haar_rotation, random_axis};
 
 /// How the K rotations of an image are drawn.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -45,8 +45,10 @@ impl SamplingStrategy {
 /// Draws cells of an object's [`ModeTable`].
 #[derive(Debug, Clone)]
 pub struct ModeSampler {
-    grid: GridLevel,
-    cells: Vec<u64>,
+    /// Cells of the table's level (for the jitter radius).
+    level_cells: usize,
+    /// The centres of the table's cells.
+    centres: Vec<Rotation3<f64>>,
     /// Cumulative weights (empty when uniform).
     cumulative: Vec<f64>,
 }
@@ -74,8 +76,8 @@ impl ModeSampler {
                 .collect()
         };
         Ok(Self {
-            grid,
-            cells: table.cells.clone(),
+            level_cells: grid.len(),
+            centres: table.centres()?,
             cumulative,
         })
     }
@@ -83,26 +85,26 @@ impl ModeSampler {
     /// One relative rotation `Q`: a drawn cell's centre turned by a rotation drawn uniformly
     /// (Haar) from the ball of radius [`ModeSampler::radius`] around the identity.
     ///
-    /// Not uniform inside the cell: cells whose pixel touches a pole are ~90° slivers, and
-    /// samples spread along them missed the modes there (measured on the cube: 2 of 2 000
-    /// samples within 8° of a polar equivalent against ~30 elsewhere).
+    /// A ball rather than the cell itself: with the old grid's ~90° polar slivers, samples spread
+    /// along them missed the modes there (measured on the cube: 2 of 2 000 samples within 8° of
+    /// a polar equivalent against ~30 elsewhere), and a ball is the same shape everywhere.
     pub fn draw<R: Rng + ?Sized>(&self, rng: &mut R) -> Rotation3<f64> {
         let i = match self.cumulative.last() {
             Some(&total) if total > 0.0 => {
                 let u = rng.random_range(0.0..total);
                 self.cumulative
                     .partition_point(|&c| c <= u)
-                    .min(self.cells.len() - 1)
+                    .min(self.centres.len() - 1)
             }
-            _ => rng.random_range(0..self.cells.len()),
+            _ => rng.random_range(0..self.centres.len()),
         };
-        self.grid.rotation(self.cells[i]) * ball_rotation(self.radius(), rng)
+        self.centres[i] * ball_rotation(self.radius(), rng)
     }
 
     /// Radius of the jitter: the edge of a cube of one cell's volume, `(π²/N)^⅓` (1.85° at
     /// level 4), so that the balls around neighbouring centres overlap.
     pub fn radius(&self) -> f64 {
-        (std::f64::consts::PI.powi(2) / self.grid.len() as f64).cbrt()
+        (std::f64::consts::PI.powi(2) / self.level_cells as f64).cbrt()
     }
 }
 
@@ -132,7 +134,7 @@ pub fn sample_rotations<R: Rng + ?Sized>(
     let mut out = Vec::with_capacity(k);
     out.push(*r_gt);
     if let (SamplingStrategy::ModeFocused { focused, .. }, Some(modes)) = (strategy, modes)
-        && !modes.cells.is_empty()
+        && !modes.centres.is_empty()
     {
         for _ in 0..(*focused).min(k.saturating_sub(1)) {
             out.push(r_gt * modes.draw(rng));

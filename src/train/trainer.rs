@@ -263,9 +263,17 @@ pub fn train(
         network = net;
         optim = opt;
         start = state.step;
+    } else if let Some(init) = &config.init {
+        let loaded = crate::bundle::load_weights(network, Path::new(&init.path), &init.file)
+            .map_err(|e| TrainError::Checkpoint {
+                path: init.path.clone(),
+                message: format!("the weights to start from: {e}"),
+            })?;
+        // As after a checkpoint: loading runs ops on the parameters, fork gives them a graph.
+        network = loaded.valid().train().fork(&device);
     }
     let samplers = mode_samplers(config, set)?;
-    if start == 0 && matches!(config.method, Method::Alignist { .. }) {
+    if start == 0 && config.init.is_none() && matches!(config.method, Method::Alignist { .. }) {
         let (sdf, se) = mean_log_targets(config, set, config.batch, &samplers);
         network.head = network.head.with_output_biases(sdf, se);
     }

@@ -77,6 +77,11 @@ pub(crate) struct FitArgs {
     /// Continue from the last checkpoint.
     #[arg(long)]
     resume: bool,
+    /// Start from a trained model bundle's weights (same network flags) with a new schedule
+    /// instead of a seeded initialisation: a warm restart. The manifest records the file and its
+    /// sha256.
+    #[arg(long)]
+    init: Option<PathBuf>,
     /// Grid level of the evaluation.
     #[arg(long, default_value_t = 4)]
     eval_level: u8,
@@ -313,6 +318,11 @@ pub(crate) fn fit_cmd(args: &FitArgs) -> Result<()> {
         warmup: (args.steps / 20).max(1),
         seed: args.seed,
         checkpoint_every: args.checkpoint_every,
+        init: args
+            .init
+            .as_deref()
+            .map(|dir| init_weights(dir, &network))
+            .transpose()?,
     };
     let checkpoints = args
         .checkpoints
@@ -392,6 +402,40 @@ pub(crate) fn fit_cmd(args: &FitArgs) -> Result<()> {
         print_eval(&e);
     }
     Ok(())
+}
+
+/// The weights of the bundle in `dir`, checked to be of the network `fit` is asked to train.
+fn init_weights(
+    dir: &Path,
+    network: &alignist::train::NetworkConfig,
+) -> Result<alignist::train::config::InitWeights> {
+    use alignist::bundle::model::{ModelBundle, NETWORK_FILE};
+    let bundle = ModelBundle::load(dir).with_context(|| format!("--init {}", dir.display()))?;
+    if &bundle.manifest.network != network {
+        bail!(
+            "--init {}: its network ({}) is not the one asked for ({}); give the same --layout, \
+             --encoding and --image-size",
+            dir.display(),
+            serde_json::to_string(&bundle.manifest.network)?,
+            serde_json::to_string(network)?
+        );
+    }
+    let file = bundle
+        .manifest
+        .files
+        .get(NETWORK_FILE)
+        .cloned()
+        .with_context(|| {
+            format!(
+                "--init {}: the manifest lists no {NETWORK_FILE}",
+                dir.display()
+            )
+        })?;
+    Ok(alignist::train::config::InitWeights {
+        path: dir.join(NETWORK_FILE).display().to_string(),
+        file,
+        trained_by: bundle.manifest.provenance.command.clone(),
+    })
 }
 
 /// Progress lines for logs (a bar is drawn only on a terminal): every 2 % of the run or every
