@@ -240,6 +240,27 @@ fn the_perspective_crop_of_an_off_centre_object_is_the_virtual_cameras_view() {
         let warped = box_filter(&warped, 128, 4);
         // …and the virtual camera's view rendered directly, 4× supersampled.
         let direct = render_crop(&mesh, &pose, &camera, 32, 4, &RenderOptions::default());
+        // The serving path's crop, warped straight to 32² (anti-aliased inside), is close too.
+        let (served, _) = perspective_crop(
+            &full.rgb,
+            camera.width,
+            camera.height,
+            &camera.k(),
+            bbox,
+            32,
+        )
+        .unwrap();
+        let served_mad = direct
+            .rgb
+            .iter()
+            .zip(&served)
+            .map(|(a, b)| (*a as f64 - *b as f64).abs())
+            .sum::<f64>()
+            / served.len() as f64;
+        assert!(
+            served_mad < 3.0,
+            "({u}, {v}): served crop differs by {served_mad} grey levels"
+        );
         let mad = direct
             .rgb
             .iter()

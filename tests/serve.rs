@@ -657,3 +657,243 @@ async fn a_full_queue_answers_unavailable_and_an_expired_call_gives_up() {
     let answer = client.predict(predict_request(31, 2, 2)).await.unwrap();
     assert_eq!(answer.into_inner().top.len(), 2);
 }
+
+/// A 640×480 PNG with the cube at `(u, v)` in the frame camera, its integer box, and `K`.
+fn frame_png(rotation: nalgebra::Rotation3<f64>, u: f64, v: f64) -> (Vec<u8>, [u32; 4], [f64; 9]) {
+    use alignist::cad::{Pose, RenderOptions, render};
+    use alignist::data::virtual_crop::{frame_camera, object_box};
+    let mesh = Shape::Cube.mesh().normalised().0;
+    let camera = frame_camera();
+    let z = 5.0;
+    let pose = Pose {
+        rotation,
+        translation: nalgebra::Vector3::new(
+            (u - camera.cx) / camera.fx * z,
+            (v - camera.cy) / camera.fy * z,
+            z,
+        ),
+    };
+    let full = render(&mesh, &camera, &pose, &RenderOptions::default());
+    let b = object_box(&mesh, &pose, &camera);
+    let (x0, y0) = (b[0].floor().max(0.0), b[1].floor().max(0.0));
+    let bbox = [
+        x0 as u32,
+        y0 as u32,
+        ((b[0] + b[2]).ceil() - x0) as u32,
+        ((b[1] + b[3]).ceil() - y0) as u32,
+    ];
+    let mut png = Vec::new();
+    image::RgbImage::from_raw(camera.width, camera.height, full.rgb)
+        .unwrap()
+        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+        .unwrap();
+    (png, bbox, camera.k())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn frame_requests_answer_every_box_in_the_camera_frame() {
+    use alignist::data::virtual_crop::{VirtualCamera, perspective_crop};
+    use alignist::serve::proto::{Detection, FrameRequest, Intrinsics};
+    use alignist::so3::{from_quaternion, geodesic_angle};
+    let server = start_server(&[]);
+    let ch = channel(&server).await;
+    wait_serving(ch.clone()).await;
+    let mut client = AlignistClient::new(ch.clone());
+
+    let r_cam = haar_rotations(&mut ChaCha8Rng::seed_from_u64(21), 1)[0];
+    let (png, bbox, k) = frame_png(r_cam, 520.0, 130.0);
+    let other = [20u32, 300, 90, 120];
+    let detection = |b: [u32; 4]| Detection {
+        r#box: Some(CropBox {
+            x: b[0],
+            y: b[1],
+            width: b[2],
+            height: b[3],
+        }),
+        object: String::new(),
+    };
+    let intrinsics = Some(Intrinsics {
+        fx: k[0],
+        fy: k[4],
+        cx: k[2],
+        cy: k[5],
+    });
+    let request = FrameRequest {
+        model: "tiny".into(),
+        image: image(png.clone()),
+        intrinsics,
+        detections: vec![detection(bbox), detection(other)],
+        top_k: 5,
+        level: 3,
+        mode_angle_deg: 0.0,
+    };
+    let answer = client
+        .predict_frame(request.clone())
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(answer.detections.len(), 2);
+    assert_eq!(answer.model, "tiny");
+    let sha = client
+        .get_model(GetModelRequest {
+            name: "tiny".into(),
+        })
+        .await
+        .unwrap()
+        .into_inner()
+        .network_sha256;
+    assert_eq!(answer.model_version, sha);
+
+    // Each answer is the crop-only answer for that box's perspective crop, turned by R_ray.
+    let rgb = image::load_from_memory(&png).unwrap().to_rgb8();
+    for (d, b) in answer.detections.iter().zip([bbox, other]) {
+        let bf = [b[0] as f64, b[1] as f64, b[2] as f64, b[3] as f64];
+        let (crop, view) = perspective_crop(rgb.as_raw(), 640, 480, &k, bf, 32).unwrap();
+        assert_eq!(
+            view.r_ray,
+            VirtualCamera::looking_at(&k, bf, 32).unwrap().r_ray
+        );
+        let ray = d.ray.as_ref().unwrap();
+        let ray = from_quaternion([ray.w, ray.x, ray.y, ray.z]).unwrap();
+        assert!(geodesic_angle(&ray, &view.r_ray) < 1e-9);
+        let centred = client
+            .predict(PredictRequest {
+                model: "tiny".into(),
+                image: Some(ImageInput {
+                    data: crop,
+                    width: 32,
+                    height: 32,
+                    crop: None,
+                }),
+                top_k: 5,
+                level: 3,
+                ..Default::default()
+            })
+            .await
+            .unwrap()
+            .into_inner();
+        let framed = d.prediction.as_ref().unwrap();
+        assert_eq!(framed.model_version, sha);
+        assert_eq!(framed.top.len(), 5);
+        for (f, c) in framed.top.iter().zip(&centred.top) {
+            assert_eq!(f.cell, c.cell);
+            let q = |r: &alignist::serve::proto::Rotation| {
+                from_quaternion([r.w, r.x, r.y, r.z]).unwrap()
+            };
+            let (rf, rc) = (
+                q(f.rotation.as_ref().unwrap()),
+                q(c.rotation.as_ref().unwrap()),
+            );
+            assert!(geodesic_angle(&rf, &(view.r_ray * rc)) < 1e-9);
+            // The typed rotation's matrix is its quaternion's.
+            let m = &f.rotation.as_ref().unwrap().matrix;
+            assert_eq!(m.len(), 9);
+            for (i, v) in m.iter().enumerate() {
+                assert!((v - rf.matrix()[(i / 3, i % 3)]).abs() < 1e-12);
+            }
+        }
+    }
+
+    // Bad frames: each INVALID_ARGUMENT names its field.
+    let bad = |f: &dyn Fn(&mut FrameRequest)| {
+        let mut r = request.clone();
+        f(&mut r);
+        r
+    };
+    let cases: Vec<(FrameRequest, &str)> = vec![
+        (
+            bad(&|r| r.detections[1] = detection([600, 400, 100, 100])),
+            "detections[1].box",
+        ),
+        (
+            bad(&|r| r.detections[0] = detection([10, 10, 0, 20])),
+            "detections[0].box",
+        ),
+        (
+            bad(&|r| r.intrinsics.as_mut().unwrap().fx = 0.0),
+            "intrinsics.fx",
+        ),
+        (
+            bad(&|r| r.intrinsics.as_mut().unwrap().fy = -5.0),
+            "intrinsics.fy",
+        ),
+        (bad(&|r| r.intrinsics = None), "intrinsics"),
+        (bad(&|r| r.detections.clear()), "detections"),
+        (bad(&|r| r.detections[0].r#box = None), "detections[0].box"),
+        (
+            bad(&|r| {
+                r.image.as_mut().unwrap().crop = Some(CropBox {
+                    x: 0,
+                    y: 0,
+                    width: 5,
+                    height: 5,
+                })
+            }),
+            "image.crop",
+        ),
+    ];
+    for (req, field) in cases {
+        let status = client.predict_frame(req).await.unwrap_err();
+        assert_eq!(status.code(), Code::InvalidArgument, "{field}: {status:?}");
+        assert!(
+            status.message().contains(field),
+            "{field}: {}",
+            status.message()
+        );
+    }
+
+    // The CLI: one block per box, rotations in the camera frame.
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("frame.png");
+    std::fs::write(&path, &png).unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_alignist"))
+        .args(["--server", &server.grpc, "predict", "--image"])
+        .arg(&path)
+        .args([
+            "--intrinsics",
+            &format!("{},{},{},{}", k[0], k[4], k[2], k[5]),
+            "--box",
+            &format!("{},{},{},{}", bbox[0], bbox[1], bbox[2], bbox[3]),
+            "--box",
+            "20,300,90,120",
+            "--top-k",
+            "3",
+            "--json",
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let detections = json["detections"].as_array().unwrap();
+    assert_eq!(detections.len(), 2);
+    assert_eq!(
+        detections[0]["prediction"]["top"].as_array().unwrap().len(),
+        3
+    );
+    // A box without intrinsics is refused by the CLI itself, naming the flag.
+    let out = Command::new(env!("CARGO_BIN_EXE_alignist"))
+        .args(["--server", &server.grpc, "predict", "--image"])
+        .arg(&path)
+        .args(["--box", "1,2,3,4"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--intrinsics"));
+
+    // Objects are described for planners: the cube's group, its rotations, its frame.
+    let models = client
+        .list_models(ListModelsRequest {})
+        .await
+        .unwrap()
+        .into_inner()
+        .models;
+    let cube = &models[0].objects[0];
+    assert_eq!(cube.symmetry, "O");
+    assert_eq!(cube.symmetry_rotations.len(), 24);
+    assert!(cube.symmetry_axis.is_none());
+    assert!(cube.frame_scale > 0.0 && cube.frame_centre.is_some());
+}

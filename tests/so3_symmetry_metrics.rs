@@ -342,3 +342,24 @@ fn ipdf_encoding_matches_hand_computed_values() {
     assert!((e[18 + 9 + 1] - (-1f32).cos()).abs() < 1e-7);
     assert_eq!(RotationEncoding::Ipdf { frequencies: 3 }.dim(), 54);
 }
+
+#[test]
+fn recorded_symmetry_sets_are_named_by_their_group() {
+    use alignist::so3::{SymmetryGroup, rot_x};
+    for name in ["none", "T", "O", "I", "C6", "D4", "cone", "cylinder"] {
+        let g: SymmetryGroup = name.parse().unwrap();
+        let mut rotations = g.rotations();
+        rotations.reverse();
+        assert_eq!(SymmetryGroup::identify(&rotations), Some(g), "{name}");
+    }
+    assert_eq!(SymmetryGroup::Cylinder.axis(), Some(nalgebra::Vector3::z()));
+    assert!(SymmetryGroup::Cone.is_continuous() && !SymmetryGroup::Octahedral.is_continuous());
+    assert_eq!(SymmetryGroup::Octahedral.axis(), None);
+    // A set that is no named group (C4 turned about x) is not given a name.
+    let turned: Vec<_> = SymmetryGroup::Cyclic(4)
+        .rotations()
+        .iter()
+        .map(|s| rot_x(0.3) * s * rot_x(-0.3))
+        .collect();
+    assert_eq!(SymmetryGroup::identify(&turned), None);
+}

@@ -59,8 +59,17 @@ enum Command {
         #[arg(long)]
         json: bool,
         /// Also draw the distribution at level 3 (IPDF-style plot) to this PNG.
-        #[arg(long)]
+        #[arg(long, conflicts_with = "intrinsics")]
         plot: Option<PathBuf>,
+        /// The camera's intrinsics fx,fy,cx,cy in pixels: --image is then the full camera image,
+        /// each --box is cropped as a virtual camera looking at it sees it, and every rotation is
+        /// answered in the real camera's frame (PredictFrame).
+        #[arg(long, value_parser = parse_intrinsics, requires = "boxes", conflicts_with = "crop")]
+        intrinsics: Option<[f64; 4]>,
+        /// A detection box x,y,width,height in pixels of the full image; repeat per object (needs
+        /// --intrinsics).
+        #[arg(long = "box", id = "boxes", value_parser = parse_crop, requires = "intrinsics")]
+        boxes: Vec<[u32; 4]>,
     },
     /// The full distribution at one grid level, written as CSV (index,probability,log_density).
     Distribution {
@@ -125,6 +134,23 @@ fn parse_crop(s: &str) -> Result<[u32; 4], String> {
         .map_err(|_| format!("'{s}': expected 4 numbers x,y,width,height"))
 }
 
+fn parse_intrinsics(s: &str) -> Result<[f64; 4], String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| format!("'{s}': {e} (expected fx,fy,cx,cy)"))?;
+    let v: [f64; 4] = v
+        .try_into()
+        .map_err(|_| format!("'{s}': expected 4 numbers fx,fy,cx,cy"))?;
+    if !(v.iter().all(|x| x.is_finite()) && v[0] > 0.0 && v[1] > 0.0) {
+        return Err(format!(
+            "'{s}': fx and fy must be positive, all four finite"
+        ));
+    }
+    Ok(v)
+}
+
 fn read_image(args: &ImageArgs) -> Result<alignist::serve::proto::ImageInput> {
     let data = std::fs::read(&args.image)
         .with_context(|| format!("reading --image {}", args.image.display()))?;
@@ -170,7 +196,49 @@ async fn run(cli: Cli) -> Result<()> {
             top_k,
             level,
             json,
+            plot: _,
+            intrinsics: Some([fx, fy, cx, cy]),
+            boxes,
+        } => {
+            use alignist::serve::proto::{CropBox, Detection, FrameRequest, Intrinsics};
+            let request = FrameRequest {
+                model: image.model.clone(),
+                image: Some(read_image(&image)?),
+                intrinsics: Some(Intrinsics { fx, fy, cx, cy }),
+                detections: boxes
+                    .iter()
+                    .map(|&[x, y, width, height]| Detection {
+                        r#box: Some(CropBox {
+                            x,
+                            y,
+                            width,
+                            height,
+                        }),
+                        object: image.object.clone(),
+                    })
+                    .collect(),
+                top_k,
+                level,
+                mode_angle_deg: 0.0,
+            };
+            let answer = client::predict_frame(channel, request).await?;
+            if json {
+                println!(
+                    "{}",
+                    serde_json::to_string_pretty(&client::frame_json(&answer))?
+                );
+            } else {
+                print!("{}", client::frame_table(&answer));
+            }
+        }
+        Command::Predict {
+            image,
+            top_k,
+            level,
+            json,
             plot,
+            intrinsics: None,
+            ..
         } => {
             let request = PredictRequest {
                 model: image.model.clone(),

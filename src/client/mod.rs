@@ -10,8 +10,8 @@ use tonic::transport::{Channel, Endpoint};
 
 use crate::serve::proto::alignist_client::AlignistClient;
 use crate::serve::proto::{
-    CropBox, DistributionRequest, ImageInput, ListModelsRequest, ModelInfo, PredictRequest,
-    PredictResponse,
+    CropBox, DistributionRequest, FrameRequest, FrameResponse, ImageInput, ListModelsRequest,
+    ModelInfo, PredictRequest, PredictResponse, Rotation,
 };
 
 /// Client errors; a server status keeps its code and message.
@@ -83,6 +83,15 @@ pub async fn predict(
     Ok(client.predict(request).await?.into_inner())
 }
 
+/// PredictFrame: one answer per detection box of a full image.
+pub async fn predict_frame(
+    channel: Channel,
+    request: FrameRequest,
+) -> Result<FrameResponse, ClientError> {
+    let mut client = AlignistClient::new(channel).max_decoding_message_size(64 << 20);
+    Ok(client.predict_frame(request).await?.into_inner())
+}
+
 /// The full distribution, reassembled from its chunks: `(level, probabilities, log-densities)`.
 pub async fn distribution(
     channel: Channel,
@@ -140,13 +149,41 @@ fn quaternion(q: &[f64]) -> String {
     format!("({})", v.join(", "))
 }
 
+/// The quaternion `(w, x, y, z)` of an answer: the typed rotation, or the older `quaternion`
+/// field of servers that do not send one.
+#[allow(deprecated)]
+fn quaternion_of(rotation: &Option<Rotation>, old: &[f64]) -> Vec<f64> {
+    match rotation {
+        Some(r) => vec![r.w, r.x, r.y, r.z],
+        None => old.to_vec(),
+    }
+}
+
+#[allow(deprecated)]
+fn top_quaternion(t: &crate::serve::proto::RotationProbability) -> Vec<f64> {
+    quaternion_of(&t.rotation, &t.quaternion)
+}
+
+#[allow(deprecated)]
+fn mode_quaternion(m: &crate::serve::proto::Mode) -> Vec<f64> {
+    quaternion_of(&m.rotation, &m.quaternion)
+}
+
 /// A Predict answer as a table.
 pub fn predict_table(r: &PredictResponse) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "model {}{}: {} modes, search covered {:.1} % of the mass{} ({:.1} ms)",
+        "model {}{}{}: {} modes, search covered {:.1} % of the mass{} ({:.1} ms)",
         r.model,
+        if r.model_version.is_empty() {
+            String::new()
+        } else {
+            format!(
+                " (version {})",
+                &r.model_version[..r.model_version.len().min(12)]
+            )
+        },
         if r.object.is_empty() {
             String::new()
         } else {
@@ -168,7 +205,7 @@ pub fn predict_table(r: &PredictResponse) -> String {
             i + 1,
             t.probability,
             t.log_density,
-            quaternion(&t.quaternion)
+            quaternion(&top_quaternion(t))
         );
     }
     let _ = writeln!(s, "\n mode  probability  spread°  cells  mean quaternion");
@@ -180,7 +217,7 @@ pub fn predict_table(r: &PredictResponse) -> String {
             m.probability,
             m.spread_deg,
             m.cells,
-            quaternion(&m.quaternion)
+            quaternion(&mode_quaternion(m))
         );
     }
     s
@@ -190,22 +227,74 @@ pub fn predict_table(r: &PredictResponse) -> String {
 pub fn predict_json(r: &PredictResponse) -> serde_json::Value {
     let rot = |t: &crate::serve::proto::RotationProbability| {
         serde_json::json!({
-            "quaternion": t.quaternion, "probability": t.probability,
+            "quaternion": top_quaternion(t),
+            "matrix": t.rotation.as_ref().map(|r| r.matrix.clone()),
+            "probability": t.probability,
             "log_density": t.log_density, "level": t.level, "cell": t.cell,
         })
     };
     serde_json::json!({
         "model": r.model,
+        "model_version": r.model_version,
         "object": r.object,
         "top": r.top.iter().map(rot).collect::<Vec<_>>(),
         "map": r.map.as_ref().map(rot),
         "modes": r.modes.iter().map(|m| serde_json::json!({
-            "quaternion": m.quaternion, "probability": m.probability,
+            "quaternion": mode_quaternion(m), "probability": m.probability,
             "spread_deg": m.spread_deg, "cells": m.cells,
         })).collect::<Vec<_>>(),
         "covered_mass": r.covered_mass,
         "depth_fused": r.depth_fused,
         "compute_ms": r.compute_ms,
+    })
+}
+
+/// A PredictFrame answer as a table: one block per detection, rotations in the camera frame.
+pub fn frame_table(r: &FrameResponse) -> String {
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "{} detections, rotations in the camera frame ({:.1} ms)",
+        r.detections.len(),
+        r.compute_ms
+    );
+    for (i, d) in r.detections.iter().enumerate() {
+        let b = d.r#box.unwrap_or_default();
+        let ray = d
+            .ray
+            .as_ref()
+            .map(|q| quaternion(&[q.w, q.x, q.y, q.z]))
+            .unwrap_or_default();
+        let _ = writeln!(
+            s,
+            "\n== box {} at ({}, {}) {}×{}, ray {ray}",
+            i + 1,
+            b.x,
+            b.y,
+            b.width,
+            b.height
+        );
+        if let Some(p) = &d.prediction {
+            s.push_str(&predict_table(p));
+        }
+    }
+    s
+}
+
+/// A PredictFrame answer as JSON.
+pub fn frame_json(r: &FrameResponse) -> serde_json::Value {
+    serde_json::json!({
+        "model": r.model,
+        "model_version": r.model_version,
+        "compute_ms": r.compute_ms,
+        "detections": r.detections.iter().map(|d| {
+            let b = d.r#box.unwrap_or_default();
+            serde_json::json!({
+                "box": [b.x, b.y, b.width, b.height],
+                "ray": d.ray.as_ref().map(|q| [q.w, q.x, q.y, q.z]),
+                "prediction": d.prediction.as_ref().map(predict_json),
+            })
+        }).collect::<Vec<_>>(),
     })
 }
 
@@ -231,10 +320,23 @@ pub fn models_table(models: &[ModelInfo]) -> String {
             t.median_error_deg
         );
         for o in &m.objects {
+            let axis = o
+                .symmetry_axis
+                .map(|a| format!(" about ({:+.3}, {:+.3}, {:+.3})", a.x, a.y, a.z))
+                .unwrap_or_default();
+            let c = o.frame_centre.unwrap_or_default();
             let _ = writeln!(
                 s,
-                "  {} ({}, {} training images)",
-                o.name, o.symmetry, o.train_images
+                "  {}: symmetry {}{axis} ({} rotations listed), frame = (mesh − ({:.4}, {:.4}, \
+                 {:.4})) / {:.4}, {} training images",
+                o.name,
+                o.symmetry,
+                o.symmetry_rotations.len(),
+                c.x,
+                c.y,
+                c.z,
+                o.frame_scale,
+                o.train_images
             );
         }
     }

@@ -246,9 +246,11 @@ pub fn box_filter(rgb: &[u8], big: usize, ss: usize) -> Vec<u8> {
 }
 
 /// The crop of a full RGB8 image (`width × height`, intrinsics `k`) as the virtual camera of
-/// `bbox` sees it, `size` pixels a side: every crop pixel is the bilinear sample of the image at
-/// its homography image, black outside the image. `None` where [`VirtualCamera::looking_at`]
-/// refuses the box or the intrinsics.
+/// `bbox` sees it, `size` pixels a side, black outside the image. `None` where
+/// [`VirtualCamera::looking_at`] refuses the box or the intrinsics.
+///
+/// Anti-aliased like the training renders: when one crop pixel covers `s > 1` image pixels, the
+/// warp samples (bilinearly) a grid `ceil(s)` times finer (at most 8) and box-filters it down.
 pub fn perspective_crop(
     rgb: &[u8],
     width: u32,
@@ -258,6 +260,26 @@ pub fn perspective_crop(
     size: u32,
 ) -> Option<(Vec<u8>, VirtualCamera)> {
     let view = VirtualCamera::looking_at(k, bbox, size)?;
+    // Image pixels per crop pixel, along the box's longer side.
+    let scale = CROP_MARGIN * bbox[2].max(bbox[3]) / size as f64;
+    let ss = (scale.ceil() as u32).clamp(1, 8);
+    if ss == 1 {
+        return Some((warp(rgb, width, height, k, &view, size), view));
+    }
+    let fine = VirtualCamera::looking_at(k, bbox, size * ss)?;
+    let big = warp(rgb, width, height, k, &fine, size * ss);
+    Some((box_filter(&big, (size * ss) as usize, ss as usize), view))
+}
+
+/// Bilinear samples of the image at the homography image of every pixel of `view`'s crop.
+fn warp(
+    rgb: &[u8],
+    width: u32,
+    height: u32,
+    k: &[f64; 9],
+    view: &VirtualCamera,
+    size: u32,
+) -> Vec<u8> {
     let h = view.homography(k);
     let (w_px, h_px) = (width as i64, height as i64);
     let at = |x: i64, y: i64, c: usize| -> f64 {
@@ -288,5 +310,5 @@ pub fn perspective_crop(
             }
         }
     }
-    Some((out, view))
+    out
 }

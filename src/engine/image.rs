@@ -70,6 +70,162 @@ pub fn prepare_image(
     size: u32,
     limits: &ImageLimits,
 ) -> Result<Vec<u8>, EngineError> {
+    let image = decode_image(request, limits)?;
+    let image = match request.crop {
+        None => image,
+        Some(c) => {
+            check_box(&c, &image, "image.crop")?;
+            // The crop convention's scale rule (DESIGN.md §1): a square of CROP_MARGIN × the
+            // box's longer side around its centre. Without intrinsics this is a plain cut (a
+            // camera looking through the image centre), black where it leaves the image.
+            let side = (CROP_MARGIN * c.width.max(c.height) as f64)
+                .round()
+                .max(1.0) as u32;
+            let cx = c.x as f64 + c.width as f64 / 2.0;
+            let cy = c.y as f64 + c.height as f64 / 2.0;
+            let left = (cx - side as f64 / 2.0).round() as i64;
+            let top = (cy - side as f64 / 2.0).round() as i64;
+            cut_square(&image, left, top, side)
+        }
+    };
+    // Never stretch: a non-square image is padded (black) to a square around its centre.
+    let image = if image.width() == image.height() {
+        image
+    } else {
+        let side = image.width().max(image.height());
+        let left = (image.width() as i64 - side as i64) / 2;
+        let top = (image.height() as i64 - side as i64) / 2;
+        cut_square(&image, left, top, side)
+    };
+    let image = if image.width() == size && image.height() == size {
+        image
+    } else {
+        image::imageops::resize(&image, size, size, FilterType::Triangle)
+    };
+    Ok(image.into_raw())
+}
+
+/// Pinhole intrinsics of a full camera image, in pixels.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Intrinsics {
+    /// Focal length along x (> 0).
+    pub fx: f64,
+    /// Focal length along y (> 0).
+    pub fy: f64,
+    /// Principal point, x.
+    pub cx: f64,
+    /// Principal point, y.
+    pub cy: f64,
+}
+
+impl Intrinsics {
+    /// Checks the values; the error names the field (`intrinsics.fx`, …).
+    pub fn validate(&self) -> Result<(), EngineError> {
+        for (name, v, positive) in [
+            ("fx", self.fx, true),
+            ("fy", self.fy, true),
+            ("cx", self.cx, false),
+            ("cy", self.cy, false),
+        ] {
+            if !v.is_finite() || (positive && v <= 0.0) {
+                let need = if positive { "a positive" } else { "a finite" };
+                return Err(invalid(
+                    &format!("intrinsics.{name}"),
+                    format!("must be {need} number of pixels, got {v}"),
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// The row-major 3×3 matrix `K`.
+    pub fn matrix(&self) -> [f64; 9] {
+        [self.fx, 0.0, self.cx, 0.0, self.fy, self.cy, 0.0, 0.0, 1.0]
+    }
+}
+
+/// One detection's crop, as the network sees it, and the rotation of its virtual camera.
+#[derive(Debug, Clone)]
+pub struct FrameCrop {
+    /// `size × size` RGB8.
+    pub rgb: Vec<u8>,
+    /// `R_ray`: `R_camera = R_ray · R_virtual`.
+    pub r_ray: nalgebra::Rotation3<f64>,
+}
+
+/// Decodes a full camera image once and makes the perspective crop of each box
+/// ([`crate::data::virtual_crop::perspective_crop`], the training data's convention). Errors
+/// name the field: `image.…`, `intrinsics.…`, `detections[i].box`.
+pub fn prepare_frame(
+    request: &ImageRequest<'_>,
+    intrinsics: &Intrinsics,
+    boxes: &[CropBox],
+    size: u32,
+    limits: &ImageLimits,
+) -> Result<Vec<FrameCrop>, EngineError> {
+    intrinsics.validate()?;
+    if request.crop.is_some() {
+        return Err(invalid(
+            "image.crop",
+            "must be unset in a frame request (the detections' boxes say where to look)",
+        ));
+    }
+    let image = decode_image(request, limits)?;
+    for (i, b) in boxes.iter().enumerate() {
+        check_box(b, &image, &format!("detections[{i}].box"))?;
+    }
+    let k = intrinsics.matrix();
+    boxes
+        .iter()
+        .enumerate()
+        .map(|(i, b)| {
+            let bbox = [b.x as f64, b.y as f64, b.width as f64, b.height as f64];
+            let (rgb, view) = crate::data::virtual_crop::perspective_crop(
+                image.as_raw(),
+                image.width(),
+                image.height(),
+                &k,
+                bbox,
+                size,
+            )
+            .ok_or_else(|| invalid(&format!("detections[{i}].box"), "has no area"))?;
+            Ok(FrameCrop {
+                rgb,
+                r_ray: view.r_ray,
+            })
+        })
+        .collect()
+}
+
+/// Checks that a box has a positive size and lies inside the image.
+fn check_box(c: &CropBox, image: &RgbImage, field: &str) -> Result<(), EngineError> {
+    if c.width == 0 || c.height == 0 {
+        return Err(invalid(
+            field,
+            format!("has zero size ({}×{})", c.width, c.height),
+        ));
+    }
+    if c.x as u64 + c.width as u64 > image.width() as u64
+        || c.y as u64 + c.height as u64 > image.height() as u64
+    {
+        return Err(invalid(
+            field,
+            format!(
+                "({}, {}) {}×{} is not inside the {}×{} image",
+                c.x,
+                c.y,
+                c.width,
+                c.height,
+                image.width(),
+                image.height()
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// Decodes PNG/JPEG or raw RGB8 within the limits (checked before decoding).
+fn decode_image(request: &ImageRequest<'_>, limits: &ImageLimits) -> Result<RgbImage, EngineError> {
     let data = request.data;
     if data.is_empty() {
         return Err(invalid("image.data", "is empty"));
@@ -99,7 +255,7 @@ pub fn prepare_image(
         }
         Ok(())
     };
-    let image = match request.raw_size {
+    Ok(match request.raw_size {
         Some((w, h)) => {
             check_pixels(w, h)?;
             let expected = w as u64 * h as u64 * 3;
@@ -142,60 +298,7 @@ pub fn prepare_image(
                 .map_err(|e| invalid("image.data", format!("is not a valid image: {e}")))?
                 .to_rgb8()
         }
-    };
-    let image = match request.crop {
-        None => image,
-        Some(c) => {
-            if c.width == 0 || c.height == 0 {
-                return Err(invalid(
-                    "image.crop",
-                    format!("has zero size ({}×{})", c.width, c.height),
-                ));
-            }
-            if c.x as u64 + c.width as u64 > image.width() as u64
-                || c.y as u64 + c.height as u64 > image.height() as u64
-            {
-                return Err(invalid(
-                    "image.crop",
-                    format!(
-                        "({}, {}) {}×{} is not inside the {}×{} image",
-                        c.x,
-                        c.y,
-                        c.width,
-                        c.height,
-                        image.width(),
-                        image.height()
-                    ),
-                ));
-            }
-            // The crop convention's scale rule (DESIGN.md §1): a square of CROP_MARGIN × the
-            // box's longer side around its centre. Without intrinsics this is a plain cut (a
-            // camera looking through the image centre), black where it leaves the image.
-            let side = (CROP_MARGIN * c.width.max(c.height) as f64)
-                .round()
-                .max(1.0) as u32;
-            let cx = c.x as f64 + c.width as f64 / 2.0;
-            let cy = c.y as f64 + c.height as f64 / 2.0;
-            let left = (cx - side as f64 / 2.0).round() as i64;
-            let top = (cy - side as f64 / 2.0).round() as i64;
-            cut_square(&image, left, top, side)
-        }
-    };
-    // Never stretch: a non-square image is padded (black) to a square around its centre.
-    let image = if image.width() == image.height() {
-        image
-    } else {
-        let side = image.width().max(image.height());
-        let left = (image.width() as i64 - side as i64) / 2;
-        let top = (image.height() as i64 - side as i64) / 2;
-        cut_square(&image, left, top, side)
-    };
-    let image = if image.width() == size && image.height() == size {
-        image
-    } else {
-        image::imageops::resize(&image, size, size, FilterType::Triangle)
-    };
-    Ok(image.into_raw())
+    })
 }
 
 /// The `side × side` square of `image` whose top-left corner is `(left, top)` (which may lie

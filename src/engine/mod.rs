@@ -12,7 +12,9 @@ use std::sync::Arc;
 
 use burn::tensor::{Device, Tensor};
 
-pub use self::image::{CropBox, ImageLimits, ImageRequest, prepare_image};
+pub use self::image::{
+    CropBox, FrameCrop, ImageLimits, ImageRequest, Intrinsics, prepare_frame, prepare_image,
+};
 pub use fusion::DepthFusion;
 pub use search::{CellProbability, Mode, SearchResult, coarse_to_fine, group_modes};
 
@@ -99,8 +101,12 @@ impl Default for EngineConfig {
 pub struct ModelObject {
     /// Name.
     pub name: String,
-    /// Number of proper symmetries recorded for the object (1 = none).
-    pub symmetry_count: usize,
+    /// The proper symmetries recorded with the object's experts (identity first).
+    pub symmetries: Vec<nalgebra::Rotation3<f64>>,
+    /// Their group, when they form a named one.
+    pub symmetry_group: Option<crate::so3::SymmetryGroup>,
+    /// How the source mesh maps to the object frame.
+    pub normalisation: crate::cad::Normalisation,
     /// Training images.
     pub train_images: usize,
     /// The SDF expert, for RGB-D fusion.
@@ -151,6 +157,21 @@ pub struct Prediction {
     pub modes: Vec<Mode>,
     /// Mass the search's finest cells are estimated to cover.
     pub covered_mass: f64,
+}
+
+impl Prediction {
+    /// The same answer for a crop whose virtual camera is turned by `r_ray` in the real camera:
+    /// every rotation (top cells and modes) becomes `R_ray·R`. Cells keep indexing the grid of
+    /// `R`, the crop camera's frame.
+    pub fn in_camera_frame(mut self, r_ray: &nalgebra::Rotation3<f64>) -> Prediction {
+        let turn = |q: &mut [f64; 4]| {
+            let r = crate::so3::from_quaternion(*q).expect("the engine's quaternions are unit");
+            *q = crate::so3::to_quaternion(&(r_ray * r));
+        };
+        self.rotations.iter_mut().for_each(turn);
+        self.modes.iter_mut().for_each(|m| turn(&mut m.quaternion));
+        self
+    }
 }
 
 /// What a prediction asks for beyond the image.
@@ -206,7 +227,9 @@ impl Model {
             .zip(bundle.experts)
             .map(|(o, set)| ModelObject {
                 name: o.name.clone(),
-                symmetry_count: set.manifest.object.symmetries.len(),
+                symmetries: set.symmetries(),
+                symmetry_group: crate::so3::SymmetryGroup::identify(&set.symmetries()),
+                normalisation: set.manifest.object.normalisation,
                 train_images: o.train_images,
                 fusion: DepthFusion::new(set),
             })
@@ -279,6 +302,31 @@ impl Model {
     /// Decodes, crops and resizes a request image to the model's input.
     pub fn prepare(&self, image: &ImageRequest<'_>) -> Result<Vec<u8>, EngineError> {
         prepare_image(image, self.input_size(), &self.config.image_limits)
+    }
+
+    /// Decodes a full camera image once and makes each box's perspective crop
+    /// ([`image::prepare_frame`]).
+    pub fn prepare_frame(
+        &self,
+        image: &ImageRequest<'_>,
+        intrinsics: &Intrinsics,
+        boxes: &[CropBox],
+    ) -> Result<Vec<FrameCrop>, EngineError> {
+        prepare_frame(
+            image,
+            intrinsics,
+            boxes,
+            self.input_size(),
+            &self.config.image_limits,
+        )
+    }
+
+    /// The model's version: the sha256 of its network weights.
+    pub fn version(&self) -> &str {
+        self.manifest
+            .files
+            .get(crate::bundle::model::NETWORK_FILE)
+            .map_or("", |f| f.sha256.as_str())
     }
 
     /// Image features `[B, D]` of prepared crops (one encoder pass for the batch), on the

@@ -188,3 +188,35 @@ impl ModeTable {
         Ok(())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tables_written_before_compact_polar_cells_keep_their_centres() {
+        // A format-2 `modes.json` has no `grid` field: its cells are read in the old convention.
+        let cells = [0u64, 5, 3000, 20_000];
+        let old = serde_json::json!({
+            "config": ModeTableConfig::default(),
+            "cells": cells,
+            "log_weights": [0.0, -0.1, -0.2, -0.3],
+        });
+        let table: ModeTable = serde_json::from_value(old).unwrap();
+        assert_eq!(table.grid, GridConvention::IpdfZyz);
+        let grid = table.grid().unwrap();
+        for (c, centre) in cells.iter().zip(table.centres().unwrap()) {
+            assert_eq!(centre, grid.legacy_rotation(*c));
+        }
+        // Cell 0 lies in a north polar base pixel, where the conventions differ.
+        assert!(crate::so3::geodesic_angle(&grid.legacy_rotation(0), &grid.rotation(0)) > 1e-3);
+        // A table written now says so, and reads back in the current convention.
+        let now = ModeTable {
+            grid: GridConvention::CompactPoles,
+            ..table
+        };
+        let back: ModeTable = serde_json::from_str(&serde_json::to_string(&now).unwrap()).unwrap();
+        assert_eq!(back.grid, GridConvention::CompactPoles);
+        assert_eq!(back.centres().unwrap()[0], grid.rotation(0));
+    }
+}

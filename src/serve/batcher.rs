@@ -90,6 +90,32 @@ impl Batcher {
 
     /// Queues a prepared crop and waits for its features.
     pub async fn encode(&self, crop: Vec<u8>) -> Result<Encoded, BatchError> {
+        let answer = self.submit(crop)?;
+        answer
+            .await
+            .map_err(|_| BatchError::Stopped(self.model.clone()))
+    }
+
+    /// Encodes several crops of one request: all are queued at once, so that they share encoder
+    /// batches (up to `max_batch` each); the features come back in the crops' order.
+    pub async fn encode_many(&self, crops: Vec<Vec<u8>>) -> Result<Vec<Encoded>, BatchError> {
+        let answers = crops
+            .into_iter()
+            .map(|c| self.submit(c))
+            .collect::<Result<Vec<_>, _>>()?;
+        let mut out = Vec::with_capacity(answers.len());
+        for answer in answers {
+            out.push(
+                answer
+                    .await
+                    .map_err(|_| BatchError::Stopped(self.model.clone()))?,
+            );
+        }
+        Ok(out)
+    }
+
+    /// Queues one crop (refused at once when the queue is full).
+    fn submit(&self, crop: Vec<u8>) -> Result<oneshot::Receiver<Encoded>, BatchError> {
         let (reply, answer) = oneshot::channel();
         let job = Job {
             crop,
@@ -103,9 +129,7 @@ impl Batcher {
             },
             mpsc::error::TrySendError::Closed(_) => BatchError::Stopped(self.model.clone()),
         })?;
-        answer
-            .await
-            .map_err(|_| BatchError::Stopped(self.model.clone()))
+        Ok(answer)
     }
 }
 

@@ -226,11 +226,7 @@ fn prepare(
         )),
         _ => None,
     };
-    let batcher = served
-        .batchers
-        .get(&model.name)
-        .cloned()
-        .ok_or_else(|| Status::internal(format!("model '{}' has no batcher", model.name)))?;
+    let batcher = batcher_of(served, &model)?;
     Ok(Prepared {
         model,
         object,
@@ -258,6 +254,24 @@ async fn encode(p: &Prepared) -> Result<Vec<f32>, Status> {
     Ok(encoded.features)
 }
 
+/// A typed rotation from a unit quaternion `(w, x, y, z)`.
+fn rotation_message(q: [f64; 4]) -> proto::Rotation {
+    let r = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+        q[0], q[1], q[2], q[3],
+    ))
+    .to_rotation_matrix();
+    let m = r.matrix();
+    proto::Rotation {
+        w: q[0],
+        x: q[1],
+        y: q[2],
+        z: q[3],
+        matrix: (0..9).map(|i| m[(i / 3, i % 3)]).collect(),
+    }
+}
+
+// The deprecated `quaternion` fields are still filled, for clients built before `rotation`.
+#[allow(deprecated)]
 fn rotation_probability(
     level: u8,
     cell: &crate::engine::CellProbability,
@@ -269,8 +283,79 @@ fn rotation_probability(
         log_density: cell.log_density,
         level: level as u32,
         cell: cell.cell,
+        rotation: Some(rotation_message(q)),
     }
 }
+
+#[allow(deprecated)]
+fn mode_message(m: &crate::engine::search::Mode) -> proto::Mode {
+    proto::Mode {
+        quaternion: m.quaternion.to_vec(),
+        probability: m.probability,
+        spread_deg: m.spread_deg,
+        cells: m.cells as u32,
+        rotation: Some(rotation_message(m.quaternion)),
+    }
+}
+
+/// The Predict answer of one image.
+fn predict_response(
+    model: &Model,
+    object: Option<usize>,
+    level: u8,
+    prediction: &crate::engine::Prediction,
+    depth_fused: bool,
+    started: Instant,
+) -> PredictResponse {
+    let top: Vec<RotationProbability> = prediction
+        .top
+        .iter()
+        .zip(&prediction.rotations)
+        .map(|(c, q)| rotation_probability(level, c, *q))
+        .collect();
+    PredictResponse {
+        model: model.name.clone(),
+        object: object
+            .map(|i| model.objects[i].name.clone())
+            .unwrap_or_default(),
+        map: top.first().cloned(),
+        top,
+        modes: prediction.modes.iter().map(mode_message).collect(),
+        covered_mass: prediction.covered_mass,
+        depth_fused,
+        compute_ms: started.elapsed().as_secs_f64() * 1e3,
+        model_version: model.version().to_string(),
+    }
+}
+
+/// The options of Predict and PredictFrame, validated.
+fn predict_options(top_k: u32, level: u32, mode_angle_deg: f32) -> Result<PredictOptions, Status> {
+    if !mode_angle_deg.is_finite() {
+        return Err(Status::invalid_argument(
+            "mode_angle_deg: must be a finite number of degrees",
+        ));
+    }
+    Ok(PredictOptions {
+        top_k: top_k as usize,
+        level: match level {
+            0 => None,
+            l => Some(small_level(l, "level")?),
+        },
+        mode_angle_deg: (mode_angle_deg != 0.0).then_some(mode_angle_deg as f64),
+    })
+}
+
+/// The encoder batcher of a loaded model.
+fn batcher_of(served: &Served, model: &Model) -> Result<Batcher, Status> {
+    served
+        .batchers
+        .get(&model.name)
+        .cloned()
+        .ok_or_else(|| Status::internal(format!("model '{}' has no batcher", model.name)))
+}
+
+/// Most detections in one PredictFrame request.
+pub const MAX_DETECTIONS: usize = 32;
 
 fn small_level(value: u32, field: &str) -> Result<u8, Status> {
     u8::try_from(value)
@@ -289,19 +374,7 @@ impl AlignistService {
         let started = Instant::now();
         let served = self.state.current()?;
         let p = prepare(&served, &req.model, &req.object, req.image, req.depth)?;
-        if !req.mode_angle_deg.is_finite() {
-            return Err(Status::invalid_argument(
-                "mode_angle_deg: must be a finite number of degrees",
-            ));
-        }
-        let options = PredictOptions {
-            top_k: req.top_k as usize,
-            level: match req.level {
-                0 => None,
-                l => Some(small_level(l, "level")?),
-            },
-            mode_angle_deg: (req.mode_angle_deg != 0.0).then_some(req.mode_angle_deg as f64),
-        };
+        let options = predict_options(req.top_k, req.level, req.mode_angle_deg)?;
         let level = p.model.check_predict(&options).map_err(status_of)?;
         let features = encode(&p).await?;
         let model = p.model.clone();
@@ -318,32 +391,121 @@ impl AlignistService {
         .await?;
         metrics::histogram!("alignist_compute_seconds", "method" => "Predict")
             .record(compute.elapsed().as_secs_f64());
-        let top: Vec<RotationProbability> = prediction
-            .top
+        Ok(predict_response(
+            &p.model,
+            p.object,
+            level,
+            &prediction,
+            fused,
+            started,
+        ))
+    }
+
+    async fn do_frame(&self, req: FrameRequest) -> Result<FrameResponse, Status> {
+        let started = Instant::now();
+        let served = self.state.current()?;
+        let model = served.engine.model(&req.model).map_err(status_of)?;
+        let image = required_image(req.image)?;
+        let intrinsics = req
+            .intrinsics
+            .ok_or_else(|| Status::invalid_argument("intrinsics: is required"))?;
+        let intrinsics = crate::engine::Intrinsics {
+            fx: intrinsics.fx,
+            fy: intrinsics.fy,
+            cx: intrinsics.cx,
+            cy: intrinsics.cy,
+        };
+        intrinsics.validate().map_err(status_of)?;
+        if req.detections.is_empty() || req.detections.len() > MAX_DETECTIONS {
+            return Err(Status::invalid_argument(format!(
+                "detections: give 1 ..= {MAX_DETECTIONS} boxes, got {}",
+                req.detections.len()
+            )));
+        }
+        let mut boxes = Vec::with_capacity(req.detections.len());
+        let mut objects = Vec::with_capacity(req.detections.len());
+        for (i, d) in req.detections.iter().enumerate() {
+            let b = d.r#box.ok_or_else(|| {
+                Status::invalid_argument(format!("detections[{i}].box: is required"))
+            })?;
+            boxes.push(CropBox {
+                x: b.x,
+                y: b.y,
+                width: b.width,
+                height: b.height,
+            });
+            objects.push(if d.object.is_empty() {
+                None
+            } else {
+                Some(model.object_index(&d.object).map_err(status_of)?)
+            });
+        }
+        let options = predict_options(req.top_k, req.level, req.mode_angle_deg)?;
+        let level = model.check_predict(&options).map_err(status_of)?;
+        let batcher = batcher_of(&served, &model)?;
+        let crops = {
+            let model = model.clone();
+            let boxes = boxes.clone();
+            blocking(move || {
+                let request = ImageRequest {
+                    data: &image.data,
+                    raw_size: raw_size(&image)?,
+                    crop: crop_of(&image),
+                };
+                model
+                    .prepare_frame(&request, &intrinsics, &boxes)
+                    .map_err(status_of)
+            })
+            .await?
+        };
+        let rays: Vec<_> = crops.iter().map(|c| c.r_ray).collect();
+        let encoded = batcher
+            .encode_many(crops.into_iter().map(|c| c.rgb).collect())
+            .await
+            .map_err(batch_status)?;
+        for e in &encoded {
+            metrics::histogram!("alignist_queue_seconds").record(e.queued.as_secs_f64());
+        }
+        let compute = Instant::now();
+        let predictions = {
+            let model = model.clone();
+            let rays = rays.clone();
+            blocking(move || {
+                encoded
+                    .iter()
+                    .zip(&rays)
+                    .map(|(e, ray)| {
+                        let f = model.features_tensor(&e.features);
+                        model
+                            .predict(&f, &options, None)
+                            .map(|p| p.in_camera_frame(ray))
+                            .map_err(status_of)
+                    })
+                    .collect::<Result<Vec<_>, _>>()
+            })
+            .await?
+        };
+        metrics::histogram!("alignist_compute_seconds", "method" => "PredictFrame")
+            .record(compute.elapsed().as_secs_f64());
+        let detections = predictions
             .iter()
-            .zip(&prediction.rotations)
-            .map(|(c, q)| rotation_probability(level, c, *q))
+            .zip(&boxes)
+            .zip(rays.iter().zip(&objects))
+            .map(|((p, b), (ray, object))| DetectionPrediction {
+                r#box: Some(proto::CropBox {
+                    x: b.x,
+                    y: b.y,
+                    width: b.width,
+                    height: b.height,
+                }),
+                prediction: Some(predict_response(&model, *object, level, p, false, started)),
+                ray: Some(rotation_message(crate::so3::to_quaternion(ray))),
+            })
             .collect();
-        Ok(PredictResponse {
-            model: p.model.name.clone(),
-            object: p
-                .object
-                .map(|i| p.model.objects[i].name.clone())
-                .unwrap_or_default(),
-            map: top.first().cloned(),
-            top,
-            modes: prediction
-                .modes
-                .iter()
-                .map(|m| proto::Mode {
-                    quaternion: m.quaternion.to_vec(),
-                    probability: m.probability,
-                    spread_deg: m.spread_deg,
-                    cells: m.cells as u32,
-                })
-                .collect(),
-            covered_mass: prediction.covered_mass,
-            depth_fused: fused,
+        Ok(FrameResponse {
+            model: model.name.clone(),
+            model_version: model.version().to_string(),
+            detections,
             compute_ms: started.elapsed().as_secs_f64() * 1e3,
         })
     }
@@ -381,6 +543,20 @@ impl Alignist for AlignistService {
             .instrument(span)
             .await;
         record("PredictDistribution", started, &result);
+        result.map(Response::new)
+    }
+
+    async fn predict_frame(
+        &self,
+        request: Request<FrameRequest>,
+    ) -> Result<Response<FrameResponse>, Status> {
+        let id = self.request_id(&request);
+        let started = Instant::now();
+        let result = self
+            .do_frame(request.into_inner())
+            .instrument(info_span!("PredictFrame", request_id = %id))
+            .await;
+        record("PredictFrame", started, &result);
         result.map(Response::new)
     }
 
@@ -447,6 +623,7 @@ impl AlignistService {
         metrics::histogram!("alignist_compute_seconds", "method" => "PredictDistribution")
             .record(compute.elapsed().as_secs_f64());
         let (tx, rx) = tokio::sync::mpsc::channel(4);
+        let (name, version) = (p.model.name.clone(), p.model.version().to_string());
         tokio::spawn(async move {
             let total = distribution.probability.len();
             for start in (0..total).step_by(chunk) {
@@ -457,6 +634,8 @@ impl AlignistService {
                     offset: start as u64,
                     probability: distribution.probability[start..end].to_vec(),
                     log_density: distribution.log_density[start..end].to_vec(),
+                    model: name.clone(),
+                    model_version: version.clone(),
                 };
                 // The caller went away: stop producing.
                 if tx.send(Ok(message)).await.is_err() {
@@ -465,6 +644,36 @@ impl AlignistService {
             }
         });
         Ok(Box::pin(tokio_stream::wrappers::ReceiverStream::new(rx)))
+    }
+}
+
+/// What ListModels / GetModel say about an object: its symmetry as a group label (the rotations
+/// for finite groups, the axis for rotations about one axis) and its frame.
+pub fn object_info(o: &crate::engine::ModelObject) -> ObjectInfo {
+    let vector = |v: [f64; 3]| proto::Vector3 {
+        x: v[0],
+        y: v[1],
+        z: v[2],
+    };
+    let group = o.symmetry_group;
+    let finite = !group.is_some_and(|g| g.is_continuous());
+    ObjectInfo {
+        name: o.name.clone(),
+        symmetry: group.map_or_else(|| "custom".to_string(), |g| g.to_string()),
+        train_images: o.train_images as u64,
+        symmetry_rotations: if finite {
+            o.symmetries
+                .iter()
+                .map(|r| rotation_message(crate::so3::to_quaternion(r)))
+                .collect()
+        } else {
+            Vec::new()
+        },
+        symmetry_axis: group
+            .and_then(|g| g.axis())
+            .map(|a| vector([a.x, a.y, a.z])),
+        frame_centre: Some(vector(o.normalisation.centre)),
+        frame_scale: o.normalisation.scale,
     }
 }
 
@@ -478,15 +687,7 @@ pub fn model_info(model: &Model) -> ModelInfo {
     };
     ModelInfo {
         name: model.name.clone(),
-        objects: model
-            .objects
-            .iter()
-            .map(|o| ObjectInfo {
-                name: o.name.clone(),
-                symmetry: format!("{} proper symmetries", o.symmetry_count),
-                train_images: o.train_images as u64,
-            })
-            .collect(),
+        objects: model.objects.iter().map(object_info).collect(),
         input_size: model.input_size(),
         full_max_level: model.config().max_full_level as u32,
         search_max_level: model.config().search_max_level as u32,

@@ -62,6 +62,49 @@ impl SymmetryGroup {
         }
     }
 
+    /// The group whose [`SymmetryGroup::rotations`] are `rotations` (as a set, to 1e-6 rad), if
+    /// one is: how a recorded list of rotations is named for clients. `None` for any other set.
+    pub fn identify(rotations: &[Rotation3<f64>]) -> Option<SymmetryGroup> {
+        let n = rotations.len();
+        let mut candidates = vec![
+            SymmetryGroup::Trivial,
+            SymmetryGroup::Tetrahedral,
+            SymmetryGroup::Octahedral,
+            SymmetryGroup::Icosahedral,
+            SymmetryGroup::Cone,
+            SymmetryGroup::Cylinder,
+        ];
+        if let Ok(k) = u32::try_from(n) {
+            candidates.push(SymmetryGroup::Cyclic(k));
+            if n.is_multiple_of(2) {
+                candidates.push(SymmetryGroup::Dihedral(k / 2));
+            }
+        }
+        candidates.into_iter().find(|g| {
+            g.order() == n
+                && g.rotations()
+                    .iter()
+                    .all(|s| rotations.iter().any(|r| geodesic_angle(r, s) < 1e-6))
+        })
+    }
+
+    /// The axis of the group's rotations about one axis (`Cn`, `Dn`, cone, cylinder: z), `None`
+    /// for the others.
+    pub fn axis(&self) -> Option<Vector3<f64>> {
+        match self {
+            SymmetryGroup::Cyclic(n) if *n > 1 => Some(Vector3::z()),
+            SymmetryGroup::Dihedral(_) | SymmetryGroup::Cone | SymmetryGroup::Cylinder => {
+                Some(Vector3::z())
+            }
+            _ => None,
+        }
+    }
+
+    /// Whether the group stands for a continuous symmetry (sampled at 1°).
+    pub fn is_continuous(&self) -> bool {
+        matches!(self, SymmetryGroup::Cone | SymmetryGroup::Cylinder)
+    }
+
     /// Number of rotations in [`SymmetryGroup::rotations`].
     pub fn order(&self) -> usize {
         match *self {
