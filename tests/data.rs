@@ -344,3 +344,34 @@ fn frames_with_off_centre_objects_read_back_as_virtual_camera_crops() {
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("--frame"));
 }
+
+#[test]
+fn frame_evaluation_crops_show_the_same_poses_as_the_rendered_ones() {
+    use alignist::train::data::FreshRenders;
+    let fresh = FreshRenders {
+        meshes: vec![Shape::Tetrahedron.mesh().normalised().0],
+        supersample: 4,
+    };
+    let names = vec!["tet".to_string()];
+    let symmetries = vec![vec![nalgebra::Rotation3::identity()]];
+    let rendered = fresh.eval_images(&names, &symmetries, 32, 3, 99);
+    let (corrected, uncorrected) = fresh.frame_eval_images(&names, &symmetries, 32, 3, 99);
+    assert_eq!((corrected.len(), uncorrected.len()), (3, 3));
+    for ((r, c), u) in rendered.iter().zip(&corrected).zip(&uncorrected) {
+        // The perspective crop of the whole frame is the rendered crop but for resampling (the
+        // detector-style box is rounded out to whole pixels, so the scale differs slightly).
+        let mad = r
+            .rgb
+            .iter()
+            .zip(&c.rgb)
+            .map(|(a, b)| (*a as f64 - *b as f64).abs())
+            .sum::<f64>()
+            / r.rgb.len() as f64;
+        assert!(mad < 3.0, "{mad}");
+        // Corrected labels are the rendered crop's (the virtual camera's) up to the rounding of
+        // the box's centre; uncorrected ones are the camera-frame rotation, off by R_ray.
+        let a = geodesic_angle(&r.equivalents[0], &c.equivalents[0]).to_degrees();
+        assert!(a < 0.5, "{a}°");
+        assert_eq!(c.rgb, u.rgb);
+    }
+}

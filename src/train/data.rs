@@ -117,6 +117,58 @@ impl FreshRenders {
         }
     }
 
+    /// The same poses as [`FreshRenders::eval_images`] (same `seed`), but each object is rendered
+    /// in the whole frame and cut out as a server does for a full image with a detector's box
+    /// (the projected mesh's box rounded out to whole pixels): the perspective crop
+    /// ([`crate::data::virtual_crop::perspective_crop`]). Returns two labellings of those crops:
+    /// the ground truths in the crop's virtual camera (`R_rayᵀ·R_cam`: what the network's answer,
+    /// turned by `R_ray`, is measured against in the camera frame) and the camera-frame ground
+    /// truths as they are (`R_cam`: an answer taken as camera-frame without the ray correction).
+    pub fn frame_eval_images(
+        &self,
+        names: &[String],
+        symmetries: &[Vec<Rotation3<f64>>],
+        size: u32,
+        per_object: usize,
+        seed: u64,
+    ) -> (Vec<EvalImage>, Vec<EvalImage>) {
+        use crate::cad::render;
+        use crate::data::virtual_crop::{object_box, perspective_crop};
+        let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0xe7a1);
+        let camera = frame_camera();
+        let (mut corrected, mut uncorrected) = (Vec::new(), Vec::new());
+        for i in 0..self.meshes.len() {
+            for _ in 0..per_object {
+                let pose = random_placement(&mut rng);
+                let full = render(&self.meshes[i], &camera, &pose, &RenderOptions::default());
+                let b = object_box(&self.meshes[i], &pose, &camera);
+                let (x0, y0) = (b[0].floor(), b[1].floor());
+                let bbox = [x0, y0, (b[0] + b[2]).ceil() - x0, (b[1] + b[3]).ceil() - y0];
+                let (rgb, view) = perspective_crop(
+                    &full.rgb,
+                    camera.width,
+                    camera.height,
+                    &camera.k(),
+                    bbox,
+                    size,
+                )
+                .expect("a placed object's box has an area");
+                let in_virtual = view.r_ray.inverse() * pose.rotation;
+                corrected.push(EvalImage {
+                    object: names[i].clone(),
+                    rgb: rgb.clone(),
+                    equivalents: equivalents(&in_virtual, &symmetries[i]),
+                });
+                uncorrected.push(EvalImage {
+                    object: names[i].clone(),
+                    rgb,
+                    equivalents: equivalents(&pose.rotation, &symmetries[i]),
+                });
+            }
+        }
+        (corrected, uncorrected)
+    }
+
     /// `per_object` fresh evaluation crops of each object placed at random from `seed`, with
     /// every equivalent ground truth in the virtual camera (`symmetries[i]` of object `i`,
     /// `names[i]` its name).

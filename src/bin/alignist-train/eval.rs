@@ -78,6 +78,58 @@ pub(crate) struct EvalArgs {
     /// Output JSON report.
     #[arg(long)]
     out: PathBuf,
+    /// With --fresh: also render the same poses in whole 640×480 frames, cut them out by their
+    /// boxes as the server does for full images (perspective crops), and print the camera-frame
+    /// figures with the ray correction and without it, beside the directly rendered crops'.
+    #[arg(long, requires = "fresh")]
+    frames: bool,
+}
+
+/// `eval --fresh --frames`: the same poses as directly rendered crops, as perspective crops of
+/// whole frames with the ray correction, and without it.
+fn frames_report(
+    args: &EvalArgs,
+    bundle: &alignist::bundle::model::ModelBundle,
+    sets: [Vec<alignist::train::eval::EvalImage>; 3],
+) -> Result<()> {
+    use alignist::train::eval::evaluate;
+    let labels = [
+        "rendered crops (virtual camera)",
+        "full frames, R_ray·R_virtual (served)",
+        "full frames, no ray correction",
+    ];
+    let mut reports = Vec::new();
+    for (label, tests) in labels.iter().zip(&sets) {
+        eprintln!("{label}: {} images", tests.len());
+        let bar = ProgressBar::new(tests.len() as u64);
+        let report = evaluate(
+            &bundle.network,
+            &bundle.manifest.network,
+            tests,
+            args.level,
+            |n| bar.set_position(n as u64),
+        )?;
+        bar.finish_and_clear();
+        reports.push(serde_json::json!({ "crops": label, "report": report }));
+    }
+    let text = serde_json::to_string_pretty(&reports)?;
+    std::fs::write(&args.out, text).with_context(|| format!("writing {}", args.out.display()))?;
+    eprintln!(
+        "top-1 at level {} of the same {} poses ({} per object):",
+        args.level,
+        sets[0].len(),
+        args.images
+    );
+    for (label, r) in labels.iter().zip(&reports) {
+        let o = &r["report"]["overall"];
+        eprintln!(
+            "  {label:40} AR@30 {:.3}  median {:6.1}°  LL {:6.2}",
+            o["accuracy_at"][0][1].as_f64().unwrap_or(f64::NAN),
+            o["median_error_deg"].as_f64().unwrap_or(f64::NAN),
+            o["log_likelihood"].as_f64().unwrap_or(f64::NAN),
+        );
+    }
+    Ok(())
 }
 
 pub(crate) fn eval_cmd(args: &EvalArgs) -> Result<()> {
@@ -109,6 +161,11 @@ pub(crate) fn eval_cmd(args: &EvalArgs) -> Result<()> {
             .collect();
         let symmetries: Vec<_> = bundle.experts.iter().map(|s| s.symmetries()).collect();
         tests = fresh.eval_images(&names, &symmetries, size, args.images, args.seed);
+        if args.frames {
+            let (corrected, uncorrected) =
+                fresh.frame_eval_images(&names, &symmetries, size, args.images, args.seed);
+            return frames_report(args, &bundle, [tests, corrected, uncorrected]);
+        }
     }
     for spec in &args.data {
         let (name, dir) = spec
