@@ -81,6 +81,7 @@ fn tiny_fresh_set() -> TrainingSet {
         fresh: Some(FreshRenders {
             meshes: vec![Shape::Cube.mesh()],
             supersample: 2,
+            pool: None,
         }),
         ..tiny_set()
     }
@@ -110,6 +111,7 @@ fn alignist_method() -> Method {
             focused: 40,
             temperature: 0.0,
         },
+        experts: Default::default(),
     }
 }
 
@@ -299,6 +301,7 @@ fn a_few_hundred_real_steps_lower_the_loss_and_beat_uniform_on_held_out_renders(
     let fresh = FreshRenders {
         meshes: vec![mesh.clone()],
         supersample: 2,
+        pool: None,
     };
     let set = TrainingSet {
         objects: vec![baked],
@@ -315,6 +318,7 @@ fn a_few_hundred_real_steps_lower_the_loss_and_beat_uniform_on_held_out_renders(
         ..config(Method::Alignist {
             loss: MeasureLoss::Gkl,
             sampling: SamplingStrategy::mode_focused(256),
+            experts: Default::default(),
         })
     };
     let mut losses = Vec::new();
@@ -438,4 +442,86 @@ fn a_warm_restart_starts_from_the_given_weights_and_checks_them() {
     other.init.as_mut().unwrap().file.sha256 = "0".repeat(64);
     let err = go(&other).unwrap_err().to_string();
     assert!(err.contains("network.safetensors"), "{err}");
+}
+
+#[test]
+fn single_expert_runs_silence_the_other_branch() {
+    use alignist::train::ExpertBranches;
+    let set = tiny_set();
+    let device = alignist::backend::device_for(alignist::backend::Workload::Conv);
+    let crops: Vec<&[u8]> = set
+        .images
+        .iter()
+        .take(2)
+        .map(|i| i.rgb.as_slice())
+        .collect();
+    let grid = GridLevel::new(0).unwrap().matrices_f32();
+    for (experts, silent_is_shape) in [
+        (ExpertBranches::ShapeOnly, false),
+        (ExpertBranches::FeatureOnly, true),
+    ] {
+        let cfg = config(Method::Alignist {
+            loss: MeasureLoss::Gkl,
+            sampling: SamplingStrategy::ModeFocused {
+                focused: 40,
+                temperature: 0.0,
+            },
+            experts,
+        });
+        let (network, _) =
+            train(&cfg, &set, None, false, |_, _, _| ControlFlow::Continue(())).unwrap();
+        let images = images_tensor(&crops, SIZE as usize, &device);
+        let scores = network.scores(
+            images,
+            &[grid.clone(), grid.clone()],
+            &RotationEncoding::Cube,
+        );
+        let (silent, live) = if silent_is_shape {
+            (scores.shape, scores.feature)
+        } else {
+            (scores.feature, scores.shape)
+        };
+        let silent = silent.into_data().try_to_vec::<f32>().unwrap();
+        let live = live.into_data().try_to_vec::<f32>().unwrap();
+        assert!(
+            silent.iter().all(|&v| v == silent[0]),
+            "{experts:?}: the silenced branch must be constant"
+        );
+        assert!(
+            live.iter().any(|&v| (v - live[0]).abs() > 1e-6),
+            "{experts:?}: the trained branch must vary"
+        );
+    }
+}
+
+#[test]
+fn a_pool_of_fresh_renders_repeats_the_same_images_in_every_run() {
+    use std::collections::BTreeSet;
+    let pooled = FreshRenders {
+        meshes: vec![Shape::Cube.mesh(), Shape::Tetrahedron.mesh()],
+        supersample: 1,
+        pool: Some(3),
+    };
+    let seeds = |object: usize, run: u64, fresh: &FreshRenders| -> BTreeSet<u64> {
+        let mut rng = ChaCha8Rng::seed_from_u64(run);
+        (0..200)
+            .map(|_| fresh.image_seed(object, &mut rng))
+            .collect()
+    };
+    let a = seeds(0, 1, &pooled);
+    assert_eq!(a.len(), 3);
+    assert_eq!(
+        a,
+        seeds(0, 2, &pooled),
+        "the pool does not depend on the run"
+    );
+    assert!(
+        a.is_disjoint(&seeds(1, 1, &pooled)),
+        "each object has its own pool"
+    );
+    let unpooled = FreshRenders {
+        pool: None,
+        ..pooled
+    };
+    assert_eq!(seeds(0, 1, &unpooled).len(), 200);
 }

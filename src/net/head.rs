@@ -102,7 +102,35 @@ impl Branch {
     }
 }
 
+impl Branch {
+    /// The branch with a zero output weight: it answers its output bias for every input, and,
+    /// left out of the loss, gets no gradient and stays so (a single-expert ablation).
+    fn silenced(mut self) -> Self {
+        let weight = self.output.weight.val();
+        let is_tracked = weight.is_require_grad();
+        let zero = weight.zeros_like();
+        let zero = if is_tracked {
+            zero.require_grad()
+        } else {
+            zero
+        };
+        self.output.weight = burn::module::Param::from_tensor(zero);
+        self
+    }
+}
+
 impl DualHead {
+    /// Silences the shape (`shape = true`) or the feature branch: the combined score is then the
+    /// other branch's up to a constant, so the model's distribution is that branch's.
+    pub fn with_silenced_branch(mut self, shape: bool) -> Self {
+        if shape {
+            self.shape_branch = self.shape_branch.silenced();
+        } else {
+            self.feature_branch = self.feature_branch.silenced();
+        }
+        self
+    }
+
     /// Sets the output bias of each branch: the log-weight every rotation starts from. The
     /// Alignist trainer starts it at the log of the targets' mean, so that the first steps fit
     /// the rotations' relative weights instead of dragging every output down to the targets'

@@ -105,6 +105,7 @@ pub fn bench_training(config: &TrainingBenchConfig) -> Result<TrainingBench, Tra
         fresh: Some(FreshRenders {
             meshes: vec![mesh],
             supersample: 4,
+            pool: None,
         }),
     };
     let network = NetworkConfig::new(config.layout, RotationEncoding::Cube)
@@ -128,6 +129,7 @@ pub fn bench_training(config: &TrainingBenchConfig) -> Result<TrainingBench, Tra
     let alignist = Method::Alignist {
         loss: MeasureLoss::Gkl,
         sampling: SamplingStrategy::mode_focused(config.k),
+        experts: Default::default(),
     };
     run(Method::Ipdf, config.warmup)?;
     let ipdf = run(Method::Ipdf, config.steps)?;

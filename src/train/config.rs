@@ -16,6 +16,19 @@ pub enum MeasureLoss {
     L1,
 }
 
+/// Which experts' targets an Alignist run fits (the paper's ablation of the experts).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ExpertBranches {
+    /// Both: the shape branch fits the SDF expert, the feature branch the feature expert.
+    #[default]
+    Both,
+    /// Only the SDF expert; the feature branch is silenced (a constant output).
+    ShapeOnly,
+    /// Only the feature expert; the shape branch is silenced.
+    FeatureOnly,
+}
+
 /// What the network is trained to do.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
@@ -26,6 +39,9 @@ pub enum Method {
         loss: MeasureLoss,
         /// How the K rotations are drawn.
         sampling: SamplingStrategy,
+        /// Which experts are fitted (runs recorded before this field fitted both).
+        #[serde(default)]
+        experts: ExpertBranches,
     },
     /// IPDF: one score (both branches summed), `−log softmax` of the GT among uniform samples.
     Ipdf,

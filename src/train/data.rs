@@ -2,7 +2,7 @@
 //! crops, ground truths, and the visible canonical points the experts score.
 
 use nalgebra::{Rotation3, Vector3};
-use rand::{Rng, SeedableRng};
+use rand::{Rng, RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use crate::cad::{Mesh, RenderOptions};
@@ -85,9 +85,27 @@ pub struct FreshRenders {
     pub meshes: Vec<Mesh>,
     /// Supersampling factor per axis (anti-aliasing).
     pub supersample: u32,
+    /// `Some(n)`: every training image is one of a fixed pool of `n` images per object (the same
+    /// pool for every run, whatever its seed), for the low-data regime; `None`: a new render
+    /// every time.
+    pub pool: Option<usize>,
 }
 
 impl FreshRenders {
+    /// The seed of a training image of `object`: a new one from `rng`, or, with a pool, the
+    /// seed of one of the pool's images drawn from `rng`.
+    pub fn image_seed<R: Rng + ?Sized>(&self, object: usize, rng: &mut R) -> u64 {
+        match self.pool {
+            None => rng.random::<u64>(),
+            Some(n) => {
+                let index = rng.random_range(0..n.max(1)) as u64;
+                let mut pool =
+                    ChaCha8Rng::seed_from_u64(0x9001_d47a ^ ((object as u64) << 40) ^ index);
+                pool.random::<u64>()
+            }
+        }
+    }
+
     /// The crop of object `object` placed at random in the frame (from `rng`).
     fn random_crop<R: Rng + ?Sized>(&self, object: usize, size: u32, rng: &mut R) -> RenderedCrop {
         render_crop(

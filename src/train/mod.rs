@@ -12,7 +12,8 @@ pub mod trainer;
 pub use crate::net::{Network, NetworkConfig};
 pub use sampling::{ModeSampler, SamplingStrategy, sample_rotations};
 pub use trainer::{
-    MeasureLoss, Method, TrainConfig, TrainReport, TrainingImage, TrainingSet, train,
+    ExpertBranches, MeasureLoss, Method, TrainConfig, TrainReport, TrainingImage, TrainingSet,
+    train,
 };
 
 /// Errors of training.

@@ -16,7 +16,7 @@ use serde::{Deserialize, Serialize};
 
 use super::TrainError;
 use super::checkpoint::{CheckpointState, latest_checkpoint, load_checkpoint, save_checkpoint};
-pub use super::config::{MeasureLoss, Method, TrainConfig, learning_rate};
+pub use super::config::{ExpertBranches, MeasureLoss, Method, TrainConfig, learning_rate};
 pub use super::data::{FreshRenders, TrainingImage};
 use super::sampling::{ModeSampler, SamplingStrategy, sample_rotations};
 use crate::experts::energy::{BakedExperts, LogTargets};
@@ -160,7 +160,10 @@ fn step_images(
         Some(fresh) => {
             // One seed per image drawn in order, then rendered in parallel: deterministic.
             let draws: Vec<(usize, u64)> = (0..config.batch)
-                .map(|_| (rng.random_range(0..fresh.meshes.len()), rng.random::<u64>()))
+                .map(|_| {
+                    let object = rng.random_range(0..fresh.meshes.len());
+                    (object, fresh.image_seed(object, rng))
+                })
                 .collect();
             draws
                 .par_iter()
@@ -276,6 +279,17 @@ pub fn train(
     if start == 0 && config.init.is_none() && matches!(config.method, Method::Alignist { .. }) {
         let (sdf, se) = mean_log_targets(config, set, config.batch, &samplers);
         network.head = network.head.with_output_biases(sdf, se);
+        match config.method {
+            Method::Alignist {
+                experts: ExpertBranches::ShapeOnly,
+                ..
+            } => network.head = network.head.with_silenced_branch(false),
+            Method::Alignist {
+                experts: ExpertBranches::FeatureOnly,
+                ..
+            } => network.head = network.head.with_silenced_branch(true),
+            _ => {}
+        }
     }
     let size = config.network.image_size as usize;
     let tail_from = config.steps - config.steps.div_ceil(10);
@@ -314,7 +328,7 @@ pub fn train(
         let scores = network.scores_of_features(features, &rotations, &config.network.encoding);
         let b = picks.len();
         let loss = match &config.method {
-            Method::Alignist { loss, .. } => {
+            Method::Alignist { loss, experts, .. } => {
                 let target = |v: Vec<f32>| -> Tensor<2> {
                     Tensor::from_data(TensorData::new(v, [b, config.k]), &device)
                 };
@@ -322,7 +336,13 @@ pub fn train(
                     MeasureLoss::Gkl => gkl_loss,
                     MeasureLoss::L1 => l1_measure_loss,
                 };
-                f(target(log_sdf), scores.shape) + f(target(log_se), scores.feature)
+                match experts {
+                    ExpertBranches::Both => {
+                        f(target(log_sdf), scores.shape) + f(target(log_se), scores.feature)
+                    }
+                    ExpertBranches::ShapeOnly => f(target(log_sdf), scores.shape),
+                    ExpertBranches::FeatureOnly => f(target(log_se), scores.feature),
+                }
             }
             Method::Ipdf => ipdf_loss(scores.combined()),
         };

@@ -43,6 +43,7 @@ pub(crate) fn bench_cmd(args: &BenchArgs) -> Result<()> {
     let fresh = alignist::train::data::FreshRenders {
         meshes: vec![loaded.experts[0].mesh.clone()],
         supersample: 4,
+        pool: None,
     };
     let names = vec![loaded.manifest.objects[0].name.clone()];
     let images: Vec<Vec<u8>> = fresh

@@ -152,6 +152,7 @@ pub(crate) fn eval_cmd(args: &EvalArgs) -> Result<()> {
         let fresh = alignist::train::data::FreshRenders {
             meshes: bundle.experts.iter().map(|s| s.mesh.clone()).collect(),
             supersample: args.supersample,
+            pool: None,
         };
         let names: Vec<String> = bundle
             .manifest

@@ -41,6 +41,10 @@ pub(crate) struct FitArgs {
     /// Sampling of the alignist method: modes (mode-focused) or random (uniform).
     #[arg(long, default_value = "modes")]
     sampling: String,
+    /// Experts fitted by the alignist method: both, shape (the SDF expert only) or feature (the
+    /// feature expert only); a single-expert run silences the other branch.
+    #[arg(long, default_value = "both")]
+    fit_experts: String,
     /// Encoder layout.
     #[arg(long, value_enum, default_value_t = Layout::Tiny)]
     layout: Layout,
@@ -62,7 +66,9 @@ pub(crate) struct FitArgs {
     /// Peak learning rate.
     #[arg(long, default_value_t = 1e-3)]
     lr: f64,
-    /// Fraction of each training split used (the paper's low-data regime: 0.1).
+    /// Fraction of each training split used (the paper's low-data regime: 0.1). With --fresh: a
+    /// fixed pool of fraction × steps × batch images (the same for every run) instead of a new
+    /// render every time.
     #[arg(long, default_value_t = 1.0)]
     fraction: f64,
     /// Seed.
@@ -187,6 +193,11 @@ pub(crate) fn fresh_fit_data(args: &FitArgs) -> Result<FitData> {
     let fresh = FreshRenders {
         meshes: sets.iter().map(|s| s.mesh.clone()).collect(),
         supersample: args.supersample,
+        // The low-data regime on fresh renders: a fixed pool holding `fraction` of the images a
+        // run of this budget sees (steps × batch), shared out over the objects.
+        pool: (args.fraction < 1.0).then(|| {
+            ((args.fraction * (args.steps * args.batch) as f64) / sets.len() as f64).ceil() as usize
+        }),
     };
     let names: Vec<String> = sets
         .iter()
@@ -205,13 +216,23 @@ pub(crate) fn fresh_fit_data(args: &FitArgs) -> Result<FitData> {
         .map(|name| BundleObject {
             name: name.clone(),
             experts: format!("experts/{name}"),
-            data: format!("fresh renders ({}x supersampled)", args.supersample),
-            train_images: 0,
+            data: match fresh.pool {
+                None => format!("fresh renders ({}x supersampled)", args.supersample),
+                Some(n) => format!(
+                    "a fixed pool of {n} renders ({}x supersampled)",
+                    args.supersample
+                ),
+            },
+            train_images: fresh.pool.unwrap_or(0),
         })
         .collect();
     eprintln!(
-        "{} objects, fresh renders every step; {} fresh test crops (seed {})",
+        "{} objects, {}; {} fresh test crops (seed {})",
         sets.len(),
+        match fresh.pool {
+            None => "fresh renders every step".to_string(),
+            Some(n) => format!("a fixed pool of {n} rendered images per object"),
+        },
         tests.len(),
         args.eval_seed
     );
@@ -231,7 +252,8 @@ pub(crate) fn fit_cmd(args: &FitArgs) -> Result<()> {
     use alignist::encoding::RotationEncoding;
     use alignist::train::eval::evaluate;
     use alignist::train::{
-        MeasureLoss, Method, NetworkConfig, SamplingStrategy, TrainConfig, TrainingSet, train,
+        ExpertBranches, MeasureLoss, Method, NetworkConfig, SamplingStrategy, TrainConfig,
+        TrainingSet, train,
     };
 
     if !args.fresh && args.data.len() != args.experts.len() {
@@ -273,6 +295,12 @@ pub(crate) fn fit_cmd(args: &FitArgs) -> Result<()> {
                 "modes" => SamplingStrategy::mode_focused(args.k),
                 "random" => SamplingStrategy::Uniform,
                 other => bail!("--sampling must be modes or random, got '{other}'"),
+            },
+            experts: match args.fit_experts.as_str() {
+                "both" => ExpertBranches::Both,
+                "shape" => ExpertBranches::ShapeOnly,
+                "feature" => ExpertBranches::FeatureOnly,
+                other => bail!("--fit-experts must be both, shape or feature, got '{other}'"),
             },
         },
         "ipdf" => Method::Ipdf,

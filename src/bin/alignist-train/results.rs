@@ -103,14 +103,23 @@ pub(crate) fn describe_method(
     encoding: &alignist::encoding::RotationEncoding,
 ) -> String {
     use alignist::encoding::RotationEncoding;
-    use alignist::train::{MeasureLoss, Method, SamplingStrategy};
+    use alignist::train::{ExpertBranches, MeasureLoss, Method, SamplingStrategy};
     let encoding = match encoding {
         RotationEncoding::Cube => "cube PE",
         RotationEncoding::Ipdf { .. } => "IPDF PE",
     };
     match method {
-        Method::Alignist { loss, sampling } => format!(
-            "alignist ({}, {}, {encoding})",
+        Method::Alignist {
+            loss,
+            sampling,
+            experts,
+        } => format!(
+            "alignist ({}{}, {}, {encoding})",
+            match experts {
+                ExpertBranches::Both => "",
+                ExpertBranches::ShapeOnly => "shape expert only, ",
+                ExpertBranches::FeatureOnly => "feature expert only, ",
+            },
             match loss {
                 MeasureLoss::Gkl => "GKL",
                 MeasureLoss::L1 => "L1",
