@@ -25,8 +25,12 @@ SHAPES=${SHAPES:-"tet cube icosa cone cyl"}
 RUNS=${RUNS:-"alignist ipdf alignist-10pct ipdf-10pct alignist-l1 alignist-random alignist-shape alignist-feature alignist-ipdfpe alignist-64px"}
 MODELS=${MODELS:-$WORK/experiment-$STEPS}
 RESULTS=${RESULTS:-docs/RESULTS.md}
-cargo build --release --bin alignist-train
-BIN=target/release/alignist-train
+# BIN: a prebuilt alignist-train (e.g. a copy, so that rebuilding during a long run changes
+# nothing); by default it is built here.
+if [ -z "${BIN:-}" ]; then
+  cargo build --release --bin alignist-train
+  BIN=target/release/alignist-train
+fi
 mkdir -p "$MODELS/logs"
 experts=()
 for shape in $SHAPES; do
