@@ -105,27 +105,149 @@ async fn models_swap_under_load_without_a_failed_call_and_a_corrupt_one_is_refus
         "{text}"
     );
 
-    // A corrupt bundle is refused; the models being served stay and keep answering.
+    // A corrupt bundle is refused on its own; the models being served stay and keep answering.
     let broken = models.path().join("broken");
     copy_tree(&models.path().join("tiny"), &broken);
-    let weights = broken.join("network.safetensors");
+    corrupt_weights(&broken);
+    let failed = wait_failed(&server, &["broken"]).await;
+    assert!(
+        failed[0].error.contains("network.safetensors"),
+        "{failed:?}"
+    );
+    assert!(!failed[0].serving_previous);
+    assert_eq!(model_names(&server).await, ["tiny", "tiny2"]);
+    let mut client = AlignistClient::new(ch.clone());
+    let answer = client.predict(request.clone()).await.unwrap().into_inner();
+    assert_eq!(answer.top.len(), 3);
+
+    // A served bundle that turns corrupt keeps its previous version serving, listed as refused.
+    corrupt_weights(&models.path().join("tiny2"));
+    let failed = wait_failed(&server, &["broken", "tiny2"]).await;
+    assert!(failed[1].serving_previous, "{failed:?}");
+    assert_eq!(model_names(&server).await, ["tiny", "tiny2"]);
+    let answer = client
+        .predict(PredictRequest {
+            model: "tiny2".into(),
+            ..request
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(answer.top.len(), 3);
+}
+
+/// Flips a byte of a bundle's weights (its checksum no longer matches).
+fn corrupt_weights(bundle: &std::path::Path) {
+    let weights = bundle.join("network.safetensors");
     let mut bytes = std::fs::read(&weights).unwrap();
     let n = bytes.len();
     bytes[n - 5] ^= 0x5a;
     std::fs::write(&weights, bytes).unwrap();
+}
+
+/// Waits until ListModels lists exactly `names` as refused, and returns them.
+async fn wait_failed(server: &Server, names: &[&str]) -> Vec<alignist::serve::proto::ModelFailure> {
     let deadline = std::time::Instant::now() + Duration::from_secs(60);
     loop {
-        let text = http_get(&server.metrics).await;
-        if metric(&text, "alignist_reloads_total", &["result=\"refused\""]) >= 1.0 {
-            break;
+        let failed = AlignistClient::new(channel(server).await)
+            .list_models(ListModelsRequest {})
+            .await
+            .unwrap()
+            .into_inner()
+            .failed;
+        if failed.iter().map(|f| f.name.as_str()).collect::<Vec<_>>() == names {
+            return failed;
         }
-        assert!(std::time::Instant::now() < deadline, "reload never tried");
+        assert!(
+            std::time::Instant::now() < deadline,
+            "refused {failed:?}, expected {names:?}"
+        );
         tokio::time::sleep(Duration::from_millis(200)).await;
     }
-    assert_eq!(model_names(&server).await, ["tiny", "tiny2"]);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn an_encoder_panic_fails_one_call_and_the_next_ones_succeed() {
+    let server =
+        start_server_with_env(models_dir(), &[], &[("ALIGNIST_FAULT_ENCODER_PANICS", "1")]);
+    let ch = channel(&server).await;
+    wait_serving(ch.clone()).await;
     let mut client = AlignistClient::new(ch.clone());
-    let answer = client.predict(request).await.unwrap().into_inner();
-    assert_eq!(answer.top.len(), 3);
+    let request = |seed| PredictRequest {
+        model: "tiny".into(),
+        image: image(cube_png(seed)),
+        top_k: 2,
+        level: 2,
+        ..Default::default()
+    };
+    let status = client.predict(request(30)).await.unwrap_err();
+    assert_eq!(status.code(), tonic::Code::Internal, "{status:?}");
+    assert!(
+        status.message().contains("panicked"),
+        "{}",
+        status.message()
+    );
+    for seed in 31..34 {
+        let answer = client.predict(request(seed)).await.unwrap().into_inner();
+        assert_eq!(answer.top.len(), 2);
+    }
+    let text = http_get(&server.metrics).await;
+    assert_eq!(
+        metric(
+            &text,
+            "alignist_worker_panics_total",
+            &["worker=\"encoder\""]
+        ),
+        1.0,
+        "{text}"
+    );
+    assert_eq!(health(ch).await, 1, "still SERVING");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_corrupt_bundle_beside_a_good_one_does_not_stop_start_up() {
+    let models = copy_models();
+    let broken = models.path().join("broken");
+    copy_tree(&models.path().join("tiny"), &broken);
+    corrupt_weights(&broken);
+    let server = start_server_on(models.path(), &[]);
+    let ch = channel(&server).await;
+    wait_serving(ch.clone()).await;
+    assert_eq!(model_names(&server).await, ["tiny"]);
+    let failed = wait_failed(&server, &["broken"]).await;
+    assert!(failed[0].error.contains("sha256"), "{failed:?}");
+    let answer = AlignistClient::new(ch)
+        .predict(PredictRequest {
+            model: "tiny".into(),
+            image: image(cube_png(23)),
+            top_k: 2,
+            level: 2,
+            ..Default::default()
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(answer.top.len(), 2);
+    let text = http_get(&server.metrics).await;
+    assert_eq!(
+        metric(
+            &text,
+            "alignist_model_load_failures_total",
+            &["model=\"broken\""]
+        ),
+        1.0,
+        "{text}"
+    );
+    // The CLI lists the refused bundle with its error.
+    let out = Command::new(env!("CARGO_BIN_EXE_alignist"))
+        .args(["--server", &server.grpc, "models"])
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success() && stdout.contains("REFUSED broken"),
+        "{stdout}"
+    );
 }
 
 #[test]

@@ -514,6 +514,82 @@ async fn concurrent_requests_are_batched() {
         images / batches > 1.0,
         "{images} images in {batches} batches: no batching"
     );
+    // Histograms with buckets (aggregatable across replicas), end to end per method and code;
+    // nothing left in flight; the served model's version.
+    assert!(
+        metric(
+            &text,
+            "alignist_request_seconds_count",
+            &["method=\"Predict\"", "code=\"OK\""]
+        ) >= 200.0,
+        "{text}"
+    );
+    assert!(text.contains("alignist_request_seconds_bucket{"), "{text}");
+    assert!(text.contains("alignist_batch_size_bucket{"), "{text}");
+    assert_eq!(
+        metric(
+            &text,
+            "alignist_in_flight_requests",
+            &["method=\"Predict\""]
+        ),
+        0.0
+    );
+    assert_eq!(
+        metric(&text, "alignist_model_info", &["model=\"tiny\""]),
+        1.0
+    );
+    // compute_ms leaves the queue out; queue_ms says how long it was.
+    let r = results[0].as_ref().unwrap();
+    assert!(r.queue_ms >= 0.0 && r.compute_ms > 0.0);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn server_levels_are_checked_at_start_up_and_level_0_is_the_default_everywhere() {
+    // A search maximum below the usual default lowers the default with it: default calls work.
+    let server = start_server(&["--max-search-level", "3"]);
+    let ch = channel(&server).await;
+    wait_serving(ch.clone()).await;
+    let mut client = AlignistClient::new(ch);
+    let answer = client
+        .predict(predict_request(4, 3, 0))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(answer.top[0].level, 3);
+    // PredictDistribution's level 0 is the default too (4, or the server's maximum, 3 here).
+    let mut stream = client
+        .predict_distribution(DistributionRequest {
+            model: "tiny".into(),
+            image: image(cube_png(4)),
+            level: 0,
+            ..Default::default()
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let first = stream.message().await.unwrap().unwrap();
+    assert_eq!((first.level, first.total_cells), (3, 36_864));
+    // Settings that cannot work stop the server at start-up with a message naming them.
+    for args in [
+        ["--max-level", "7"],
+        ["--max-search-level", "1"],
+        ["--max-level", "1"],
+    ] {
+        let out = Command::new(env!("CARGO_BIN_EXE_alignist-server"))
+            .args([
+                "--models",
+                models_dir().to_str().unwrap(),
+                "--listen",
+                "127.0.0.1:0",
+            ])
+            .args(["--metrics-listen", "off"])
+            .args(args)
+            .output()
+            .unwrap();
+        assert!(!out.status.success(), "{args:?}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains("level"), "{args:?}: {err}");
+    }
 }
 
 /// Starts `n` Predict calls of the same image concurrently, each on its own client.

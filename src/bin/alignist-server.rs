@@ -27,7 +27,7 @@ struct Cli {
     #[arg(
         long,
         env = "ALIGNIST_METRICS_LISTEN",
-        default_value = "127.0.0.1:9100"
+        default_value = "127.0.0.1:9469"
     )]
     metrics_listen: String,
     /// Highest grid level served in full by PredictDistribution.
@@ -57,6 +57,10 @@ struct Cli {
     /// Seconds to wait for in-flight calls after SIGTERM/SIGINT.
     #[arg(long, env = "ALIGNIST_DRAIN_TIMEOUT_S", default_value_t = 20)]
     drain_timeout_s: u64,
+    /// Seconds after which a client connection is closed gracefully (the drain timeout is its
+    /// grace), so that clients spread onto new replicas; 0 keeps connections open.
+    #[arg(long, env = "ALIGNIST_MAX_CONNECTION_AGE_S", default_value_t = 300)]
+    max_connection_age_s: u64,
 }
 
 fn main() -> Result<()> {
@@ -92,6 +96,10 @@ fn main() -> Result<()> {
         engine: EngineConfig {
             max_full_level: cli.max_level,
             search_max_level: cli.max_search_level,
+            // A lower search maximum lowers the default search with it.
+            search_default_level: EngineConfig::default()
+                .search_default_level
+                .min(cli.max_search_level),
             image_limits: ImageLimits {
                 max_bytes: cli.max_image_bytes,
                 max_pixels: cli.max_image_pixels,
@@ -107,7 +115,13 @@ fn main() -> Result<()> {
         max_concurrent_streams: 1024,
         reload_interval: (cli.reload_interval_s > 0)
             .then(|| Duration::from_secs(cli.reload_interval_s)),
+        max_connection_age: (cli.max_connection_age_s > 0)
+            .then(|| Duration::from_secs(cli.max_connection_age_s)),
     };
+    config
+        .engine
+        .validate()
+        .context("the levels and limits given (--max-level, --max-search-level, image limits)")?;
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(run(config, shutdown_signal()))?;
     Ok(())

@@ -310,9 +310,10 @@ async fn run(cli: Cli) -> Result<()> {
             }
         }
         Command::Models { json } => {
-            let models = client::models(channel).await?;
+            let list = client::models(channel).await?;
             if json {
-                let v: Vec<serde_json::Value> = models
+                let v: Vec<serde_json::Value> = list
+                    .models
                     .iter()
                     .map(|m| {
                         serde_json::json!({
@@ -323,9 +324,24 @@ async fn run(cli: Cli) -> Result<()> {
                         })
                     })
                     .collect();
-                println!("{}", serde_json::to_string_pretty(&v)?);
+                let failed: Vec<serde_json::Value> = list
+                    .failed
+                    .iter()
+                    .map(|f| {
+                        serde_json::json!({
+                            "name": f.name, "error": f.error,
+                            "serving_previous": f.serving_previous,
+                        })
+                    })
+                    .collect();
+                println!(
+                    "{}",
+                    serde_json::to_string_pretty(&serde_json::json!({
+                        "models": v, "failed": failed,
+                    }))?
+                );
             } else {
-                print!("{}", client::models_table(&models));
+                print!("{}", client::models_table(&list));
             }
         }
         Command::Load {

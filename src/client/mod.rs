@@ -11,7 +11,7 @@ use tonic::transport::{Channel, Endpoint};
 use crate::serve::proto::alignist_client::AlignistClient;
 use crate::serve::proto::{
     CropBox, DistributionRequest, FrameRequest, FrameResponse, ImageInput, ListModelsRequest,
-    ModelInfo, PredictRequest, PredictResponse, Rotation,
+    ListModelsResponse, ModelInfo, PredictRequest, PredictResponse, Rotation,
 };
 
 /// Client errors; a server status keeps its code and message.
@@ -119,13 +119,9 @@ pub async fn distribution(
 }
 
 /// ListModels.
-pub async fn models(channel: Channel) -> Result<Vec<ModelInfo>, ClientError> {
+pub async fn models(channel: Channel) -> Result<ListModelsResponse, ClientError> {
     let mut client = AlignistClient::new(channel);
-    Ok(client
-        .list_models(ListModelsRequest {})
-        .await?
-        .into_inner()
-        .models)
+    Ok(client.list_models(ListModelsRequest {}).await?.into_inner())
 }
 
 /// `grpc.health.v1` Check of `service` ("" for the whole server): the status's name.
@@ -298,8 +294,9 @@ pub fn frame_json(r: &FrameResponse) -> serde_json::Value {
     })
 }
 
-/// Models as a table.
-pub fn models_table(models: &[ModelInfo]) -> String {
+/// Models as a table, then the bundles that were refused.
+pub fn models_table(list: &ListModelsResponse) -> String {
+    let models: &[ModelInfo] = &list.models;
     let mut s = String::new();
     for m in models {
         let t = m.training.clone().unwrap_or_default();
@@ -339,6 +336,19 @@ pub fn models_table(models: &[ModelInfo]) -> String {
                 o.train_images
             );
         }
+    }
+    for f in &list.failed {
+        let _ = writeln!(
+            s,
+            "REFUSED {}{}: {}",
+            f.name,
+            if f.serving_previous {
+                " (its previous version still serves)"
+            } else {
+                ""
+            },
+            f.error
+        );
     }
     s
 }

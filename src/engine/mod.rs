@@ -83,6 +83,59 @@ pub struct EngineConfig {
     pub max_depth_points: usize,
 }
 
+impl EngineConfig {
+    /// Checks the levels against each other and the grid, and the limits: a server must not
+    /// start with settings that make every default call fail.
+    pub fn validate(&self) -> Result<(), EngineError> {
+        let bad = |field: &str, message: String| Err(invalid(field, message));
+        if self.max_full_level > MAX_LEVEL {
+            return bad(
+                "max_full_level",
+                format!(
+                    "{} is above the grid's highest level {MAX_LEVEL}",
+                    self.max_full_level
+                ),
+            );
+        }
+        if self.search_max_level > MAX_LEVEL {
+            return bad(
+                "search_max_level",
+                format!(
+                    "{} is above the grid's highest level {MAX_LEVEL}",
+                    self.search_max_level
+                ),
+            );
+        }
+        if self.search_start_level > self.search_default_level
+            || self.search_default_level > self.search_max_level
+        {
+            return bad(
+                "search levels",
+                format!(
+                    "need start ({}) ≤ default ({}) ≤ maximum ({})",
+                    self.search_start_level, self.search_default_level, self.search_max_level
+                ),
+            );
+        }
+        if self.search_start_level > self.max_full_level {
+            return bad(
+                "search_start_level",
+                format!(
+                    "{} is above the highest full level {} (the search starts from a full level)",
+                    self.search_start_level, self.max_full_level
+                ),
+            );
+        }
+        if self.keep == 0 || self.image_limits.max_bytes == 0 || self.image_limits.max_pixels == 0 {
+            return bad(
+                "limits",
+                "keep and the image limits must be positive".into(),
+            );
+        }
+        Ok(())
+    }
+}
+
 impl Default for EngineConfig {
     fn default() -> Self {
         Self {
@@ -530,14 +583,17 @@ impl Model {
     }
 }
 
-/// Every model of a models directory, by name.
+/// Every model of a models directory, by name, and the bundles that failed to load.
 pub struct Engine {
     models: BTreeMap<String, Arc<Model>>,
+    failed: BTreeMap<String, String>,
 }
 
 impl Engine {
-    /// Loads every bundle in `dir` (each subfolder with a `manifest.json`), validating each. A
-    /// directory with no bundle, or any bundle that fails validation, is an error naming it.
+    /// Loads every bundle in `dir` (each subfolder with a `manifest.json`), validating each, one
+    /// by one: a bundle that fails is logged, counted (`alignist_model_load_failures_total`) and
+    /// listed by [`Engine::failures`] while the others load. An error only when the directory
+    /// cannot be read, holds no bundle, or no bundle loads (naming each failure).
     pub fn load_dir(dir: &Path, config: EngineConfig) -> Result<Engine, EngineError> {
         let entries = std::fs::read_dir(dir)
             .map_err(|e| EngineError::Models(format!("{}: {e}", dir.display())))?;
@@ -553,11 +609,45 @@ impl Engine {
             )));
         }
         let mut models = BTreeMap::new();
+        let mut failed = BTreeMap::new();
         for folder in folders {
-            let model = Self::load_model(&folder, config)?;
-            models.insert(model.name.clone(), Arc::new(model));
+            let name = folder
+                .file_name()
+                .and_then(|n| n.to_str())
+                .unwrap_or_default()
+                .to_string();
+            match Self::load_model(&folder, config) {
+                Ok(model) => {
+                    models.insert(model.name.clone(), Arc::new(model));
+                }
+                Err(e) => {
+                    tracing::error!(model = %name, "bundle refused: {e}");
+                    metrics::counter!("alignist_model_load_failures_total", "model" => name.clone())
+                        .increment(1);
+                    failed.insert(name, e.to_string());
+                }
+            }
         }
-        Ok(Engine { models })
+        if models.is_empty() {
+            let list: Vec<String> = failed.iter().map(|(n, e)| format!("{n}: {e}")).collect();
+            return Err(EngineError::Models(format!(
+                "{}: no bundle loads ({})",
+                dir.display(),
+                list.join("; ")
+            )));
+        }
+        Ok(Engine { models, failed })
+    }
+
+    /// The bundles that failed to load, by folder name, with their errors.
+    pub fn failures(&self) -> &BTreeMap<String, String> {
+        &self.failed
+    }
+
+    /// Keeps serving `model` (loaded before) in place of a bundle of the same name that failed
+    /// to load now; the failure stays listed.
+    pub fn keep_previous(&mut self, model: Arc<Model>) {
+        self.models.insert(model.name.clone(), model);
     }
 
     /// Loads one bundle folder.

@@ -46,7 +46,8 @@ pub struct Encoded {
 struct Job {
     crop: Vec<u8>,
     enqueued: Instant,
-    reply: oneshot::Sender<Encoded>,
+    /// The features, or why the encoder failed on this job's batch.
+    reply: oneshot::Sender<Result<Encoded, String>>,
 }
 
 /// Why a request could not be batched.
@@ -63,6 +64,14 @@ pub enum BatchError {
     /// The batcher stopped (shutting down or model replaced).
     #[error("model '{0}' is not accepting requests (shutting down)")]
     Stopped(String),
+    /// The encoder failed (panicked) on this request's batch; it recovered for the next ones.
+    #[error("the encoder of model '{model}' failed on this request's batch: {message}")]
+    WorkerFailed {
+        /// Model.
+        model: String,
+        /// What failed.
+        message: String,
+    },
 }
 
 /// The batching front of one model's encoder.
@@ -91,9 +100,20 @@ impl Batcher {
     /// Queues a prepared crop and waits for its features.
     pub async fn encode(&self, crop: Vec<u8>) -> Result<Encoded, BatchError> {
         let answer = self.submit(crop)?;
+        self.receive(answer).await
+    }
+
+    async fn receive(
+        &self,
+        answer: oneshot::Receiver<Result<Encoded, String>>,
+    ) -> Result<Encoded, BatchError> {
         answer
             .await
-            .map_err(|_| BatchError::Stopped(self.model.clone()))
+            .map_err(|_| BatchError::Stopped(self.model.clone()))?
+            .map_err(|message| BatchError::WorkerFailed {
+                model: self.model.clone(),
+                message,
+            })
     }
 
     /// Encodes several crops of one request: all are queued at once, so that they share encoder
@@ -105,24 +125,26 @@ impl Batcher {
             .collect::<Result<Vec<_>, _>>()?;
         let mut out = Vec::with_capacity(answers.len());
         for answer in answers {
-            out.push(
-                answer
-                    .await
-                    .map_err(|_| BatchError::Stopped(self.model.clone()))?,
-            );
+            out.push(self.receive(answer).await?);
         }
         Ok(out)
     }
 
     /// Queues one crop (refused at once when the queue is full).
-    fn submit(&self, crop: Vec<u8>) -> Result<oneshot::Receiver<Encoded>, BatchError> {
+    fn submit(
+        &self,
+        crop: Vec<u8>,
+    ) -> Result<oneshot::Receiver<Result<Encoded, String>>, BatchError> {
         let (reply, answer) = oneshot::channel();
         let job = Job {
             crop,
             enqueued: Instant::now(),
             reply,
         };
-        self.sender.try_send(job).map_err(|e| match e {
+        let sent = self.sender.try_send(job);
+        metrics::gauge!("alignist_queue_depth", "model" => self.model.clone())
+            .set((self.capacity - self.sender.capacity()) as f64);
+        sent.map_err(|e| match e {
             mpsc::error::TrySendError::Full(_) => BatchError::QueueFull {
                 model: self.model.clone(),
                 capacity: self.capacity,
@@ -157,7 +179,30 @@ fn run(model: Arc<Model>, config: BatchConfig, mut receiver: mpsc::Receiver<Job>
         }
         let crops: Vec<&[u8]> = jobs.iter().map(|j| j.crop.as_slice()).collect();
         let started = Instant::now();
-        let features = model.features(&crops);
+        // A panic in the encoder fails this batch's calls (INTERNAL) and is counted; the thread
+        // goes on with the next batch, so one bad input cannot stop the model.
+        let encoded = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            #[cfg(feature = "fault-injection")]
+            fault::maybe_panic();
+            model.features(&crops)
+        }));
+        let features = match encoded {
+            Ok(f) => f,
+            Err(panic) => {
+                let message = panic
+                    .downcast_ref::<&str>()
+                    .map(|s| s.to_string())
+                    .or_else(|| panic.downcast_ref::<String>().cloned())
+                    .unwrap_or_else(|| "panic".into());
+                tracing::error!("encoder of model '{}' panicked: {message}", model.name);
+                metrics::counter!("alignist_worker_panics_total", "worker" => "encoder")
+                    .increment(1);
+                for job in jobs {
+                    let _ = job.reply.send(Err(format!("encoder panicked: {message}")));
+                }
+                continue;
+            }
+        };
         let [b, d] = features.dims();
         let flat = match features.into_data().try_to_vec::<f32>() {
             Ok(flat) => flat,
@@ -172,11 +217,38 @@ fn run(model: Arc<Model>, config: BatchConfig, mut receiver: mpsc::Receiver<Job>
         metrics::counter!("alignist_batched_images_total").increment(b as u64);
         metrics::histogram!("alignist_encoder_seconds").record(started.elapsed().as_secs_f64());
         for (i, job) in jobs.into_iter().enumerate() {
-            let _ = job.reply.send(Encoded {
+            let _ = job.reply.send(Ok(Encoded {
                 features: flat[i * d..(i + 1) * d].to_vec(),
                 queued: started.duration_since(job.enqueued),
                 batch_size: b,
-            });
+            }));
+        }
+    }
+}
+
+/// Test-only faults (the `fault-injection` feature, enabled for the project's tests only):
+/// `ALIGNIST_FAULT_ENCODER_PANICS=N` makes the encoder panic on its next `N` batches.
+#[cfg(feature = "fault-injection")]
+mod fault {
+    use std::sync::atomic::{AtomicI64, Ordering};
+
+    static LEFT: AtomicI64 = AtomicI64::new(-1);
+
+    pub(super) fn maybe_panic() {
+        if LEFT.load(Ordering::SeqCst) < 0 {
+            let n = std::env::var("ALIGNIST_FAULT_ENCODER_PANICS")
+                .ok()
+                .and_then(|v| v.parse().ok())
+                .unwrap_or(0);
+            let _ = LEFT.compare_exchange(-1, n, Ordering::SeqCst, Ordering::SeqCst);
+        }
+        if LEFT
+            .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| {
+                (n > 0).then(|| n - 1)
+            })
+            .is_ok()
+        {
+            panic!("injected encoder fault (ALIGNIST_FAULT_ENCODER_PANICS)");
         }
     }
 }

@@ -167,6 +167,7 @@ fn grpc_vs_in_process(model: Arc<Model>, bundle: &Path, png: &[u8]) -> anyhow::R
             drain_timeout: Duration::from_secs(5),
             max_concurrent_streams: 1024,
             reload_interval: None,
+            max_connection_age: None,
         };
         let server = tokio::spawn(run(config, async {
             let _ = stopped.await;

@@ -53,6 +53,36 @@ impl Served {
             .collect::<std::io::Result<_>>()?;
         Ok(Served { engine, batchers })
     }
+
+    /// What a reload serves: the newly loaded models with new batchers, and, for each bundle that
+    /// failed to load now but was served before, the previous model with its running batcher.
+    pub fn reloaded(
+        mut engine: Engine,
+        previous: Option<&Served>,
+        batch: BatchConfig,
+    ) -> std::io::Result<Served> {
+        let mut kept = BTreeMap::new();
+        if let Some(previous) = previous {
+            let failed: Vec<String> = engine.failures().keys().cloned().collect();
+            for name in failed {
+                if let (Ok(model), Some(batcher)) =
+                    (previous.engine.model(&name), previous.batchers.get(&name))
+                {
+                    engine.keep_previous(model);
+                    kept.insert(name, batcher.clone());
+                }
+            }
+        }
+        let mut batchers = BTreeMap::new();
+        for m in engine.models() {
+            let b = match kept.remove(&m.name) {
+                Some(b) => b,
+                None => Batcher::start(m.clone(), batch)?,
+            };
+            batchers.insert(m.name.clone(), b);
+        }
+        Ok(Served { engine, batchers })
+    }
 }
 
 /// The shared, swappable state of the service.
@@ -62,9 +92,29 @@ pub struct ServiceState {
 }
 
 impl ServiceState {
-    /// Installs (or replaces) what is served.
+    /// Installs (or replaces) what is served, and says which model versions serve
+    /// (`alignist_model_info{model,sha256} 1`, 0 for versions no longer served).
     pub fn install(&self, served: Served) {
-        *self.served.write().unwrap_or_else(|e| e.into_inner()) = Some(Arc::new(served));
+        let mut slot = self.served.write().unwrap_or_else(|e| e.into_inner());
+        if let Some(old) = slot.as_ref() {
+            for m in old.engine.models() {
+                metrics::gauge!("alignist_model_info", "model" => m.name.clone(), "sha256" => m.version().to_string())
+                    .set(0.0);
+            }
+        }
+        for m in served.engine.models() {
+            metrics::gauge!("alignist_model_info", "model" => m.name.clone(), "sha256" => m.version().to_string())
+                .set(1.0);
+        }
+        *slot = Some(Arc::new(served));
+    }
+
+    /// What is served now, if anything (for reloads).
+    pub fn installed(&self) -> Option<Arc<Served>> {
+        self.served
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone()
     }
 
     /// What is served now, or UNAVAILABLE while models load.
@@ -113,7 +163,10 @@ pub fn status_of(error: EngineError) -> Status {
 }
 
 fn batch_status(error: BatchError) -> Status {
-    Status::unavailable(error.to_string())
+    match error {
+        BatchError::WorkerFailed { .. } => Status::internal(error.to_string()),
+        _ => Status::unavailable(error.to_string()),
+    }
 }
 
 fn code_name(code: tonic::Code) -> &'static str {
@@ -139,7 +192,23 @@ fn code_name(code: tonic::Code) -> &'static str {
     }
 }
 
-/// Counts a finished call and logs it.
+/// Counts a call as in flight while it lives (`alignist_in_flight_requests{method}`).
+struct InFlight(&'static str);
+
+impl InFlight {
+    fn start(method: &'static str) -> InFlight {
+        metrics::gauge!("alignist_in_flight_requests", "method" => method).increment(1.0);
+        InFlight(method)
+    }
+}
+
+impl Drop for InFlight {
+    fn drop(&mut self) {
+        metrics::gauge!("alignist_in_flight_requests", "method" => self.0).decrement(1.0);
+    }
+}
+
+/// Counts a finished call, records its end-to-end latency per method and code, and logs it.
 fn record<T>(method: &'static str, started: Instant, result: &Result<T, Status>) {
     let code = match result {
         Ok(_) => tonic::Code::Ok,
@@ -147,6 +216,8 @@ fn record<T>(method: &'static str, started: Instant, result: &Result<T, Status>)
     };
     metrics::counter!("alignist_requests_total", "method" => method, "code" => code_name(code))
         .increment(1);
+    metrics::histogram!("alignist_request_seconds", "method" => method, "code" => code_name(code))
+        .record(started.elapsed().as_secs_f64());
     let ms = started.elapsed().as_secs_f64() * 1e3;
     match result {
         Ok(_) => info!(method, code = code_name(code), ms, "done"),
@@ -160,13 +231,17 @@ fn record<T>(method: &'static str, started: Instant, result: &Result<T, Status>)
     }
 }
 
-/// Runs CPU work off the async threads; a panic inside becomes INTERNAL, never a crash.
+/// Runs CPU work off the async threads; a panic inside becomes INTERNAL (and is counted), never
+/// a crash.
 async fn blocking<T: Send + 'static>(
     work: impl FnOnce() -> Result<T, Status> + Send + 'static,
 ) -> Result<T, Status> {
-    tokio::task::spawn_blocking(work)
-        .await
-        .map_err(|e| Status::internal(format!("computation failed: {e}")))?
+    tokio::task::spawn_blocking(work).await.map_err(|e| {
+        if e.is_panic() {
+            metrics::counter!("alignist_worker_panics_total", "worker" => "head").increment(1);
+        }
+        Status::internal(format!("computation failed: {e}"))
+    })?
 }
 
 /// The validated parts common to Predict and PredictDistribution.
@@ -237,7 +312,7 @@ fn prepare(
 }
 
 /// Decodes the image off the async threads and encodes it through the batcher.
-async fn encode(p: &Prepared) -> Result<Vec<f32>, Status> {
+async fn encode(p: &Prepared) -> Result<batcher::Encoded, Status> {
     let model = p.model.clone();
     let image = p.image.clone();
     let crop = blocking(move || {
@@ -251,7 +326,7 @@ async fn encode(p: &Prepared) -> Result<Vec<f32>, Status> {
     .await?;
     let encoded = p.batcher.encode(crop).await.map_err(batch_status)?;
     metrics::histogram!("alignist_queue_seconds").record(encoded.queued.as_secs_f64());
-    Ok(encoded.features)
+    Ok(encoded)
 }
 
 /// A typed rotation from a unit quaternion `(w, x, y, z)`.
@@ -306,6 +381,7 @@ fn predict_response(
     prediction: &crate::engine::Prediction,
     depth_fused: bool,
     started: Instant,
+    queued: std::time::Duration,
 ) -> PredictResponse {
     let top: Vec<RotationProbability> = prediction
         .top
@@ -323,7 +399,8 @@ fn predict_response(
         modes: prediction.modes.iter().map(mode_message).collect(),
         covered_mass: prediction.covered_mass,
         depth_fused,
-        compute_ms: started.elapsed().as_secs_f64() * 1e3,
+        compute_ms: started.elapsed().saturating_sub(queued).as_secs_f64() * 1e3,
+        queue_ms: queued.as_secs_f64() * 1e3,
         model_version: model.version().to_string(),
     }
 }
@@ -376,7 +453,8 @@ impl AlignistService {
         let p = prepare(&served, &req.model, &req.object, req.image, req.depth)?;
         let options = predict_options(req.top_k, req.level, req.mode_angle_deg)?;
         let level = p.model.check_predict(&options).map_err(status_of)?;
-        let features = encode(&p).await?;
+        let encoded = encode(&p).await?;
+        let (features, queued) = (encoded.features, encoded.queued);
         let model = p.model.clone();
         let depth = p.depth;
         let fused = depth.is_some();
@@ -398,6 +476,7 @@ impl AlignistService {
             &prediction,
             fused,
             started,
+            queued,
         ))
     }
 
@@ -466,6 +545,7 @@ impl AlignistService {
         for e in &encoded {
             metrics::histogram!("alignist_queue_seconds").record(e.queued.as_secs_f64());
         }
+        let queued = encoded.iter().map(|e| e.queued).max().unwrap_or_default();
         let compute = Instant::now();
         let predictions = {
             let model = model.clone();
@@ -498,7 +578,9 @@ impl AlignistService {
                     width: b.width,
                     height: b.height,
                 }),
-                prediction: Some(predict_response(&model, *object, level, p, false, started)),
+                prediction: Some(predict_response(
+                    &model, *object, level, p, false, started, queued,
+                )),
                 ray: Some(rotation_message(crate::so3::to_quaternion(ray))),
             })
             .collect();
@@ -521,6 +603,7 @@ impl Alignist for AlignistService {
     ) -> Result<Response<PredictResponse>, Status> {
         let id = self.request_id(&request);
         let started = Instant::now();
+        let _in_flight = InFlight::start("Predict");
         let result = self
             .do_predict(request.into_inner())
             .instrument(info_span!("Predict", request_id = %id))
@@ -537,6 +620,7 @@ impl Alignist for AlignistService {
     ) -> Result<Response<Self::PredictDistributionStream>, Status> {
         let id = self.request_id(&request);
         let started = Instant::now();
+        let _in_flight = InFlight::start("PredictDistribution");
         let span = info_span!("PredictDistribution", request_id = %id);
         let result = self
             .do_distribution(request.into_inner())
@@ -552,6 +636,7 @@ impl Alignist for AlignistService {
     ) -> Result<Response<FrameResponse>, Status> {
         let id = self.request_id(&request);
         let started = Instant::now();
+        let _in_flight = InFlight::start("PredictFrame");
         let result = self
             .do_frame(request.into_inner())
             .instrument(info_span!("PredictFrame", request_id = %id))
@@ -567,6 +652,16 @@ impl Alignist for AlignistService {
         let started = Instant::now();
         let result = self.state.current().map(|served| ListModelsResponse {
             models: served.engine.models().map(|m| model_info(m)).collect(),
+            failed: served
+                .engine
+                .failures()
+                .iter()
+                .map(|(name, error)| ModelFailure {
+                    name: name.clone(),
+                    error: error.clone(),
+                    serving_previous: served.engine.model(name).is_ok(),
+                })
+                .collect(),
         });
         record("ListModels", started, &result);
         result.map(Response::new)
@@ -597,7 +692,11 @@ impl AlignistService {
     async fn do_distribution(&self, req: DistributionRequest) -> Result<ChunkStream, Status> {
         let served = self.state.current()?;
         let p = prepare(&served, &req.model, &req.object, req.image, req.depth)?;
-        let level = small_level(req.level, "level")?;
+        // 0 is the default, as in Predict (level 0's 72 cells are not served).
+        let level = match req.level {
+            0 => p.model.config().max_full_level.min(4),
+            l => small_level(l, "level")?,
+        };
         p.model.check_full_level(level).map_err(status_of)?;
         let chunk = match req.chunk_size {
             0 => DEFAULT_CHUNK,
@@ -608,7 +707,7 @@ impl AlignistService {
             }
             c => c,
         } as usize;
-        let features = encode(&p).await?;
+        let features = encode(&p).await?.features;
         let model = p.model.clone();
         let depth = p.depth;
         let compute = Instant::now();

@@ -35,6 +35,9 @@ pub struct ServerConfig {
     pub max_concurrent_streams: u32,
     /// How often the models directory is checked for changes (`None`: only on SIGHUP).
     pub reload_interval: Option<Duration>,
+    /// Connections older than this are closed gracefully (over `drain_timeout`), so that
+    /// clients spread onto new replicas (`None`: connections live as long as clients keep them).
+    pub max_connection_age: Option<Duration>,
 }
 
 /// A fingerprint of every file under the models directory: relative path, length and
@@ -106,9 +109,13 @@ async fn watch_models(
         seen = now;
         let dir = models.clone();
         match tokio::task::spawn_blocking(move || Engine::load_dir(&dir, engine_config)).await {
-            Ok(Ok(engine)) => match Served::new(engine, batch) {
+            Ok(Ok(engine)) => match Served::reloaded(engine, state.installed().as_deref(), batch) {
                 Ok(served) => {
-                    info!(models = ?served.engine.names(), "models reloaded");
+                    info!(
+                        models = ?served.engine.names(),
+                        refused = ?served.engine.failures().keys().collect::<Vec<_>>(),
+                        "models reloaded"
+                    );
                     state.install(served);
                     metrics::counter!("alignist_reloads_total", "result" => "ok").increment(1);
                 }
@@ -163,7 +170,9 @@ pub enum ServeError {
     Reflection(#[from] tonic_reflection::server::Error),
 }
 
-/// Sets the health of the Alignist service and of the server as a whole ("").
+/// Sets the readiness of the Alignist service (`alignist.v1.Alignist`: SERVING once models are
+/// loaded, until shutdown). The whole server (`""`) is the liveness signal: SERVING from the
+/// moment it listens until it drains.
 async fn report_health(health: &tonic_health::server::HealthReporter, status: ServingStatus) {
     health
         .set_service_status(
@@ -171,7 +180,6 @@ async fn report_health(health: &tonic_health::server::HealthReporter, status: Se
             status,
         )
         .await;
-    health.set_service_status("", status).await;
 }
 
 /// Resolves when SIGTERM or SIGINT arrives.
@@ -201,13 +209,30 @@ pub async fn run(
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServeError> {
     if let Some(addr) = config.metrics_listen {
-        metrics_exporter_prometheus::PrometheusBuilder::new()
+        use metrics_exporter_prometheus::{Matcher, PrometheusBuilder};
+        let err = |e: metrics_exporter_prometheus::BuildError| ServeError::Metrics {
+            addr,
+            message: e.to_string(),
+        };
+        // Histograms with buckets (aggregatable across replicas, unlike summaries): times in
+        // seconds from 1 ms to 30 s, batch sizes in powers of two.
+        PrometheusBuilder::new()
             .with_http_listener(addr)
+            .set_buckets_for_metric(
+                Matcher::Suffix("_seconds".into()),
+                &[
+                    0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0,
+                    30.0,
+                ],
+            )
+            .map_err(err)?
+            .set_buckets_for_metric(
+                Matcher::Full("alignist_batch_size".into()),
+                &[1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0],
+            )
+            .map_err(err)?
             .install()
-            .map_err(|e| ServeError::Metrics {
-                addr,
-                message: e.to_string(),
-            })?;
+            .map_err(err)?;
         info!(%addr, "metrics listening");
     }
     let listener = TcpListener::bind(config.listen)
@@ -224,6 +249,7 @@ pub async fn run(
     info!(%local, "gRPC listening");
 
     let (health, health_service) = tonic_health::server::health_reporter();
+    health.set_service_status("", ServingStatus::Serving).await;
     report_health(&health, ServingStatus::NotServing).await;
     // Both reflection versions: v1 for current tools, v1alpha for Python's grpcio-reflection and
     // older grpcurl/Postman.
@@ -236,8 +262,10 @@ pub async fn run(
     let reflection_v1alpha = reflection_builder().build_v1alpha()?;
 
     let state = ServiceState::default();
+    // The transport refuses a message larger than an image may be, plus room for the other
+    // fields (depth points are at most 10 000 × 3 floats): nothing larger is read into memory.
     let service = AlignistServer::new(AlignistService::new(state.clone()))
-        .max_decoding_message_size(64 << 20);
+        .max_decoding_message_size(config.engine.image_limits.max_bytes + (1 << 20));
 
     // Load the models while already answering health checks (NOT_SERVING meanwhile).
     let loader = {
@@ -252,7 +280,11 @@ pub async fn run(
                 tokio::task::spawn_blocking(move || Engine::load_dir(&models, engine_config)).await;
             match loaded {
                 Ok(Ok(engine)) => {
-                    info!(models = ?engine.names(), "models loaded");
+                    info!(
+                        models = ?engine.names(),
+                        refused = ?engine.failures().keys().collect::<Vec<_>>(),
+                        "models loaded"
+                    );
                     let served = Served::new(engine, batch).map_err(|e| ServeError::Models {
                         path: path.clone(),
                         message: format!("starting encoder threads: {e}"),
@@ -283,8 +315,13 @@ pub async fn run(
 
     let (stop_accepting, stopped) = tokio::sync::oneshot::channel::<()>();
     let incoming = tokio_stream::wrappers::TcpListenerStream::new(listener);
-    let server = Server::builder()
-        .max_concurrent_streams(config.max_concurrent_streams)
+    let mut builder = Server::builder().max_concurrent_streams(config.max_concurrent_streams);
+    if let Some(age) = config.max_connection_age {
+        builder = builder
+            .max_connection_age(age)
+            .max_connection_age_grace(config.drain_timeout);
+    }
+    let server = builder
         .add_service(health_service)
         .add_service(reflection)
         .add_service(reflection_v1alpha)
@@ -315,6 +352,9 @@ pub async fn run(
         "shutdown: draining in-flight calls"
     );
     report_health(&health, ServingStatus::NotServing).await;
+    health
+        .set_service_status("", ServingStatus::NotServing)
+        .await;
     let _ = stop_accepting.send(());
     match tokio::time::timeout(config.drain_timeout, &mut server).await {
         Ok(result) => {

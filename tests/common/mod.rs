@@ -145,8 +145,14 @@ pub fn start_server(extra: &[&str]) -> Server {
 
 /// A server over `models` (e.g. a private copy that a test may change).
 pub fn start_server_on(models: &Path, extra: &[&str]) -> Server {
+    start_server_with_env(models, extra, &[])
+}
+
+/// A server over `models` with extra environment variables (e.g. a test-only fault hook).
+pub fn start_server_with_env(models: &Path, extra: &[&str], env: &[(&str, &str)]) -> Server {
     let metrics = format!("127.0.0.1:{}", free_port());
     let mut child = Command::new(env!("CARGO_BIN_EXE_alignist-server"))
+        .envs(env.iter().copied())
         .args([
             "--models",
             models.to_str().unwrap(),
