@@ -315,3 +315,107 @@ fn trainer_killed_while_checkpointing_resumes_from_the_last_good_checkpoint() {
         assert!(m.provenance.report.resumed_from > 0 || m.provenance.report.steps_run == 0);
     }
 }
+
+/// An RGB noise PNG of `w × h` (noise does not compress: about `3·w·h` bytes).
+fn noise_png(w: u32, h: u32) -> Vec<u8> {
+    use rand::{RngExt, SeedableRng};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+    let rgb: Vec<u8> = (0..w * h * 3).map(|_| rng.random::<u8>()).collect();
+    let mut png = Vec::new();
+    image::RgbImage::from_raw(w, h, rgb)
+        .unwrap()
+        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+        .unwrap();
+    png
+}
+
+/// Peak resident memory of a process, in MiB (`VmHWM` of `/proc/PID/status`).
+fn peak_rss_mib(pid: u32) -> f64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
+    let line = status.lines().find(|l| l.starts_with("VmHWM:")).unwrap();
+    let kib: f64 = line.split_whitespace().nth(1).unwrap().parse().unwrap();
+    kib / 1024.0
+}
+
+/// The flood's bound on the server's peak memory, in MiB: 64 calls of 8 MB in flight are read
+/// whole by the transport before admission (~512 MiB), plus a 64 MiB decode budget and the model.
+/// Measured: 699 MiB (88 MiB before the flood).
+const FLOOD_RSS_BOUND_MIB: f64 = 1024.0;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_flood_of_large_images_is_admitted_within_budget_and_memory_stays_bounded() {
+    use tonic_types::StatusExt;
+    let server = start_server(&["--max-in-flight-mib", "64"]);
+    let ch = channel(&server).await;
+    wait_serving(ch.clone()).await;
+    let pid = server.child.id();
+    let before = peak_rss_mib(pid);
+    let big = noise_png(1600, 1600);
+    assert!(
+        big.len() > 7 << 20 && big.len() < 8 << 20,
+        "{} bytes",
+        big.len()
+    );
+    let request = PredictRequest {
+        model: "tiny".into(),
+        image: image(big),
+        top_k: 1,
+        level: 2,
+        ..Default::default()
+    };
+    // 200 calls, 64 in flight at a time, each with a 60 s deadline.
+    let semaphore = std::sync::Arc::new(tokio::sync::Semaphore::new(64));
+    let mut calls = Vec::new();
+    for _ in 0..200 {
+        let permit = semaphore.clone().acquire_owned().await.unwrap();
+        let (ch, request) = (ch.clone(), request.clone());
+        calls.push(tokio::spawn(async move {
+            let _permit = permit;
+            let mut client = AlignistClient::new(ch);
+            tokio::time::timeout(Duration::from_secs(60), client.predict(request)).await
+        }));
+    }
+    let (mut ok, mut refused) = (0, 0);
+    for call in calls {
+        match call.await.unwrap() {
+            Err(_) => panic!("a call hung past its deadline"),
+            Ok(Ok(_)) => ok += 1,
+            Ok(Err(s)) => {
+                assert!(
+                    matches!(
+                        s.code(),
+                        tonic::Code::ResourceExhausted | tonic::Code::Unavailable
+                    ),
+                    "{s:?}"
+                );
+                let retry = s.get_details_retry_info();
+                assert!(
+                    retry.and_then(|r| r.retry_delay).is_some(),
+                    "a refusal says when to retry: {s:?}"
+                );
+                refused += 1;
+            }
+        }
+    }
+    let peak = peak_rss_mib(pid);
+    eprintln!(
+        "flood: {ok} answered, {refused} refused with a retry delay; server peak RSS \
+         {before:.0} MiB before, {peak:.0} MiB after (bound {FLOOD_RSS_BOUND_MIB} MiB)"
+    );
+    assert_eq!(ok + refused, 200);
+    assert!(ok >= 1, "some calls are admitted");
+    assert!(peak < FLOOD_RSS_BOUND_MIB, "peak RSS {peak:.0} MiB");
+    // Afterwards small requests are served normally.
+    let answer = AlignistClient::new(ch)
+        .predict(PredictRequest {
+            model: "tiny".into(),
+            image: image(cube_png(40)),
+            top_k: 2,
+            level: 2,
+            ..Default::default()
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(answer.top.len(), 2);
+}

@@ -461,6 +461,22 @@ async fn bad_input_gets_its_status_code_and_the_server_keeps_serving() {
             "{name}: message {:?} does not name {field}",
             status.message()
         );
+        // Field errors carry a BadRequest violation naming the field.
+        use tonic_types::StatusExt;
+        if code == Code::InvalidArgument || code == Code::ResourceExhausted {
+            let bad = status
+                .get_details_bad_request()
+                .unwrap_or_else(|| panic!("{name}: no BadRequest details"));
+            assert!(
+                !bad.field_violations.is_empty()
+                    && bad
+                        .field_violations
+                        .iter()
+                        .all(|v| !v.field.is_empty() && status.message().starts_with(&v.field)),
+                "{name}: {bad:?} vs {}",
+                status.message()
+            );
+        }
     }
     let status = client
         .predict_distribution(DistributionRequest {
@@ -706,6 +722,11 @@ async fn a_full_queue_answers_unavailable_and_an_expired_call_gives_up() {
             Err(s) => {
                 assert_eq!(s.code(), Code::Unavailable, "{s:?}");
                 assert!(s.message().contains("queue"), "{}", s.message());
+                // The reason and a retry delay come as rich details, not only as text.
+                use tonic_types::StatusExt;
+                let d = s.get_error_details();
+                assert_eq!(d.error_info().unwrap().reason, "QUEUE_FULL");
+                assert!(d.retry_info().unwrap().retry_delay.is_some());
                 unavailable += 1;
             }
         }

@@ -57,6 +57,10 @@ struct Cli {
     /// Seconds to wait for in-flight calls after SIGTERM/SIGINT.
     #[arg(long, env = "ALIGNIST_DRAIN_TIMEOUT_S", default_value_t = 20)]
     drain_timeout_s: u64,
+    /// Most MiB of request images in flight (encoded plus decoded size); a call that does not
+    /// fit is refused at once with RESOURCE_EXHAUSTED and a retry delay.
+    #[arg(long, env = "ALIGNIST_MAX_IN_FLIGHT_MIB", default_value_t = 256)]
+    max_in_flight_mib: usize,
     /// Seconds after which a client connection is closed gracefully (the drain timeout is its
     /// grace), so that clients spread onto new replicas; 0 keeps connections open.
     #[arg(long, env = "ALIGNIST_MAX_CONNECTION_AGE_S", default_value_t = 300)]
@@ -117,7 +121,19 @@ fn main() -> Result<()> {
             .then(|| Duration::from_secs(cli.reload_interval_s)),
         max_connection_age: (cli.max_connection_age_s > 0)
             .then(|| Duration::from_secs(cli.max_connection_age_s)),
+        admission: alignist::serve::admission::AdmissionConfig {
+            max_in_flight_bytes: cli.max_in_flight_mib << 20,
+            ..Default::default()
+        },
     };
+    if cli.max_in_flight_mib << 20 < cli.max_image_bytes {
+        bail!(
+            "--max-in-flight-mib {} is below one image (--max-image-bytes {}): no call could be \
+             admitted",
+            cli.max_in_flight_mib,
+            cli.max_image_bytes
+        );
+    }
     config
         .engine
         .validate()

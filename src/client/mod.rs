@@ -26,20 +26,42 @@ pub enum ClientError {
         message: String,
     },
     /// The server answered with an error status.
-    #[error("server answered {code}: {message}")]
+    #[error("server answered {code}: {message}{details}")]
     Status {
         /// The gRPC status code's name.
         code: String,
         /// The server's message.
         message: String,
+        /// The status's rich details, as text: reason, retry delay, field violations (empty
+        /// when it has none).
+        details: String,
     },
 }
 
 impl From<tonic::Status> for ClientError {
     fn from(s: tonic::Status) -> Self {
+        use tonic_types::StatusExt;
+        let d = s.get_error_details();
+        let mut parts = Vec::new();
+        if let Some(info) = d.error_info() {
+            parts.push(format!("reason {}", info.reason));
+        }
+        if let Some(delay) = d.retry_info().and_then(|r| r.retry_delay) {
+            parts.push(format!("retry after {:.1} s", delay.as_secs_f64()));
+        }
+        if let Some(bad) = d.bad_request() {
+            for v in &bad.field_violations {
+                parts.push(format!("field {}: {}", v.field, v.description));
+            }
+        }
         ClientError::Status {
             code: format!("{:?}", s.code()),
             message: s.message().to_string(),
+            details: if parts.is_empty() {
+                String::new()
+            } else {
+                format!(" [{}]", parts.join("; "))
+            },
         }
     }
 }
@@ -103,6 +125,7 @@ pub async fn distribution(
     while let Some(chunk) = stream.message().await? {
         if chunk.offset as usize != probs.len() {
             return Err(ClientError::Status {
+                details: String::new(),
                 code: "DataLoss".into(),
                 message: format!(
                     "chunk at offset {} arrived after {} cells",

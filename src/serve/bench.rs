@@ -168,6 +168,7 @@ fn grpc_vs_in_process(model: Arc<Model>, bundle: &Path, png: &[u8]) -> anyhow::R
             max_concurrent_streams: 1024,
             reload_interval: None,
             max_connection_age: None,
+            admission: Default::default(),
         };
         let server = tokio::spawn(run(config, async {
             let _ = stopped.await;

@@ -2,9 +2,11 @@
 //! is batched across concurrent requests, and engine errors become named status codes. The maths
 //! lives in [`crate::engine`].
 
+pub mod admission;
 pub mod batcher;
 pub mod bench;
 pub mod server;
+pub mod status;
 
 use std::collections::BTreeMap;
 use std::pin::Pin;
@@ -18,7 +20,7 @@ use tracing::{Instrument, info, info_span, warn};
 
 pub use batcher::{BatchConfig, BatchError, Batcher};
 
-use crate::engine::{CropBox, Engine, EngineError, ImageRequest, Model, PredictOptions};
+use crate::engine::{CropBox, Engine, ImageRequest, Model, PredictOptions};
 
 /// Generated protobuf types and the service's file descriptor set (for reflection).
 #[allow(missing_docs, clippy::all)]
@@ -123,7 +125,7 @@ impl ServiceState {
             .read()
             .unwrap_or_else(|e| e.into_inner())
             .clone()
-            .ok_or_else(|| Status::unavailable("models are still loading; retry shortly"))
+            .ok_or_else(status::models_loading)
     }
 }
 
@@ -131,14 +133,21 @@ impl ServiceState {
 pub struct AlignistService {
     state: ServiceState,
     next_id: AtomicU64,
+    admission: admission::Admission,
 }
 
 impl AlignistService {
-    /// A service over `state`.
+    /// A service over `state` with the default admission limits.
     pub fn new(state: ServiceState) -> Self {
+        Self::with_admission(state, admission::AdmissionConfig::default())
+    }
+
+    /// A service over `state` admitting at most what `admission` allows in flight.
+    pub fn with_admission(state: ServiceState, admission: admission::AdmissionConfig) -> Self {
         Self {
             state,
             next_id: AtomicU64::new(1),
+            admission: admission::Admission::new(admission),
         }
     }
 
@@ -152,22 +161,8 @@ impl AlignistService {
     }
 }
 
-/// The gRPC status of an engine error.
-pub fn status_of(error: EngineError) -> Status {
-    match error {
-        EngineError::InvalidArgument { .. } => Status::invalid_argument(error.to_string()),
-        EngineError::NotFound(_) => Status::not_found(error.to_string()),
-        EngineError::ResourceExhausted { .. } => Status::resource_exhausted(error.to_string()),
-        EngineError::Bundle(_) | EngineError::Models(_) => Status::internal(error.to_string()),
-    }
-}
-
-fn batch_status(error: BatchError) -> Status {
-    match error {
-        BatchError::WorkerFailed { .. } => Status::internal(error.to_string()),
-        _ => Status::unavailable(error.to_string()),
-    }
-}
+use status::invalid_field;
+pub use status::{batch_status, status_of};
 
 fn code_name(code: tonic::Code) -> &'static str {
     use tonic::Code::*;
@@ -240,7 +235,12 @@ async fn blocking<T: Send + 'static>(
         if e.is_panic() {
             metrics::counter!("alignist_worker_panics_total", "worker" => "head").increment(1);
         }
-        Status::internal(format!("computation failed: {e}"))
+        status::refused(
+            tonic::Code::Internal,
+            status::Reason::ModelFailed,
+            format!("computation failed: {e}"),
+            None,
+        )
     })?
 }
 
@@ -252,10 +252,12 @@ struct Prepared {
     depth: Option<(usize, Vec<nalgebra::Vector3<f32>>)>,
     batcher: Batcher,
     image: ImageInput,
+    /// The call's share of the in-flight budget, held until it is answered.
+    _admitted: admission::Admitted,
 }
 
 fn required_image(image: Option<ImageInput>) -> Result<ImageInput, Status> {
-    image.ok_or_else(|| Status::invalid_argument("image: is required"))
+    image.ok_or_else(|| invalid_field("image", "is required"))
 }
 
 fn crop_of(image: &ImageInput) -> Option<CropBox> {
@@ -271,14 +273,19 @@ fn raw_size(image: &ImageInput) -> Result<Option<(u32, u32)>, Status> {
     match (image.width, image.height) {
         (0, 0) => Ok(None),
         (w, h) if w > 0 && h > 0 => Ok(Some((w, h))),
-        (w, h) => Err(Status::invalid_argument(format!(
-            "image.width, image.height: both must be set for raw RGB8 or both 0 for PNG/JPEG (got {w}×{h})"
-        ))),
+        (w, h) => Err(invalid_field(
+            "image.width",
+            format!(
+                "image.width and image.height must both be set for raw RGB8 or both 0 for \
+                 PNG/JPEG (got {w}×{h})"
+            ),
+        )),
     }
 }
 
 fn prepare(
     served: &Served,
+    admission: &admission::Admission,
     model: &str,
     object: &str,
     image: Option<ImageInput>,
@@ -286,7 +293,7 @@ fn prepare(
 ) -> Result<Prepared, Status> {
     let model = served.engine.model(model).map_err(status_of)?;
     let image = required_image(image)?;
-    raw_size(&image)?;
+    let admitted = admission.admit(admission::image_cost(&image.data, raw_size(&image)?))?;
     let object = match (&depth, object.is_empty()) {
         (None, true) => None,
         _ => Some(model.object_index(object).map_err(status_of)?),
@@ -308,13 +315,14 @@ fn prepare(
         depth,
         batcher,
         image,
+        _admitted: admitted,
     })
 }
 
 /// Decodes the image off the async threads and encodes it through the batcher.
-async fn encode(p: &Prepared) -> Result<batcher::Encoded, Status> {
+async fn encode(p: &mut Prepared) -> Result<batcher::Encoded, Status> {
     let model = p.model.clone();
-    let image = p.image.clone();
+    let image = std::mem::take(&mut p.image);
     let crop = blocking(move || {
         let request = ImageRequest {
             data: &image.data,
@@ -408,8 +416,9 @@ fn predict_response(
 /// The options of Predict and PredictFrame, validated.
 fn predict_options(top_k: u32, level: u32, mode_angle_deg: f32) -> Result<PredictOptions, Status> {
     if !mode_angle_deg.is_finite() {
-        return Err(Status::invalid_argument(
-            "mode_angle_deg: must be a finite number of degrees",
+        return Err(invalid_field(
+            "mode_angle_deg",
+            "must be a finite number of degrees",
         ));
     }
     Ok(PredictOptions {
@@ -424,11 +433,14 @@ fn predict_options(top_k: u32, level: u32, mode_angle_deg: f32) -> Result<Predic
 
 /// The encoder batcher of a loaded model.
 fn batcher_of(served: &Served, model: &Model) -> Result<Batcher, Status> {
-    served
-        .batchers
-        .get(&model.name)
-        .cloned()
-        .ok_or_else(|| Status::internal(format!("model '{}' has no batcher", model.name)))
+    served.batchers.get(&model.name).cloned().ok_or_else(|| {
+        status::refused(
+            tonic::Code::Internal,
+            status::Reason::ModelFailed,
+            format!("model '{}' has no batcher", model.name),
+            None,
+        )
+    })
 }
 
 /// Most detections in one PredictFrame request.
@@ -439,10 +451,13 @@ fn small_level(value: u32, field: &str) -> Result<u8, Status> {
         .ok()
         .filter(|&l| l <= crate::so3::MAX_LEVEL)
         .ok_or_else(|| {
-            Status::invalid_argument(format!(
-                "{field}: {value} is above the highest grid level {}",
-                crate::so3::MAX_LEVEL
-            ))
+            invalid_field(
+                field,
+                format!(
+                    "{value} is above the highest grid level {}",
+                    crate::so3::MAX_LEVEL
+                ),
+            )
         })
 }
 
@@ -450,14 +465,22 @@ impl AlignistService {
     async fn do_predict(&self, req: PredictRequest) -> Result<PredictResponse, Status> {
         let started = Instant::now();
         let served = self.state.current()?;
-        let p = prepare(&served, &req.model, &req.object, req.image, req.depth)?;
+        let mut p = prepare(
+            &served,
+            &self.admission,
+            &req.model,
+            &req.object,
+            req.image,
+            req.depth,
+        )?;
         let options = predict_options(req.top_k, req.level, req.mode_angle_deg)?;
         let level = p.model.check_predict(&options).map_err(status_of)?;
-        let encoded = encode(&p).await?;
+        let encoded = encode(&mut p).await?;
         let (features, queued) = (encoded.features, encoded.queued);
         let model = p.model.clone();
         let depth = p.depth;
         let fused = depth.is_some();
+        let _slot = self.admission.head_slot().await?;
         let compute = Instant::now();
         let prediction = blocking(move || {
             let f = model.features_tensor(&features);
@@ -485,9 +508,12 @@ impl AlignistService {
         let served = self.state.current()?;
         let model = served.engine.model(&req.model).map_err(status_of)?;
         let image = required_image(req.image)?;
+        let _admitted = self
+            .admission
+            .admit(admission::image_cost(&image.data, raw_size(&image)?))?;
         let intrinsics = req
             .intrinsics
-            .ok_or_else(|| Status::invalid_argument("intrinsics: is required"))?;
+            .ok_or_else(|| invalid_field("intrinsics", "is required"))?;
         let intrinsics = crate::engine::Intrinsics {
             fx: intrinsics.fx,
             fy: intrinsics.fy,
@@ -496,17 +522,20 @@ impl AlignistService {
         };
         intrinsics.validate().map_err(status_of)?;
         if req.detections.is_empty() || req.detections.len() > MAX_DETECTIONS {
-            return Err(Status::invalid_argument(format!(
-                "detections: give 1 ..= {MAX_DETECTIONS} boxes, got {}",
-                req.detections.len()
-            )));
+            return Err(invalid_field(
+                "detections",
+                format!(
+                    "give 1 ..= {MAX_DETECTIONS} boxes, got {}",
+                    req.detections.len()
+                ),
+            ));
         }
         let mut boxes = Vec::with_capacity(req.detections.len());
         let mut objects = Vec::with_capacity(req.detections.len());
         for (i, d) in req.detections.iter().enumerate() {
-            let b = d.r#box.ok_or_else(|| {
-                Status::invalid_argument(format!("detections[{i}].box: is required"))
-            })?;
+            let b = d
+                .r#box
+                .ok_or_else(|| invalid_field(&format!("detections[{i}].box"), "is required"))?;
             boxes.push(CropBox {
                 x: b.x,
                 y: b.y,
@@ -546,6 +575,7 @@ impl AlignistService {
             metrics::histogram!("alignist_queue_seconds").record(e.queued.as_secs_f64());
         }
         let queued = encoded.iter().map(|e| e.queued).max().unwrap_or_default();
+        let _slot = self.admission.head_slot().await?;
         let compute = Instant::now();
         let predictions = {
             let model = model.clone();
@@ -675,7 +705,7 @@ impl Alignist for AlignistService {
         let name = request.into_inner().name;
         let result = self.state.current().and_then(|served| {
             if name.is_empty() {
-                return Err(Status::invalid_argument("name: is required"));
+                return Err(invalid_field("name", "is required"));
             }
             served
                 .engine
@@ -691,7 +721,14 @@ impl Alignist for AlignistService {
 impl AlignistService {
     async fn do_distribution(&self, req: DistributionRequest) -> Result<ChunkStream, Status> {
         let served = self.state.current()?;
-        let p = prepare(&served, &req.model, &req.object, req.image, req.depth)?;
+        let mut p = prepare(
+            &served,
+            &self.admission,
+            &req.model,
+            &req.object,
+            req.image,
+            req.depth,
+        )?;
         // 0 is the default, as in Predict (level 0's 72 cells are not served).
         let level = match req.level {
             0 => p.model.config().max_full_level.min(4),
@@ -701,15 +738,17 @@ impl AlignistService {
         let chunk = match req.chunk_size {
             0 => DEFAULT_CHUNK,
             c if c > MAX_CHUNK => {
-                return Err(Status::invalid_argument(format!(
-                    "chunk_size: {c} is above the limit of {MAX_CHUNK} cells"
-                )));
+                return Err(invalid_field(
+                    "chunk_size",
+                    format!("{c} is above the limit of {MAX_CHUNK} cells"),
+                ));
             }
             c => c,
         } as usize;
-        let features = encode(&p).await?.features;
+        let features = encode(&mut p).await?.features;
         let model = p.model.clone();
         let depth = p.depth;
+        let _slot = self.admission.head_slot().await?;
         let compute = Instant::now();
         let distribution = blocking(move || {
             let f = model.features_tensor(&features);

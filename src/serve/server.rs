@@ -38,6 +38,8 @@ pub struct ServerConfig {
     /// Connections older than this are closed gracefully (over `drain_timeout`), so that
     /// clients spread onto new replicas (`None`: connections live as long as clients keep them).
     pub max_connection_age: Option<Duration>,
+    /// Limits of the work in flight (image bytes, head slots).
+    pub admission: super::admission::AdmissionConfig,
 }
 
 /// A fingerprint of every file under the models directory: relative path, length and
@@ -89,8 +91,8 @@ async fn watch_models(
     interval: Option<Duration>,
     state: ServiceState,
     mut seen: Vec<(String, u64, u128)>,
+    mut hup: Option<tokio::signal::unix::Signal>,
 ) {
-    let mut hup = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()).ok();
     let mut tick = tokio::time::interval(interval.unwrap_or(Duration::from_secs(3600)));
     tick.tick().await;
     loop {
@@ -261,11 +263,17 @@ pub async fn run(
     let reflection = reflection_builder().build_v1()?;
     let reflection_v1alpha = reflection_builder().build_v1alpha()?;
 
+    // SIGHUP is handled from the start (its default action would end the process while the
+    // models load); hang-ups before the models are loaded trigger a reload check afterwards.
+    let hup = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()).ok();
     let state = ServiceState::default();
     // The transport refuses a message larger than an image may be, plus room for the other
     // fields (depth points are at most 10 000 × 3 floats): nothing larger is read into memory.
-    let service = AlignistServer::new(AlignistService::new(state.clone()))
-        .max_decoding_message_size(config.engine.image_limits.max_bytes + (1 << 20));
+    let service = AlignistServer::new(AlignistService::with_admission(
+        state.clone(),
+        config.admission,
+    ))
+    .max_decoding_message_size(config.engine.image_limits.max_bytes + (1 << 20));
 
     // Load the models while already answering health checks (NOT_SERVING meanwhile).
     let loader = {
@@ -298,6 +306,7 @@ pub async fn run(
                         reload_interval,
                         state,
                         fingerprint,
+                        hup,
                     ));
                     Ok(())
                 }
