@@ -17,7 +17,8 @@ use crate::experts::baked::VoxelGrid;
 use crate::experts::energy::{EnergyParams, sdf_energy};
 use crate::experts::run_batched;
 
-/// The SDF expert of one object, baked on first use.
+/// The SDF expert of one object, baked once ([`DepthFusion::warm`], which the server runs in the
+/// background after loading, or on first use).
 pub struct DepthFusion {
     set: ExpertSet,
     baked: OnceLock<VoxelGrid>,
@@ -40,6 +41,16 @@ impl DepthFusion {
     /// The expert set.
     pub fn experts(&self) -> &ExpertSet {
         &self.set
+    }
+
+    /// Bakes the SDF grid now if it is not baked yet (so that no request pays for it).
+    pub fn warm(&self) {
+        let _ = self.sdf();
+    }
+
+    /// Whether the SDF grid is baked.
+    pub fn is_warm(&self) -> bool {
+        self.baked.get().is_some()
     }
 
     fn sdf(&self) -> &VoxelGrid {

@@ -108,6 +108,20 @@ impl ServiceState {
             metrics::gauge!("alignist_model_info", "model" => m.name.clone(), "sha256" => m.version().to_string())
                 .set(1.0);
         }
+        // Depth fusion's SDF grids are baked in the background, not inside a first request.
+        let models: Vec<Arc<Model>> = served.engine.models().cloned().collect();
+        if let Ok(runtime) = tokio::runtime::Handle::try_current() {
+            runtime.spawn_blocking(move || {
+                for m in &models {
+                    for o in &m.objects {
+                        if !o.fusion.is_warm() {
+                            o.fusion.warm();
+                            metrics::counter!("alignist_depth_grids_baked_total").increment(1);
+                        }
+                    }
+                }
+            });
+        }
         *slot = Some(Arc::new(served));
     }
 
