@@ -241,11 +241,28 @@ fn record<T>(method: &'static str, started: Instant, result: &Result<T, Status>)
 }
 
 /// Runs CPU work off the async threads; a panic inside becomes INTERNAL (and is counted), never
-/// a crash.
+/// a crash. Work whose caller went away (cancelled, deadline) before it started is skipped.
 async fn blocking<T: Send + 'static>(
     work: impl FnOnce() -> Result<T, Status> + Send + 'static,
 ) -> Result<T, Status> {
-    tokio::task::spawn_blocking(work).await.map_err(|e| {
+    /// Marks the call as gone when its future is dropped before the work ran.
+    struct Gone(Arc<std::sync::atomic::AtomicBool>);
+    impl Drop for Gone {
+        fn drop(&mut self) {
+            self.0.store(true, Ordering::SeqCst);
+        }
+    }
+    let gone = Gone(Arc::new(std::sync::atomic::AtomicBool::new(false)));
+    let flag = gone.0.clone();
+    let result = tokio::task::spawn_blocking(move || {
+        if flag.load(Ordering::SeqCst) {
+            metrics::counter!("alignist_abandoned_work_total").increment(1);
+            return Err(Status::cancelled("the caller went away"));
+        }
+        work()
+    })
+    .await
+    .map_err(|e| {
         if e.is_panic() {
             metrics::counter!("alignist_worker_panics_total", "worker" => "head").increment(1);
         }
@@ -255,7 +272,10 @@ async fn blocking<T: Send + 'static>(
             format!("computation failed: {e}"),
             None,
         )
-    })?
+    })?;
+    // (Dropping `gone` now marks finished work, which nothing reads any more.)
+    drop(gone);
+    result
 }
 
 /// The validated parts common to Predict and PredictDistribution.
