@@ -64,6 +64,44 @@ fn coarse_to_fine_top1_is_the_exhaustive_argmax_at_level_4() {
 }
 
 #[test]
+fn a_batched_search_answers_each_image_as_its_own_search_does() {
+    let engine = Engine::load_dir(models_dir(), EngineConfig::default()).unwrap();
+    let model = engine.model("tiny").unwrap();
+    let crops: Vec<Vec<u8>> = (0..3)
+        .map(|seed| {
+            model
+                .prepare(&ImageRequest {
+                    data: &cube_png(200 + seed),
+                    raw_size: None,
+                    crop: None,
+                })
+                .unwrap()
+        })
+        .collect();
+    let refs: Vec<&[u8]> = crops.iter().map(|c| c.as_slice()).collect();
+    let features = model.features(&refs);
+    let options = PredictOptions {
+        top_k: 10,
+        level: Some(4),
+        mode_angle_deg: None,
+    };
+    let many = model
+        .predict_many(&features, &options, &[None, None, None])
+        .unwrap();
+    assert_eq!(many.len(), 3);
+    for (i, batched) in many.iter().enumerate() {
+        let one = model.features(&[refs[i]]);
+        let single = model.predict(&one, &options, None).unwrap();
+        let cells =
+            |p: &alignist::engine::Prediction| p.top.iter().map(|c| c.cell).collect::<Vec<_>>();
+        assert_eq!(cells(batched), cells(&single), "image {i}");
+        for (a, b) in batched.top.iter().zip(&single.top) {
+            assert!((a.probability - b.probability).abs() <= 1e-4 * b.probability.max(1e-12));
+        }
+    }
+}
+
+#[test]
 fn depth_points_from_the_true_pose_sharpen_the_distribution() {
     let engine = Engine::load_dir(models_dir(), EngineConfig::default()).unwrap();
     let model = engine.model("tiny").unwrap();

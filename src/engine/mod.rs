@@ -16,7 +16,9 @@ pub use self::image::{
     CropBox, FrameCrop, ImageLimits, ImageRequest, Intrinsics, prepare_frame, prepare_image,
 };
 pub use fusion::DepthFusion;
-pub use search::{CellProbability, Mode, SearchResult, coarse_to_fine, group_modes};
+pub use search::{
+    CellProbability, Mode, SearchResult, coarse_to_fine, coarse_to_fine_many, group_modes,
+};
 
 use crate::bundle::BundleError;
 use crate::bundle::model::ModelBundle;
@@ -227,6 +229,10 @@ impl Prediction {
     }
 }
 
+/// Depth points of one image for RGB-D fusion: the object they belong to, and the points in its
+/// normalised units (camera frame, relative to the object's centre).
+pub type DepthInput<'a> = (&'a ModelObject, &'a [nalgebra::Vector3<f32>]);
+
 /// What a prediction asks for beyond the image.
 #[derive(Debug, Clone, Default)]
 pub struct PredictOptions {
@@ -390,6 +396,14 @@ impl Model {
         Tensor::from_data(features.into_data(), &self.dense)
     }
 
+    /// `b` images' features, `d` each, concatenated, as a `[b, d]` tensor.
+    pub fn features_tensor_many(&self, features: &[f32], b: usize, d: usize) -> Tensor<2> {
+        Tensor::from_data(
+            burn::tensor::TensorData::new(features.to_vec(), [b, d]),
+            &self.dense,
+        )
+    }
+
     /// One image's features (as the batcher hands them over) as a `[1, D]` tensor.
     pub fn features_tensor(&self, features: &[f32]) -> Tensor<2> {
         Tensor::from_data(
@@ -418,7 +432,7 @@ impl Model {
         &self,
         features: &Tensor<2>,
         level: u8,
-        depth: Option<(&ModelObject, &[nalgebra::Vector3<f32>])>,
+        depth: Option<DepthInput<'_>>,
     ) -> Vec<f32> {
         let mut logits = self.projected[level as usize]
             .log_weights_of_features(&self.head_network, features.clone())
@@ -440,7 +454,7 @@ impl Model {
         &self,
         features: &Tensor<2>,
         level: u8,
-        depth: Option<(&ModelObject, &[nalgebra::Vector3<f32>])>,
+        depth: Option<DepthInput<'_>>,
     ) -> Result<Distribution, EngineError> {
         self.check_full_level(level)?;
         let logits = self.full_logits(features, level, depth);
@@ -506,70 +520,136 @@ impl Model {
         &self,
         features: &Tensor<2>,
         options: &PredictOptions,
-        depth: Option<(&ModelObject, &[nalgebra::Vector3<f32>])>,
+        depth: Option<DepthInput<'_>>,
     ) -> Result<Prediction, EngineError> {
+        Ok(self
+            .predict_many(features, options, &[depth])?
+            .swap_remove(0))
+    }
+
+    /// [`Model::predict`] for the `B` images of `features` `[B, D]` with the same options, in
+    /// one batch: every level of their searches is scored in one pass of the head for all of
+    /// them. `depth[b]` is image `b`'s depth input.
+    pub fn predict_many(
+        &self,
+        features: &Tensor<2>,
+        options: &PredictOptions,
+        depth: &[Option<DepthInput<'_>>],
+    ) -> Result<Vec<Prediction>, EngineError> {
         let level = self.check_predict(options)?;
+        let [b, _] = features.dims();
+        if depth.len() != b {
+            return Err(EngineError::Models(format!(
+                "{} depth inputs for {b} images",
+                depth.len()
+            )));
+        }
         let start = self.config.search_start_level.min(level);
         let grids: Vec<&GridLevel> = self.grids[start as usize..=level as usize].iter().collect();
         let keep = self.config.keep.max(options.top_k.div_ceil(8));
-        let result = coarse_to_fine(&grids, keep, |grid, cells| {
-            if grid.level() == start && (start as usize) < self.projected.len() {
-                let mut all = self.full_logits(features, start, depth);
-                if cells.len() != all.len() {
-                    all = cells.iter().map(|&c| all[c as usize]).collect();
-                }
-                return all;
-            }
-            let mats: Vec<[f32; 9]> = cells
-                .iter()
-                .map(|&c| to_row_major_f32(&grid.rotation(c)))
-                .collect();
-            let mut logits = self.score_rotations(features, &mats);
-            if let Some((object, points)) = depth {
-                for (l, d) in logits
-                    .iter_mut()
-                    .zip(object.fusion.log_measure(points, &mats))
-                {
-                    *l += d;
+        let results = coarse_to_fine_many(&grids, keep, b, |grid, cells| {
+            let mats: Vec<Vec<[f32; 9]>>;
+            let mut logits = if grid.level() == start && (start as usize) < self.projected.len() {
+                mats = Vec::new();
+                let all = self.projected[start as usize]
+                    .log_weights_of_features(&self.head_network, features.clone());
+                all.into_iter()
+                    .zip(cells)
+                    .map(|(all, cells)| {
+                        if cells.len() == all.len() {
+                            all
+                        } else {
+                            cells.iter().map(|&c| all[c as usize]).collect()
+                        }
+                    })
+                    .collect::<Vec<_>>()
+            } else {
+                mats = cells
+                    .iter()
+                    .map(|cells| {
+                        cells
+                            .iter()
+                            .map(|&c| to_row_major_f32(&grid.rotation(c)))
+                            .collect()
+                    })
+                    .collect();
+                self.score_rotations_many(features, &mats)
+            };
+            for (i, d) in depth.iter().enumerate() {
+                if let Some((object, points)) = d {
+                    let own;
+                    let m: &[[f32; 9]] = if mats.is_empty() {
+                        own = cells[i]
+                            .iter()
+                            .map(|&c| to_row_major_f32(&grid.rotation(c)))
+                            .collect::<Vec<_>>();
+                        &own
+                    } else {
+                        &mats[i]
+                    };
+                    for (l, d) in logits[i]
+                        .iter_mut()
+                        .zip(object.fusion.log_measure(points, m))
+                    {
+                        *l += d;
+                    }
                 }
             }
             logits
         });
         let grid = &self.grids[level as usize];
         let angle = options.mode_angle_deg.unwrap_or(15.0).to_radians();
-        let modes = group_modes(grid, &result.cells, angle, 0.9, 0.01);
-        let top: Vec<CellProbability> =
-            result.cells[..options.top_k.min(result.cells.len())].to_vec();
-        Ok(Prediction {
-            rotations: top
-                .iter()
-                .map(|c| crate::so3::to_quaternion(&grid.rotation(c.cell)))
-                .collect(),
-            top,
-            modes,
-            covered_mass: result.covered_mass,
-        })
+        Ok(results
+            .into_iter()
+            .map(|result| {
+                let modes = group_modes(grid, &result.cells, angle, 0.9, 0.01);
+                let top: Vec<CellProbability> =
+                    result.cells[..options.top_k.min(result.cells.len())].to_vec();
+                Prediction {
+                    rotations: top
+                        .iter()
+                        .map(|c| crate::so3::to_quaternion(&grid.rotation(c.cell)))
+                        .collect(),
+                    top,
+                    modes,
+                    covered_mass: result.covered_mass,
+                }
+            })
+            .collect())
     }
 
     /// `s_θ + s_φ` of arbitrary rotations (row-major) for one image's features `[1, D]`.
     pub fn score_rotations(&self, features: &Tensor<2>, rotations: &[[f32; 9]]) -> Vec<f32> {
+        self.score_rotations_many(features, &[rotations.to_vec()])
+            .swap_remove(0)
+    }
+
+    /// `s_θ + s_φ` of `rotations[b]` (row-major, the same number for every image) for each image
+    /// `b` of `features` `[B, D]`, in one pass of the head.
+    pub fn score_rotations_many(
+        &self,
+        features: &Tensor<2>,
+        rotations: &[Vec<[f32; 9]>],
+    ) -> Vec<Vec<f32>> {
+        let b = rotations.len();
+        let k = rotations.first().map_or(0, |r| r.len());
+        let flat: Vec<[f32; 9]> = rotations.iter().flatten().copied().collect();
         let enc = self
             .manifest
             .network
             .encoding
-            .encode_tensor(rotations, &self.dense);
-        let projected = self
+            .encode_tensor(&flat, &self.dense);
+        let projected = self.head_network.head.project_rotations(enc);
+        let [_, h] = projected.dims();
+        let scores = self
             .head_network
             .head
-            .project_rotations(enc)
-            .unsqueeze::<3>();
-        self.head_network
-            .head
-            .forward_projected(features.clone(), projected)
+            .forward_projected(features.clone(), projected.reshape([b, k, h]))
             .combined()
             .into_data()
             .try_to_vec::<f32>()
-            .expect("float scores")
+            .expect("float scores");
+        scores.chunks(k.max(1)).map(|c| c.to_vec()).collect()
     }
 
     /// The grid of `level` (up to the highest level this model serves).

@@ -59,43 +59,63 @@ pub fn coarse_to_fine(
     keep: usize,
     mut score: impl FnMut(&GridLevel, &[u64]) -> Vec<f32>,
 ) -> SearchResult {
+    coarse_to_fine_many(grids, keep, 1, |grid, cells| vec![score(grid, &cells[0])]).swap_remove(0)
+}
+
+/// `n` coarse-to-fine searches in lockstep, so that each level's scoring is one call for all of
+/// them (a batch across requests): `score(grid, cells)` gets every search's cells of that level
+/// (the same number for each) and returns their log-weights in the same order.
+pub fn coarse_to_fine_many(
+    grids: &[&GridLevel],
+    keep: usize,
+    n: usize,
+    mut score: impl FnMut(&GridLevel, &[Vec<u64>]) -> Vec<Vec<f32>>,
+) -> Vec<SearchResult> {
     let first = grids[0];
-    let mut cells: Vec<u64> = (0..first.len() as u64).collect();
-    let mut covered = 1.0f64;
-    let mut probs = Vec::new();
+    let mut cells: Vec<Vec<u64>> = vec![(0..first.len() as u64).collect(); n];
+    let mut covered = vec![1.0f64; n];
+    let mut probs: Vec<Vec<f64>> = vec![Vec::new(); n];
     for (i, grid) in grids.iter().enumerate() {
         if i > 0 {
             let parent = grids[i - 1];
-            let kept = top_indices(&probs, keep);
-            // `probs` already carry the mass kept so far: the kept ones' sum is the new cover.
-            covered = kept.iter().map(|&j| probs[j]).sum::<f64>();
-            cells = kept
-                .iter()
-                .flat_map(|&j| parent.children(cells[j]))
-                .collect();
+            for s in 0..n {
+                let kept = top_indices(&probs[s], keep);
+                // `probs` already carry the mass kept so far: the kept ones' sum is the new cover.
+                covered[s] = kept.iter().map(|&j| probs[s][j]).sum::<f64>();
+                cells[s] = kept
+                    .iter()
+                    .flat_map(|&j| parent.children(cells[s][j]))
+                    .collect();
+            }
         }
         let logits = score(grid, &cells);
-        let lse = log_sum_exp(&logits);
-        probs = logits
-            .iter()
-            .map(|&l| covered * (l as f64 - lse).exp())
-            .collect();
+        for s in 0..n {
+            let lse = log_sum_exp(&logits[s]);
+            probs[s] = logits[s]
+                .iter()
+                .map(|&l| covered[s] * (l as f64 - lse).exp())
+                .collect();
+        }
     }
     let grid = grids[grids.len() - 1];
     let log_cell_volume = grid.cell_volume().ln();
-    let order = top_indices(&probs, probs.len());
-    SearchResult {
-        cells: order
-            .into_iter()
-            .map(|j| CellProbability {
-                level: grid.level(),
-                cell: cells[j],
-                probability: probs[j],
-                log_density: probs[j].ln() - log_cell_volume,
-            })
-            .collect(),
-        covered_mass: covered,
-    }
+    (0..n)
+        .map(|s| {
+            let order = top_indices(&probs[s], probs[s].len());
+            SearchResult {
+                cells: order
+                    .into_iter()
+                    .map(|j| CellProbability {
+                        level: grid.level(),
+                        cell: cells[s][j],
+                        probability: probs[s][j],
+                        log_density: probs[s][j].ln() - log_cell_volume,
+                    })
+                    .collect(),
+                covered_mass: covered[s],
+            }
+        })
+        .collect()
 }
 
 /// A mode: top cells within an angle of its most probable cell.

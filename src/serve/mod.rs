@@ -5,6 +5,7 @@
 pub mod admission;
 pub mod batcher;
 pub mod bench;
+pub mod heads;
 pub mod server;
 pub mod status;
 
@@ -39,21 +40,18 @@ pub const MAX_CHUNK: u32 = 65_536;
 /// Default cells per distribution chunk.
 pub const DEFAULT_CHUNK: u32 = 16_384;
 
-/// An engine with its batchers: what the service answers with. Replaced whole on reload.
+/// An engine with its workers: what the service answers with. Replaced whole on reload.
 pub struct Served {
     /// The models.
     pub engine: Engine,
     batchers: BTreeMap<String, Batcher>,
+    heads: BTreeMap<String, heads::HeadStage>,
 }
 
 impl Served {
-    /// Starts a batcher (an encoder thread) per model.
+    /// Starts a batcher (an encoder thread) and a head stage (a head thread) per model.
     pub fn new(engine: Engine, batch: BatchConfig) -> std::io::Result<Served> {
-        let batchers = engine
-            .models()
-            .map(|m| Ok((m.name.clone(), Batcher::start(m.clone(), batch)?)))
-            .collect::<std::io::Result<_>>()?;
-        Ok(Served { engine, batchers })
+        Self::reloaded(engine, None, batch)
     }
 
     /// What a reload serves: the newly loaded models with new batchers, and, for each bundle that
@@ -67,23 +65,33 @@ impl Served {
         if let Some(previous) = previous {
             let failed: Vec<String> = engine.failures().keys().cloned().collect();
             for name in failed {
-                if let (Ok(model), Some(batcher)) =
-                    (previous.engine.model(&name), previous.batchers.get(&name))
-                {
+                if let (Ok(model), Some(batcher), Some(head)) = (
+                    previous.engine.model(&name),
+                    previous.batchers.get(&name),
+                    previous.heads.get(&name),
+                ) {
                     engine.keep_previous(model);
-                    kept.insert(name, batcher.clone());
+                    kept.insert(name, (batcher.clone(), head.clone()));
                 }
             }
         }
-        let mut batchers = BTreeMap::new();
+        let (mut batchers, mut heads) = (BTreeMap::new(), BTreeMap::new());
         for m in engine.models() {
-            let b = match kept.remove(&m.name) {
-                Some(b) => b,
-                None => Batcher::start(m.clone(), batch)?,
+            let (b, h) = match kept.remove(&m.name) {
+                Some(workers) => workers,
+                None => (
+                    Batcher::start(m.clone(), batch)?,
+                    heads::HeadStage::start(m.clone(), batch)?,
+                ),
             };
             batchers.insert(m.name.clone(), b);
+            heads.insert(m.name.clone(), h);
         }
-        Ok(Served { engine, batchers })
+        Ok(Served {
+            engine,
+            batchers,
+            heads,
+        })
     }
 }
 
@@ -285,6 +293,7 @@ struct Prepared {
     /// The object's index and its depth points, when depth was given.
     depth: Option<(usize, Vec<nalgebra::Vector3<f32>>)>,
     batcher: Batcher,
+    head: heads::HeadStage,
     image: ImageInput,
     /// The call's share of the in-flight budget, held until it is answered.
     _admitted: admission::Admitted,
@@ -343,11 +352,13 @@ fn prepare(
         _ => None,
     };
     let batcher = batcher_of(served, &model)?;
+    let head = head_of(served, &model)?;
     Ok(Prepared {
         model,
         object,
         depth,
         batcher,
+        head,
         image,
         _admitted: admitted,
     })
@@ -477,6 +488,18 @@ fn batcher_of(served: &Served, model: &Model) -> Result<Batcher, Status> {
     })
 }
 
+/// The head stage of a loaded model.
+fn head_of(served: &Served, model: &Model) -> Result<heads::HeadStage, Status> {
+    served.heads.get(&model.name).cloned().ok_or_else(|| {
+        status::refused(
+            tonic::Code::Internal,
+            status::Reason::ModelFailed,
+            format!("model '{}' has no head stage", model.name),
+            None,
+        )
+    })
+}
+
 /// Most detections in one PredictFrame request.
 pub const MAX_DETECTIONS: usize = 32;
 
@@ -511,19 +534,10 @@ impl AlignistService {
         let level = p.model.check_predict(&options).map_err(status_of)?;
         let encoded = encode(&mut p).await?;
         let (features, queued) = (encoded.features, encoded.queued);
-        let model = p.model.clone();
-        let depth = p.depth;
+        let depth = p.depth.take();
         let fused = depth.is_some();
-        let _slot = self.admission.head_slot().await?;
         let compute = Instant::now();
-        let prediction = blocking(move || {
-            let f = model.features_tensor(&features);
-            let fusion = depth
-                .as_ref()
-                .map(|(i, pts)| (&model.objects[*i], pts.as_slice()));
-            model.predict(&f, &options, fusion).map_err(status_of)
-        })
-        .await?;
+        let prediction = p.head.predict(features, options, depth).await?;
         metrics::histogram!("alignist_compute_seconds", "method" => "Predict")
             .record(compute.elapsed().as_secs_f64());
         Ok(predict_response(
@@ -609,26 +623,28 @@ impl AlignistService {
             metrics::histogram!("alignist_queue_seconds").record(e.queued.as_secs_f64());
         }
         let queued = encoded.iter().map(|e| e.queued).max().unwrap_or_default();
-        let _slot = self.admission.head_slot().await?;
         let compute = Instant::now();
-        let predictions = {
-            let model = model.clone();
-            let rays = rays.clone();
-            blocking(move || {
-                encoded
-                    .iter()
-                    .zip(&rays)
-                    .map(|(e, ray)| {
-                        let f = model.features_tensor(&e.features);
-                        model
-                            .predict(&f, &options, None)
-                            .map(|p| p.in_camera_frame(ray))
-                            .map_err(status_of)
-                    })
-                    .collect::<Result<Vec<_>, _>>()
+        // Every box's head work is queued at once: they share the stage's batches.
+        let head = head_of(&served, &model)?;
+        let calls: Vec<_> = encoded
+            .into_iter()
+            .map(|e| {
+                let (head, options) = (head.clone(), options.clone());
+                tokio::spawn(async move { head.predict(e.features, options, None).await })
             })
-            .await?
-        };
+            .collect();
+        let mut predictions = Vec::with_capacity(calls.len());
+        for (call, ray) in calls.into_iter().zip(&rays) {
+            let p = call.await.map_err(|e| {
+                status::refused(
+                    tonic::Code::Internal,
+                    status::Reason::ModelFailed,
+                    format!("computation failed: {e}"),
+                    None,
+                )
+            })??;
+            predictions.push(p.in_camera_frame(ray));
+        }
         metrics::histogram!("alignist_compute_seconds", "method" => "PredictFrame")
             .record(compute.elapsed().as_secs_f64());
         let detections = predictions

@@ -229,7 +229,7 @@ pub async fn run(
             )
             .map_err(err)?
             .set_buckets_for_metric(
-                Matcher::Full("alignist_batch_size".into()),
+                Matcher::Suffix("batch_size".into()),
                 &[1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0],
             )
             .map_err(err)?
