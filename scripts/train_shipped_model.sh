@@ -2,8 +2,11 @@
 # Trains the shipped model models/symsol1 (one network for the five SYMSOL-I shapes) on fresh
 # renders, the way the shipped bundle was made (its manifest records the fit command).
 #   1. the experts of each shape (default settings; no symmetry is used), ~3 min each;
-#   2. 16 000 steps of batch 16 × K 256 on 32 px crops (~70 min on 2 cores), resumable;
-#   3. the bundle is evaluated on 250 fresh renders at level 3, then copied to models/symsol1.
+#   2. 16 000 steps of batch 16 × K 256 on 32 px crops, peak lr 1e-3 (~70 min on 2 cores),
+#      resumable;
+#   3. a warm restart from those weights: 12 000 more steps, peak lr 5e-4, another data seed
+#      (~70 min with other work on the machine), resumable;
+#   4. the bundle is evaluated on 250 fresh renders at level 3, then copied to models/symsol1.
 # Usage: scripts/train_shipped_model.sh [WORK_DIR]   (default: target/symsol)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -21,5 +24,11 @@ done
   --method alignist --image-size 32 --steps 16000 --batch 16 --k 256 --lr 1e-3 \
   --eval-level 3 --eval-images 50 --checkpoint-every 500 --seed 0 --profile --resume \
   --out "$WORK/models/alignist-fresh"
+"$BIN" fit --fresh \
+  --experts "$E/tet" --experts "$E/cube" --experts "$E/icosa" --experts "$E/cone" --experts "$E/cyl" \
+  --method alignist --image-size 32 --steps 12000 --batch 16 --k 256 --lr 5e-4 \
+  --eval-level 3 --eval-images 50 --checkpoint-every 500 --seed 1 --profile --resume \
+  --init "$WORK/models/alignist-fresh" \
+  --out "$WORK/models/alignist-warm"
 rm -rf models/symsol1
-cp -r "$WORK/models/alignist-fresh" models/symsol1
+cp -r "$WORK/models/alignist-warm" models/symsol1
