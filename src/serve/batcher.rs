@@ -155,23 +155,42 @@ impl Batcher {
     }
 }
 
-fn run(model: Arc<Model>, config: BatchConfig, mut receiver: mpsc::Receiver<Job>) {
-    while let Some(first) = receiver.blocking_recv() {
-        let deadline = Instant::now() + config.max_delay;
-        let mut jobs = vec![first];
-        while jobs.len() < config.max_batch {
-            match receiver.try_recv() {
-                Ok(job) => jobs.push(job),
-                Err(mpsc::error::TryRecvError::Empty) => {
-                    let now = Instant::now();
-                    if now >= deadline {
-                        break;
-                    }
-                    std::thread::sleep((deadline - now).min(Duration::from_micros(200)));
+/// The next batch of a worker's queue: blocks for the first job, then takes what else arrives
+/// within `max_delay`, up to `max_batch` jobs. `None` once every sender is gone.
+pub(super) fn next_batch<T>(
+    receiver: &mut mpsc::Receiver<T>,
+    config: &BatchConfig,
+) -> Option<Vec<T>> {
+    let first = receiver.blocking_recv()?;
+    let deadline = Instant::now() + config.max_delay;
+    let mut jobs = vec![first];
+    while jobs.len() < config.max_batch {
+        match receiver.try_recv() {
+            Ok(job) => jobs.push(job),
+            Err(mpsc::error::TryRecvError::Empty) => {
+                let now = Instant::now();
+                if now >= deadline {
+                    break;
                 }
-                Err(mpsc::error::TryRecvError::Disconnected) => break,
+                std::thread::sleep((deadline - now).min(Duration::from_micros(200)));
             }
+            Err(mpsc::error::TryRecvError::Disconnected) => break,
         }
+    }
+    Some(jobs)
+}
+
+/// The text of a caught panic.
+pub(super) fn panic_message(panic: &(dyn std::any::Any + Send)) -> String {
+    panic
+        .downcast_ref::<&str>()
+        .map(|s| s.to_string())
+        .or_else(|| panic.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "panic".into())
+}
+
+fn run(model: Arc<Model>, config: BatchConfig, mut receiver: mpsc::Receiver<Job>) {
+    while let Some(mut jobs) = next_batch(&mut receiver, &config) {
         // A caller that gave up (cancelled, deadline) is not worth encoding.
         jobs.retain(|j| !j.reply.is_closed());
         if jobs.is_empty() {
@@ -189,11 +208,7 @@ fn run(model: Arc<Model>, config: BatchConfig, mut receiver: mpsc::Receiver<Job>
         let features = match encoded {
             Ok(f) => f,
             Err(panic) => {
-                let message = panic
-                    .downcast_ref::<&str>()
-                    .map(|s| s.to_string())
-                    .or_else(|| panic.downcast_ref::<String>().cloned())
-                    .unwrap_or_else(|| "panic".into());
+                let message = panic_message(panic.as_ref());
                 tracing::error!("encoder of model '{}' panicked: {message}", model.name);
                 metrics::counter!("alignist_worker_panics_total", "worker" => "encoder")
                     .increment(1);

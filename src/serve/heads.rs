@@ -96,22 +96,7 @@ fn same_search(a: &PredictOptions, b: &PredictOptions) -> bool {
 }
 
 fn run(model: Arc<Model>, config: BatchConfig, mut receiver: mpsc::Receiver<HeadJob>) {
-    while let Some(first) = receiver.blocking_recv() {
-        let deadline = Instant::now() + config.max_delay;
-        let mut jobs = vec![first];
-        while jobs.len() < config.max_batch {
-            match receiver.try_recv() {
-                Ok(job) => jobs.push(job),
-                Err(mpsc::error::TryRecvError::Empty) => {
-                    let now = Instant::now();
-                    if now >= deadline {
-                        break;
-                    }
-                    std::thread::sleep((deadline - now).min(std::time::Duration::from_micros(200)));
-                }
-                Err(mpsc::error::TryRecvError::Disconnected) => break,
-            }
-        }
+    while let Some(mut jobs) = super::batcher::next_batch(&mut receiver, &config) {
         // A caller that gave up (cancelled, deadline) is not worth scoring.
         let before = jobs.len();
         jobs.retain(|j| !j.reply.is_closed());
@@ -166,11 +151,7 @@ fn answer(model: &Model, options: &PredictOptions, group: Vec<HeadJob>) {
             }
         }
         Err(panic) => {
-            let message = panic
-                .downcast_ref::<&str>()
-                .map(|s| s.to_string())
-                .or_else(|| panic.downcast_ref::<String>().cloned())
-                .unwrap_or_else(|| "panic".into());
+            let message = super::batcher::panic_message(panic.as_ref());
             tracing::error!("head of model '{}' panicked: {message}", model.name);
             metrics::counter!("alignist_worker_panics_total", "worker" => "head").increment(1);
             for job in group {

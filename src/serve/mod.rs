@@ -173,6 +173,23 @@ impl AlignistService {
         }
     }
 
+    /// Runs a call's work with what every call gets: its request id on a tracing span, the
+    /// in-flight gauge, and its count, end-to-end latency and log line.
+    async fn observed<T>(
+        &self,
+        method: &'static str,
+        id: String,
+        work: impl std::future::Future<Output = Result<T, Status>>,
+    ) -> Result<Response<T>, Status> {
+        let started = Instant::now();
+        let _in_flight = InFlight::start(method);
+        let result = work
+            .instrument(info_span!("call", method, request_id = %id))
+            .await;
+        record(method, started, &result);
+        result.map(Response::new)
+    }
+
     fn request_id<T>(&self, request: &Request<T>) -> String {
         request
             .metadata()
@@ -682,14 +699,8 @@ impl Alignist for AlignistService {
         request: Request<PredictRequest>,
     ) -> Result<Response<PredictResponse>, Status> {
         let id = self.request_id(&request);
-        let started = Instant::now();
-        let _in_flight = InFlight::start("Predict");
-        let result = self
-            .do_predict(request.into_inner())
-            .instrument(info_span!("Predict", request_id = %id))
-            .await;
-        record("Predict", started, &result);
-        result.map(Response::new)
+        self.observed("Predict", id, self.do_predict(request.into_inner()))
+            .await
     }
 
     type PredictDistributionStream = ChunkStream;
@@ -699,15 +710,12 @@ impl Alignist for AlignistService {
         request: Request<DistributionRequest>,
     ) -> Result<Response<Self::PredictDistributionStream>, Status> {
         let id = self.request_id(&request);
-        let started = Instant::now();
-        let _in_flight = InFlight::start("PredictDistribution");
-        let span = info_span!("PredictDistribution", request_id = %id);
-        let result = self
-            .do_distribution(request.into_inner())
-            .instrument(span)
-            .await;
-        record("PredictDistribution", started, &result);
-        result.map(Response::new)
+        self.observed(
+            "PredictDistribution",
+            id,
+            self.do_distribution(request.into_inner()),
+        )
+        .await
     }
 
     async fn predict_frame(
@@ -715,45 +723,41 @@ impl Alignist for AlignistService {
         request: Request<FrameRequest>,
     ) -> Result<Response<FrameResponse>, Status> {
         let id = self.request_id(&request);
-        let started = Instant::now();
-        let _in_flight = InFlight::start("PredictFrame");
-        let result = self
-            .do_frame(request.into_inner())
-            .instrument(info_span!("PredictFrame", request_id = %id))
-            .await;
-        record("PredictFrame", started, &result);
-        result.map(Response::new)
+        self.observed("PredictFrame", id, self.do_frame(request.into_inner()))
+            .await
     }
 
     async fn list_models(
         &self,
-        _request: Request<ListModelsRequest>,
+        request: Request<ListModelsRequest>,
     ) -> Result<Response<ListModelsResponse>, Status> {
-        let started = Instant::now();
-        let result = self.state.current().map(|served| ListModelsResponse {
-            models: served.engine.models().map(|m| model_info(m)).collect(),
-            failed: served
-                .engine
-                .failures()
-                .iter()
-                .map(|(name, error)| ModelFailure {
-                    name: name.clone(),
-                    error: error.clone(),
-                    serving_previous: served.engine.model(name).is_ok(),
-                })
-                .collect(),
-        });
-        record("ListModels", started, &result);
-        result.map(Response::new)
+        let id = self.request_id(&request);
+        let work = async {
+            self.state.current().map(|served| ListModelsResponse {
+                models: served.engine.models().map(|m| model_info(m)).collect(),
+                failed: served
+                    .engine
+                    .failures()
+                    .iter()
+                    .map(|(name, error)| ModelFailure {
+                        name: name.clone(),
+                        error: error.clone(),
+                        serving_previous: served.engine.model(name).is_ok(),
+                    })
+                    .collect(),
+            })
+        };
+        self.observed("ListModels", id, work).await
     }
 
     async fn get_model(
         &self,
         request: Request<GetModelRequest>,
     ) -> Result<Response<ModelInfo>, Status> {
-        let started = Instant::now();
+        let id = self.request_id(&request);
         let name = request.into_inner().name;
-        let result = self.state.current().and_then(|served| {
+        let work = async {
+            let served = self.state.current()?;
             if name.is_empty() {
                 return Err(invalid_field("name", "is required"));
             }
@@ -762,9 +766,8 @@ impl Alignist for AlignistService {
                 .model(&name)
                 .map(|m| model_info(&m))
                 .map_err(status_of)
-        });
-        record("GetModel", started, &result);
-        result.map(Response::new)
+        };
+        self.observed("GetModel", id, work).await
     }
 }
 
