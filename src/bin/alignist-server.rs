@@ -62,8 +62,10 @@ struct Cli {
     #[arg(long, env = "ALIGNIST_MAX_IN_FLIGHT_MIB", default_value_t = 256)]
     max_in_flight_mib: usize,
     /// Seconds after which a client connection is closed gracefully (the drain timeout is its
-    /// grace), so that clients spread onto new replicas; 0 keeps connections open.
-    #[arg(long, env = "ALIGNIST_MAX_CONNECTION_AGE_S", default_value_t = 300)]
+    /// grace), so that clients behind a headless Service spread onto new replicas; 0 (the
+    /// default) keeps connections open. Calls a client starts just as its connection closes can
+    /// fail (tonic reports UNKNOWN); clients should retry them.
+    #[arg(long, env = "ALIGNIST_MAX_CONNECTION_AGE_S", default_value_t = 0)]
     max_connection_age_s: u64,
 }
 

@@ -37,14 +37,17 @@ impl HeadStage {
     /// Starts the worker thread of `model`, batching as `config` says (the same limits as the
     /// encoder's batching).
     pub fn start(model: Arc<Model>, config: BatchConfig) -> std::io::Result<HeadStage> {
-        let (sender, receiver) = mpsc::channel(config.queue_capacity);
+        // Calls reach this queue only through the encoder's (the bound callers set), so it is
+        // bounded more loosely: a tight encoder queue must not turn into refusals here.
+        let capacity = config.queue_capacity.max(4 * config.max_batch).max(64);
+        let (sender, receiver) = mpsc::channel(capacity);
         let name = model.name.clone();
         std::thread::Builder::new()
             .name(format!("alignist-head-{name}"))
             .spawn(move || run(model, config, receiver))?;
         Ok(HeadStage {
             model: name,
-            capacity: config.queue_capacity,
+            capacity,
             sender,
         })
     }
