@@ -22,7 +22,15 @@ say() { echo "verify-image: $*"; }
 # podman on these machines needs runc and cgroupfs, and rlimits it can set.
 PODMAN=(podman --runtime runc --cgroup-manager cgroupfs)
 LIMITS=(--ulimit nofile=1024:1024 --ulimit nproc=4096:4096)
-command -v podman >/dev/null || { say "podman is not installed (apt-get install -y podman runc debootstrap)"; exit 1; }
+if ! command -v podman >/dev/null || ! command -v debootstrap >/dev/null; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    say "installing podman, runc and debootstrap (apt-get)"
+    apt-get install -y podman runc debootstrap >/dev/null
+  else
+    say "podman, runc and debootstrap are needed (apt-get install -y podman runc debootstrap)"
+    exit 1
+  fi
+fi
 
 # The host's client and a test image.
 cargo build --release --bin alignist --bin alignist-train
@@ -48,10 +56,14 @@ if ! "${PODMAN[@]}" image exists docker.io/library/rust:1.95-slim-bookworm; then
     SYSROOT=$(rustc --print sysroot)
     mkdir -p "$WORK/builder/rust"
     cp -a "$SYSROOT/bin" "$SYSROOT/lib" "$WORK/builder/rust/"
+    # This host's CA bundle too, so that cargo reaches the registry through the same TLS path
+    # (a proxy's certificate authority) as the host's cargo does.
+    cp /etc/ssl/certs/ca-certificates.crt "$WORK/builder/host-ca.crt"
     cat > "$WORK/builder/Containerfile" <<'EOF'
 FROM docker.io/library/debian:bookworm-slim
 RUN apt-get update && apt-get install -y --no-install-recommends gcc libc6-dev ca-certificates \
  && rm -rf /var/lib/apt/lists/*
+COPY host-ca.crt /etc/ssl/certs/ca-certificates.crt
 COPY rust /usr/local/rust
 ENV PATH=/usr/local/rust/bin:$PATH CARGO_HOME=/usr/local/cargo
 EOF
