@@ -177,7 +177,7 @@ fn grpc_vs_in_process(model: Arc<Model>, bundle: &Path, png: &[u8]) -> anyhow::R
         let mut channel = None;
         for _ in 0..600 {
             if let Ok(c) = crate::client::connect(&url, Duration::from_secs(120)).await
-                && crate::client::health(c.clone(), "").await.ok().as_deref() == Some("Serving")
+                && crate::client::health(c.clone(), "alignist.v1.Alignist").await.ok().as_deref() == Some("Serving")
             {
                 channel = Some(c);
                 break;
