@@ -16,9 +16,7 @@ pub use self::image::{
     CropBox, FrameCrop, ImageLimits, ImageRequest, Intrinsics, prepare_frame, prepare_image,
 };
 pub use fusion::DepthFusion;
-pub use search::{
-    CellProbability, Mode, SearchResult, coarse_to_fine, coarse_to_fine_many, group_modes,
-};
+pub use search::{CellProbability, Mode, SearchResult, coarse_to_fine_many, group_modes};
 
 use crate::bundle::BundleError;
 use crate::bundle::model::ModelBundle;
@@ -616,12 +614,6 @@ impl Model {
                 }
             })
             .collect())
-    }
-
-    /// `s_θ + s_φ` of arbitrary rotations (row-major) for one image's features `[1, D]`.
-    pub fn score_rotations(&self, features: &Tensor<2>, rotations: &[[f32; 9]]) -> Vec<f32> {
-        self.score_rotations_many(features, &[rotations.to_vec()])
-            .swap_remove(0)
     }
 
     /// `s_θ + s_φ` of `rotations[b]` (row-major, the same number for every image) for each image

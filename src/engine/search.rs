@@ -52,17 +52,8 @@ pub fn top_indices(values: &[f64], keep: usize) -> Vec<usize> {
     order
 }
 
-/// Coarse-to-fine search. `grids` are consecutive levels, coarse first; `score(grid, cells)`
-/// returns the unnormalised log-weights of those cells (every cell of the coarsest level first).
-pub fn coarse_to_fine(
-    grids: &[&GridLevel],
-    keep: usize,
-    mut score: impl FnMut(&GridLevel, &[u64]) -> Vec<f32>,
-) -> SearchResult {
-    coarse_to_fine_many(grids, keep, 1, |grid, cells| vec![score(grid, &cells[0])]).swap_remove(0)
-}
-
-/// `n` coarse-to-fine searches in lockstep, so that each level's scoring is one call for all of
+/// Coarse-to-fine search, `n` of them in lockstep (`grids` are consecutive levels, coarse first),
+/// so that each level's scoring is one call for all of
 /// them (a batch across requests): `score(grid, cells)` gets every search's cells of that level
 /// (the same number for each) and returns their log-weights in the same order.
 pub fn coarse_to_fine_many(

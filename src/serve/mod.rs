@@ -298,7 +298,6 @@ async fn blocking<T: Send + 'static>(
             None,
         )
     })?;
-    // (Dropping `gone` now marks finished work, which nothing reads any more.)
     drop(gone);
     result
 }
