@@ -45,6 +45,10 @@ struct Cli {
     /// Most requests queued per model before UNAVAILABLE.
     #[arg(long, env = "ALIGNIST_QUEUE", default_value_t = 256)]
     queue: usize,
+    /// Head worker threads per model, each running one Predict search at a time (default: one
+    /// per core).
+    #[arg(long, env = "ALIGNIST_HEAD_WORKERS")]
+    head_workers: Option<usize>,
     /// Largest request image, in bytes.
     #[arg(long, env = "ALIGNIST_MAX_IMAGE_BYTES", default_value_t = 8 << 20)]
     max_image_bytes: usize,
@@ -78,8 +82,8 @@ fn main() -> Result<()> {
         )
         .with_writer(std::io::stderr)
         .init();
-    if cli.max_batch == 0 || cli.queue == 0 {
-        bail!("--max-batch and --queue must be at least 1");
+    if cli.max_batch == 0 || cli.queue == 0 || cli.head_workers == Some(0) {
+        bail!("--max-batch, --queue and --head-workers must be at least 1");
     }
     if !cli.models.is_dir() {
         bail!(
@@ -116,6 +120,9 @@ fn main() -> Result<()> {
             max_batch: cli.max_batch,
             max_delay: Duration::from_millis(cli.max_delay_ms),
             queue_capacity: cli.queue,
+            head_workers: cli
+                .head_workers
+                .unwrap_or(BatchConfig::default().head_workers),
         },
         drain_timeout: Duration::from_secs(cli.drain_timeout_s),
         max_concurrent_streams: 1024,

@@ -20,6 +20,8 @@ pub struct BatchConfig {
     pub max_delay: Duration,
     /// Most requests waiting per model.
     pub queue_capacity: usize,
+    /// Head worker threads per model (Predict's searches run one call per worker at a time).
+    pub head_workers: usize,
 }
 
 impl Default for BatchConfig {
@@ -28,6 +30,7 @@ impl Default for BatchConfig {
             max_batch: 16,
             max_delay: Duration::from_millis(5),
             queue_capacity: 256,
+            head_workers: std::thread::available_parallelism().map_or(2, |n| n.get()),
         }
     }
 }

@@ -1,11 +1,15 @@
 //! The head stage: the Predict work (scoring and coarse-to-fine search) of concurrent calls for
-//! one model, batched — the calls that ask the same level, top-k and mode angle run as one
-//! lockstep search whose every level is one pass of the head ([`Model::predict_many`]) — on a
-//! bounded queue and one worker thread per model. A full queue is refused at once; a call whose
-//! caller went away is dropped before its work; a panic fails only its batch (INTERNAL) and is
-//! counted, and the worker goes on.
+//! one model, on a bounded queue shared by a fixed pool of worker threads (one per core). A full
+//! queue is refused at once; a call whose caller went away is dropped before its work; a panic
+//! fails only its call (INTERNAL) and is counted, and the worker goes on.
+//!
+//! Each call runs its own search. Running the searches of concurrent calls in lockstep
+//! ([`Model::predict_many`], one pass of the head per level for all of them) was measured slower
+//! on the burn backend: 12.8 calls/s for lockstep batches of 8 on one thread against 22.0 calls/s
+//! for single searches (level 3, top-5; `examples/probe_heads.rs`), and the single searches
+//! spread over the cores.
 
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use nalgebra::Vector3;
@@ -34,17 +38,24 @@ pub struct HeadStage {
 }
 
 impl HeadStage {
-    /// Starts the worker thread of `model`, batching as `config` says (the same limits as the
-    /// encoder's batching).
-    pub fn start(model: Arc<Model>, config: BatchConfig) -> std::io::Result<HeadStage> {
+    /// Starts `workers` threads for `model`, with a queue bounded as `config` says.
+    pub fn start(
+        model: Arc<Model>,
+        config: BatchConfig,
+        workers: usize,
+    ) -> std::io::Result<HeadStage> {
         // Calls reach this queue only through the encoder's (the bound callers set), so it is
         // bounded more loosely: a tight encoder queue must not turn into refusals here.
         let capacity = config.queue_capacity.max(4 * config.max_batch).max(64);
         let (sender, receiver) = mpsc::channel(capacity);
+        let receiver = Arc::new(Mutex::new(receiver));
         let name = model.name.clone();
-        std::thread::Builder::new()
-            .name(format!("alignist-head-{name}"))
-            .spawn(move || run(model, config, receiver))?;
+        for i in 0..workers.max(1) {
+            let (model, receiver) = (model.clone(), receiver.clone());
+            std::thread::Builder::new()
+                .name(format!("alignist-head-{name}-{i}"))
+                .spawn(move || run(model, receiver))?;
+        }
         Ok(HeadStage {
             model: name,
             capacity,
@@ -91,80 +102,48 @@ fn stopped(model: &str) -> Status {
     )
 }
 
-/// Whether two calls can share one lockstep search.
-fn same_search(a: &PredictOptions, b: &PredictOptions) -> bool {
-    a.top_k == b.top_k
-        && a.level == b.level
-        && a.mode_angle_deg.map(f64::to_bits) == b.mode_angle_deg.map(f64::to_bits)
-}
-
-fn run(model: Arc<Model>, config: BatchConfig, mut receiver: mpsc::Receiver<HeadJob>) {
-    while let Some(mut jobs) = super::batcher::next_batch(&mut receiver, &config) {
+fn run(model: Arc<Model>, receiver: Arc<Mutex<mpsc::Receiver<HeadJob>>>) {
+    loop {
+        // One job at a time: the lock is held only while waiting for the next job.
+        let job = match receiver.lock() {
+            Ok(mut r) => r.blocking_recv(),
+            Err(_) => None,
+        };
+        let Some(job) = job else { return };
         // A caller that gave up (cancelled, deadline) is not worth scoring.
-        let before = jobs.len();
-        jobs.retain(|j| !j.reply.is_closed());
-        if jobs.len() < before {
-            metrics::counter!("alignist_abandoned_work_total")
-                .increment((before - jobs.len()) as u64);
+        if job.reply.is_closed() {
+            metrics::counter!("alignist_abandoned_work_total").increment(1);
+            continue;
         }
-        while !jobs.is_empty() {
-            let options = jobs[0].options.clone();
-            let (group, rest): (Vec<HeadJob>, Vec<HeadJob>) = jobs
-                .into_iter()
-                .partition(|j| same_search(&j.options, &options));
-            jobs = rest;
-            answer(&model, &options, group);
-        }
+        answer(&model, job);
     }
 }
 
-/// Runs one lockstep search for `group` and answers each call.
-fn answer(model: &Model, options: &PredictOptions, group: Vec<HeadJob>) {
+/// Runs one call's search and answers it.
+fn answer(model: &Model, job: HeadJob) {
     let started = Instant::now();
-    let d = group[0].features.len();
-    let flat: Vec<f32> = group
-        .iter()
-        .flat_map(|j| j.features.iter().copied())
-        .collect();
-    let b = group.len();
     let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-        let features = model.features_tensor_many(&flat, b, d);
-        let depth: Vec<_> = group
-            .iter()
-            .map(|j| {
-                j.depth
-                    .as_ref()
-                    .map(|(i, points)| (&model.objects[*i], points.as_slice()))
-            })
-            .collect();
-        model.predict_many(&features, options, &depth)
+        let features = model.features_tensor(&job.features);
+        let depth = job
+            .depth
+            .as_ref()
+            .map(|(i, points)| (&model.objects[*i], points.as_slice()));
+        model.predict(&features, &job.options, depth)
     }));
-    metrics::histogram!("alignist_head_batch_size").record(b as f64);
     metrics::histogram!("alignist_head_seconds").record(started.elapsed().as_secs_f64());
-    match outcome {
-        Ok(Ok(predictions)) => {
-            for (job, p) in group.into_iter().zip(predictions) {
-                let _ = job.reply.send(Ok(p));
-            }
-        }
-        Ok(Err(e)) => {
-            let status = status_of(e);
-            for job in group {
-                let _ = job.reply.send(Err(status.clone()));
-            }
-        }
+    let reply = match outcome {
+        Ok(result) => result.map_err(status_of),
         Err(panic) => {
             let message = super::batcher::panic_message(panic.as_ref());
             tracing::error!("head of model '{}' panicked: {message}", model.name);
             metrics::counter!("alignist_worker_panics_total", "worker" => "head").increment(1);
-            for job in group {
-                let _ = job.reply.send(Err(refused(
-                    Code::Internal,
-                    Reason::ModelFailed,
-                    format!("the head of model '{}' failed: {message}", model.name),
-                    None,
-                )));
-            }
+            Err(refused(
+                Code::Internal,
+                Reason::ModelFailed,
+                format!("the head of model '{}' failed: {message}", model.name),
+                None,
+            ))
         }
-    }
+    };
+    let _ = job.reply.send(reply);
 }

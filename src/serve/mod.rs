@@ -49,7 +49,7 @@ pub struct Served {
 }
 
 impl Served {
-    /// Starts a batcher (an encoder thread) and a head stage (a head thread) per model.
+    /// Starts a batcher (an encoder thread) and a head stage (a pool of head threads) per model.
     pub fn new(engine: Engine, batch: BatchConfig) -> std::io::Result<Served> {
         Self::reloaded(engine, None, batch)
     }
@@ -81,7 +81,7 @@ impl Served {
                 Some(workers) => workers,
                 None => (
                     Batcher::start(m.clone(), batch)?,
-                    heads::HeadStage::start(m.clone(), batch)?,
+                    heads::HeadStage::start(m.clone(), batch, batch.head_workers)?,
                 ),
             };
             batchers.insert(m.name.clone(), b);
@@ -92,6 +92,16 @@ impl Served {
             batchers,
             heads,
         })
+    }
+}
+
+/// Lowers the calling thread to the lowest scheduling priority (nice 19). On Linux a thread has
+/// its own nice value, so this leaves the rest of the server as it is.
+fn lowest_priority() {
+    #[cfg(target_os = "linux")]
+    // SAFETY: setpriority reads no memory of ours; who = 0 is the calling thread on Linux.
+    unsafe {
+        libc::setpriority(libc::PRIO_PROCESS, 0, 19);
     }
 }
 
@@ -116,19 +126,29 @@ impl ServiceState {
             metrics::gauge!("alignist_model_info", "model" => m.name.clone(), "sha256" => m.version().to_string())
                 .set(1.0);
         }
-        // Depth fusion's SDF grids are baked in the background, not inside a first request.
+        // Depth fusion's SDF grids are baked in the background, not inside a first request, on a
+        // thread of the lowest priority so that the bake does not slow the calls being served.
         let models: Vec<Arc<Model>> = served.engine.models().cloned().collect();
-        if let Ok(runtime) = tokio::runtime::Handle::try_current() {
-            runtime.spawn_blocking(move || {
-                for m in &models {
-                    for o in &m.objects {
-                        if !o.fusion.is_warm() {
-                            o.fusion.warm();
-                            metrics::counter!("alignist_depth_grids_baked_total").increment(1);
+        if models
+            .iter()
+            .any(|m| m.objects.iter().any(|o| !o.fusion.is_warm()))
+        {
+            let spawned = std::thread::Builder::new()
+                .name("alignist-bake".into())
+                .spawn(move || {
+                    lowest_priority();
+                    for m in &models {
+                        for o in &m.objects {
+                            if !o.fusion.is_warm() {
+                                o.fusion.warm();
+                                metrics::counter!("alignist_depth_grids_baked_total").increment(1);
+                            }
                         }
                     }
-                }
-            });
+                });
+            if let Err(e) = spawned {
+                tracing::warn!("no thread to bake depth grids ({e}); the first depth call bakes");
+            }
         }
         *slot = Some(Arc::new(served));
     }

@@ -323,7 +323,9 @@ pub async fn run(
     };
 
     let (stop_accepting, stopped) = tokio::sync::oneshot::channel::<()>();
-    let incoming = tokio_stream::wrappers::TcpListenerStream::new(listener);
+    // TCP_NODELAY on every accepted connection: with Nagle's algorithm a response waits for the
+    // client's delayed ACK (~40 ms on Linux); tonic sets it only on listeners it binds itself.
+    let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
     let mut builder = Server::builder().max_concurrent_streams(config.max_concurrent_streams);
     if let Some(age) = config.max_connection_age {
         builder = builder
