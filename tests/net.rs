@@ -127,3 +127,82 @@ fn encoder_and_head_give_one_score_per_image_and_rotation() {
     assert_eq!(ResNetLayout::Resnet18.feature_dim(), 512);
     assert_eq!(ResNetLayout::Resnet50.feature_dim(), 2048);
 }
+
+/// The fused inference head against the burn head it is read from: both branches, for row counts
+/// around the tile size (odd, one under, at and over a tile boundary, several tiles).
+fn assert_fused_matches(
+    head: &alignist::net::DualHead,
+    image_dim: usize,
+    encoding: &RotationEncoding,
+    d: &Device,
+) {
+    use alignist::net::FusedHead;
+    let fused = FusedHead::new(head);
+    let tile = alignist::net::fused::TILE_ROWS;
+    for (case, rows) in [1, 7, tile - 1, tile, tile + 1, 2 * tile + 3, 1001]
+        .into_iter()
+        .enumerate()
+    {
+        let rotations: Vec<[f32; 9]> = (0..rows)
+            .map(|i| {
+                let q = nalgebra::UnitQuaternion::from_euler_angles(
+                    0.37 * i as f64 + case as f64,
+                    1.3 * (i as f64 * 0.11).sin(),
+                    -0.7 * i as f64,
+                );
+                let m = q.to_rotation_matrix();
+                let m = m.matrix();
+                std::array::from_fn(|j| m[(j / 3, j % 3)] as f32)
+            })
+            .collect();
+        let features: Vec<f32> = (0..image_dim)
+            .map(|i| ((i * 37 + case * 11) % 17) as f32 / 17.0)
+            .collect();
+        let enc = encoding.encode(&rotations);
+        let reference = head.forward(
+            t2(features.clone(), [1, image_dim], d),
+            encoding
+                .encode_tensor(&rotations, d)
+                .reshape([1, rows, encoding.dim()]),
+        );
+        let read = |t: Tensor<2>| t.into_data().try_to_vec::<f32>().unwrap();
+        let (shape, feature) = (read(reference.shape), read(reference.feature));
+        let (fs, ff) =
+            fused.branch_scores(&fused.image_term(&features), &fused.project_rotations(&enc));
+        assert_eq!((fs.len(), ff.len()), (rows, rows));
+        for (name, got, want) in [("shape", &fs, &shape), ("feature", &ff, &feature)] {
+            let scale = want.iter().map(|v| v.abs()).sum::<f32>() / rows as f32;
+            for (i, (g, w)) in got.iter().zip(want.iter()).enumerate() {
+                assert!(
+                    (g - w).abs() <= 1e-4 * w.abs().max(scale),
+                    "{name} branch, {rows} rows, row {i}: fused {g} against burn {w}"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn the_fused_head_gives_the_burn_heads_scores() {
+    let d = device();
+    let encoding = RotationEncoding::Cube;
+    let head = HeadConfig::new(32, encoding.dim())
+        .with_hidden(64)
+        .with_layers(4)
+        .init(&d)
+        .with_output_biases(-2.5, 1.5);
+    assert_fused_matches(&head, 32, &encoding, &d);
+    // The shipped bundle's trained head.
+    let bundle = alignist::bundle::model::ModelBundle::load(std::path::Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/models/symsol1"
+    )))
+    .unwrap();
+    let network = &bundle.manifest.network;
+    assert_fused_matches(
+        &bundle.network.head,
+        network.layout.feature_dim(),
+        &network.encoding,
+        &alignist::backend::device_for(alignist::backend::Workload::Conv),
+    );
+}

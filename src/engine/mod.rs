@@ -20,7 +20,8 @@ pub use search::{CellProbability, Mode, SearchResult, coarse_to_fine_many, group
 
 use crate::bundle::BundleError;
 use crate::bundle::model::ModelBundle;
-use crate::net::{Network, NetworkConfig, ProjectedGrid, images_tensor};
+use crate::net::network::feature_rows;
+use crate::net::{FusedHead, Network, NetworkConfig, ProjectedGrid, images_tensor};
 use crate::so3::{GridLevel, MAX_LEVEL, to_row_major_f32};
 
 /// Errors of the engine; each maps to one gRPC status code in the service.
@@ -179,9 +180,10 @@ pub struct Model {
     /// The network on the convolution backend: its encoder runs here.
     network: Network,
     device: Device,
-    /// The same weights on the dense backend: the head runs here (the faster matmul).
-    head_network: Network,
+    /// Where image features are handed over as tensors.
     dense: Device,
+    /// The head for inference, fused ([`FusedHead`]): every scoring of the engine runs on it.
+    fused: Arc<FusedHead>,
     /// Grids 0 ..= max level, with precomputed projections up to the full level.
     grids: Vec<GridLevel>,
     projected: Vec<ProjectedGrid>,
@@ -253,16 +255,6 @@ impl Model {
     ) -> Result<Model, EngineError> {
         let device = crate::backend::device_for(crate::backend::Workload::Conv);
         let dense = crate::backend::device_for(crate::backend::Workload::Dense);
-        let weights = path.join(crate::bundle::model::NETWORK_FILE);
-        let entry = bundle
-            .manifest
-            .files
-            .get(crate::bundle::model::NETWORK_FILE)
-            .ok_or_else(|| {
-                EngineError::Models(format!("{}: files: no network entry", path.display()))
-            })?;
-        let head_network =
-            crate::bundle::load_weights(bundle.manifest.network.init(&dense), &weights, entry)?;
         let top = config.search_max_level.max(config.max_full_level);
         if top > MAX_LEVEL {
             return Err(EngineError::Models(format!(
@@ -273,8 +265,9 @@ impl Model {
             .map(GridLevel::new)
             .collect::<Result<Vec<_>, _>>()
             .map_err(|e| EngineError::Models(e.to_string()))?;
+        let fused = Arc::new(FusedHead::new(&bundle.network.head));
         let projected = (0..=config.max_full_level)
-            .map(|l| ProjectedGrid::new(&head_network, &bundle.manifest.network, l, &dense))
+            .map(|l| ProjectedGrid::with_head(fused.clone(), &bundle.manifest.network.encoding, l))
             .collect::<Result<Vec<_>, _>>()
             .map_err(|e| EngineError::Models(e.to_string()))?;
         let objects = bundle
@@ -298,8 +291,8 @@ impl Model {
             objects,
             network: bundle.network,
             device,
-            head_network,
             dense,
+            fused,
             grids,
             projected,
             config,
@@ -433,7 +426,7 @@ impl Model {
         depth: Option<DepthInput<'_>>,
     ) -> Vec<f32> {
         let mut logits = self.projected[level as usize]
-            .log_weights_of_features(&self.head_network, features.clone())
+            .log_weights_of_features(features.clone())
             .swap_remove(0);
         if let Some((object, points)) = depth {
             let mats = self.grids[level as usize].matrices_f32();
@@ -549,8 +542,7 @@ impl Model {
             let mats: Vec<Vec<[f32; 9]>>;
             let mut logits = if grid.level() == start && (start as usize) < self.projected.len() {
                 mats = Vec::new();
-                let all = self.projected[start as usize]
-                    .log_weights_of_features(&self.head_network, features.clone());
+                let all = self.projected[start as usize].log_weights_of_features(features.clone());
                 all.into_iter()
                     .zip(cells)
                     .map(|(all, cells)| {
@@ -623,25 +615,15 @@ impl Model {
         features: &Tensor<2>,
         rotations: &[Vec<[f32; 9]>],
     ) -> Vec<Vec<f32>> {
-        let b = rotations.len();
-        let k = rotations.first().map_or(0, |r| r.len());
-        let flat: Vec<[f32; 9]> = rotations.iter().flatten().copied().collect();
-        let enc = self
-            .manifest
-            .network
-            .encoding
-            .encode_tensor(&flat, &self.dense);
-        let projected = self.head_network.head.project_rotations(enc);
-        let [_, h] = projected.dims();
-        let scores = self
-            .head_network
-            .head
-            .forward_projected(features.clone(), projected.reshape([b, k, h]))
-            .combined()
-            .into_data()
-            .try_to_vec::<f32>()
-            .expect("float scores");
-        scores.chunks(k.max(1)).map(|c| c.to_vec()).collect()
+        let encoding = &self.manifest.network.encoding;
+        feature_rows(features.clone())
+            .iter()
+            .zip(rotations)
+            .map(|(f, rotations)| {
+                let projected = self.fused.project_rotations(&encoding.encode(rotations));
+                self.fused.scores(&self.fused.image_term(f), &projected)
+            })
+            .collect()
     }
 
     /// The grid of `level` (up to the highest level this model serves).

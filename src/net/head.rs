@@ -90,6 +90,11 @@ impl HeadConfig {
 }
 
 impl Branch {
+    /// The hidden layers and the output layer (for [`super::fused::FusedHead`]).
+    pub(crate) fn layers(&self) -> (&[Linear], &Linear) {
+        (&self.hidden, &self.output)
+    }
+
     fn with_output_bias(mut self, value: f32) -> Self {
         self.output.bias = self.output.bias.map(|b| {
             b.map(|t| {
@@ -120,6 +125,17 @@ impl Branch {
 }
 
 impl DualHead {
+    /// The image and rotation projections and the shape and feature branches (for
+    /// [`super::fused::FusedHead`]).
+    pub(crate) fn parts(&self) -> (&Linear, &Linear, &Branch, &Branch) {
+        (
+            &self.image_proj,
+            &self.rotation_proj,
+            &self.shape_branch,
+            &self.feature_branch,
+        )
+    }
+
     /// Silences the shape (`shape = true`) or the feature branch: the combined score is then the
     /// other branch's up to a constant, so the model's distribution is that branch's.
     pub fn with_silenced_branch(mut self, shape: bool) -> Self {

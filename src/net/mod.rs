@@ -2,11 +2,13 @@
 //! head, and the losses that train it.
 
 pub mod encoder;
+pub mod fused;
 pub mod head;
 pub mod loss;
 pub mod network;
 
 pub use encoder::{Encoder, EncoderConfig, ResNetLayout};
+pub use fused::FusedHead;
 pub use head::{BranchScores, DualHead, HeadConfig};
 pub use loss::{gkl_loss, ipdf_loss, l1_measure_loss};
 pub use network::{Network, NetworkConfig, ProjectedGrid, images_tensor};

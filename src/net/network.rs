@@ -3,13 +3,15 @@
 
 use burn::config::Config;
 use burn::module::Module;
+use std::sync::Arc;
+
 use burn::tensor::{Device, Tensor, TensorData};
 
-use super::{BranchScores, DualHead, Encoder, EncoderConfig, HeadConfig, ResNetLayout};
+use super::{BranchScores, DualHead, Encoder, EncoderConfig, FusedHead, HeadConfig, ResNetLayout};
 use crate::encoding::RotationEncoding;
 use crate::so3::{GridLevel, So3Error};
 
-/// Rotations scored per chunk (bounds the activations' memory).
+/// Rotations encoded per chunk (bounds the encodings' memory).
 const CHUNK: usize = 16_384;
 
 /// Shape of the distribution network (recorded in bundles).
@@ -93,70 +95,74 @@ pub fn images_tensor(crops: &[&[u8]], size: usize, device: &Device) -> Tensor<4>
     Tensor::from_data(TensorData::new(data, [crops.len(), 3, size, size]), device)
 }
 
-/// The grid's rotation projections, computed once: `[1, N, hidden]` in chunks.
+/// The grid's rotation projections, computed once per level (`[N, hidden]`), scored by the fused
+/// inference head ([`FusedHead`]).
 pub struct ProjectedGrid {
     /// The level.
     pub grid: GridLevel,
-    chunks: Vec<Tensor<3>>,
+    head: Arc<FusedHead>,
+    projected: Vec<f32>,
 }
 
 impl ProjectedGrid {
-    /// Projects every cell centre of `level` through the head's rotation layer.
-    pub fn new(
-        network: &Network,
-        config: &NetworkConfig,
+    /// Projects every cell centre of `level` through `network`'s rotation layer.
+    pub fn new(network: &Network, config: &NetworkConfig, level: u8) -> Result<Self, So3Error> {
+        Self::with_head(
+            Arc::new(FusedHead::new(&network.head)),
+            &config.encoding,
+            level,
+        )
+    }
+
+    /// As [`ProjectedGrid::new`], sharing an already read head.
+    pub fn with_head(
+        head: Arc<FusedHead>,
+        encoding: &RotationEncoding,
         level: u8,
-        device: &Device,
     ) -> Result<Self, So3Error> {
         let grid = GridLevel::new(level)?;
         let mats = grid.matrices_f32();
-        let chunks = mats
-            .chunks(CHUNK)
-            .map(|c| {
-                network
-                    .head
-                    .project_rotations(config.encoding.encode_tensor(c, device))
-                    .unsqueeze::<3>()
-            })
-            .collect();
-        Ok(Self { grid, chunks })
+        let mut projected = Vec::with_capacity(mats.len() * head.width());
+        for c in mats.chunks(CHUNK) {
+            projected.extend(head.project_rotations(&encoding.encode(c)));
+        }
+        Ok(Self {
+            grid,
+            head,
+            projected,
+        })
     }
 
-    /// Combined log-weights of every cell for each image of a batch (row per image).
-    pub fn log_weights(&self, network: &Network, images: Tensor<4>) -> Vec<Vec<f32>> {
-        self.log_weights_of_features(network, network.encoder.forward(images))
-    }
-
-    /// As [`ProjectedGrid::log_weights`], from image features `[B, D]` already encoded.
-    pub fn log_weights_of_features(&self, network: &Network, features: Tensor<2>) -> Vec<Vec<f32>> {
-        self.branch_log_weights_of_features(network, features)
-            .into_iter()
-            .map(|(shape, feature)| shape.iter().zip(&feature).map(|(a, b)| a + b).collect())
+    /// Combined log-weights `s_θ + s_φ` of every cell for each image of `features` `[B, D]`
+    /// (row per image).
+    pub fn log_weights_of_features(&self, features: Tensor<2>) -> Vec<Vec<f32>> {
+        feature_rows(features)
+            .iter()
+            .map(|f| self.head.scores(&self.head.image_term(f), &self.projected))
             .collect()
     }
 
     /// Each branch's log-weights `(s_θ, s_φ)` of every cell, per image, from image features.
-    pub fn branch_log_weights_of_features(
-        &self,
-        network: &Network,
-        features: Tensor<2>,
-    ) -> Vec<(Vec<f32>, Vec<f32>)> {
-        let b = features.dims()[0];
-        let n = self.grid.len();
-        let mut out = vec![(Vec::with_capacity(n), Vec::with_capacity(n)); b];
-        let read =
-            |t: Tensor<2>| -> Vec<f32> { t.into_data().try_to_vec::<f32>().expect("float scores") };
-        for chunk in &self.chunks {
-            let scores = network
-                .head
-                .forward_projected(features.clone(), chunk.clone());
-            let k = chunk.dims()[1];
-            let (shape, feature) = (read(scores.shape), read(scores.feature));
-            for (i, (s, f)) in out.iter_mut().enumerate() {
-                s.extend_from_slice(&shape[i * k..(i + 1) * k]);
-                f.extend_from_slice(&feature[i * k..(i + 1) * k]);
-            }
-        }
-        out
+    pub fn branch_log_weights_of_features(&self, features: Tensor<2>) -> Vec<(Vec<f32>, Vec<f32>)> {
+        feature_rows(features)
+            .iter()
+            .map(|f| {
+                self.head
+                    .branch_scores(&self.head.image_term(f), &self.projected)
+            })
+            .collect()
     }
+}
+
+/// The rows of image features `[B, D]`.
+pub fn feature_rows(features: Tensor<2>) -> Vec<Vec<f32>> {
+    let [_, d] = features.dims();
+    features
+        .into_data()
+        .convert::<f32>()
+        .try_to_vec::<f32>()
+        .expect("float features")
+        .chunks(d.max(1))
+        .map(<[f32]>::to_vec)
+        .collect()
 }

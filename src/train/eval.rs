@@ -57,7 +57,7 @@ pub fn evaluate(
 ) -> Result<EvalReport, So3Error> {
     let device = crate::backend::device_for(crate::backend::Workload::Conv);
     let started = Instant::now();
-    let projected = ProjectedGrid::new(network, config, level, &device)?;
+    let projected = ProjectedGrid::new(network, config, level)?;
     let centres = projected.grid.quaternions();
     let mut per_image: Vec<(String, ImageMetrics)> = Vec::with_capacity(images.len());
     let (mut shape_only, mut feature_only) = (Vec::new(), Vec::new());
@@ -68,7 +68,7 @@ pub fn evaluate(
         let features = network.encoder.forward(tensor);
         for (im, (s, f)) in batch
             .iter()
-            .zip(projected.branch_log_weights_of_features(network, features))
+            .zip(projected.branch_log_weights_of_features(features))
         {
             let metrics = |w: &[f32]| image_metrics(&projected.grid, &centres, w, &im.equivalents);
             let combined: Vec<f32> = s.iter().zip(&f).map(|(a, b)| a + b).collect();

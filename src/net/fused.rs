@@ -1,0 +1,237 @@
+//! The dual-branch head for inference, fused (paper Sec. 3.3, Eq. 6's `s_θ` and `s_φ`): the
+//! same weights as [`DualHead`], read once into plain row-major matrices, evaluated in row tiles
+//! that stay in the core's cache. For each tile of rotations: `x = relu(P_R + W_I·f + b)` (the
+//! rotation projections `P_R` precomputed per grid level), then per branch three
+//! `h ← relu(h·W + b)` GEMMs (matrixmultiply's AVX-512 kernel, one thread per tile, tiles spread
+//! over the cores) with bias and ReLU applied to the tile in place, and the last `256 → 1` layer
+//! as a dot product. No intermediate leaves the tile, so the head runs near the library's matmul
+//! peak. The burn network stays the reference (training, tests).
+
+use burn::tensor::Tensor;
+use rayon::prelude::*;
+
+use super::DualHead;
+
+/// Rows of one tile: measured fastest among 64–512 (`examples/probe_gemm.rs`), and a tile's
+/// activations (2 × 256 rows × 256 × 4 B = 512 KiB) stay in a core's L2.
+pub const TILE_ROWS: usize = 256;
+
+/// One linear layer, row-major `[inputs, outputs]` weights.
+#[derive(Debug, Clone)]
+struct Dense {
+    inputs: usize,
+    outputs: usize,
+    weight: Vec<f32>,
+    bias: Vec<f32>,
+}
+
+impl Dense {
+    fn of(linear: &burn::nn::Linear) -> Dense {
+        let weight = linear.weight.val();
+        let [inputs, outputs] = weight.dims();
+        Dense {
+            inputs,
+            outputs,
+            weight: read(weight),
+            bias: linear
+                .bias
+                .as_ref()
+                .map_or_else(|| vec![0.0; outputs], |b| read(b.val())),
+        }
+    }
+
+    /// `out[r] = x[r]·W + b` for the `rows` rows of `x` (row-major), single-threaded.
+    fn apply(&self, x: &[f32], rows: usize, out: &mut [f32]) {
+        debug_assert!(x.len() >= rows * self.inputs && out.len() >= rows * self.outputs);
+        for row in out[..rows * self.outputs].chunks_exact_mut(self.outputs) {
+            row.copy_from_slice(&self.bias);
+        }
+        // SAFETY: the slices hold `rows × inputs`, `inputs × outputs` and `rows × outputs`
+        // floats (checked above), row-major with the strides given, and `out` does not alias.
+        unsafe {
+            matrixmultiply::sgemm(
+                rows,
+                self.inputs,
+                self.outputs,
+                1.0,
+                x.as_ptr(),
+                self.inputs as isize,
+                1,
+                self.weight.as_ptr(),
+                self.outputs as isize,
+                1,
+                1.0,
+                out.as_mut_ptr(),
+                self.outputs as isize,
+                1,
+            );
+        }
+    }
+}
+
+fn read<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    t.into_data()
+        .convert::<f32>()
+        .try_to_vec::<f32>()
+        .expect("float weights")
+}
+
+fn relu(x: &mut [f32]) {
+    for v in x {
+        *v = v.max(0.0);
+    }
+}
+
+/// One branch: hidden ReLU layers, then the `width → 1` output as a dot product.
+#[derive(Debug, Clone)]
+struct FusedBranch {
+    hidden: Vec<Dense>,
+    output: Vec<f32>,
+    output_bias: f32,
+}
+
+/// The fused inference head.
+#[derive(Debug, Clone)]
+pub struct FusedHead {
+    width: usize,
+    image: Dense,
+    rotation: Dense,
+    branches: [FusedBranch; 2],
+}
+
+/// A tile's scratch: the branch input and two activation buffers.
+struct Scratch {
+    x: Vec<f32>,
+    a: Vec<f32>,
+    b: Vec<f32>,
+}
+
+impl FusedHead {
+    /// Reads `head`'s weights.
+    pub fn new(head: &DualHead) -> FusedHead {
+        let branch = |b: &super::head::Branch| {
+            let (hidden, output) = b.layers();
+            let output = Dense::of(output);
+            FusedBranch {
+                hidden: hidden.iter().map(Dense::of).collect(),
+                output: output.weight,
+                output_bias: output.bias[0],
+            }
+        };
+        let (image, rotation, shape, feature) = head.parts();
+        let rotation = Dense::of(rotation);
+        FusedHead {
+            width: rotation.outputs,
+            image: Dense::of(image),
+            rotation,
+            branches: [branch(shape), branch(feature)],
+        }
+    }
+
+    /// Width of the hidden layers.
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    /// Length of the rotation encoding the head takes.
+    pub fn rotation_dim(&self) -> usize {
+        self.rotation.inputs
+    }
+
+    /// The image half of the first layer, `W_I·f + b_I`, for one image's features.
+    pub fn image_term(&self, features: &[f32]) -> Vec<f32> {
+        let mut out = vec![0.0; self.width];
+        self.image.apply(features, 1, &mut out);
+        out
+    }
+
+    /// The rotation half of the first layer, `W_R·enc(R) + b_R`, of `encodings` (row-major
+    /// `[n, rotation_dim]`): `[n, width]`, tiles spread over the cores.
+    pub fn project_rotations(&self, encodings: &[f32]) -> Vec<f32> {
+        let e = self.rotation.inputs;
+        let n = encodings.len() / e;
+        let mut out = vec![0.0; n * self.width];
+        out.par_chunks_mut(TILE_ROWS * self.width)
+            .zip(encodings.par_chunks(TILE_ROWS * e))
+            .for_each(|(out, enc)| self.rotation.apply(enc, enc.len() / e, out));
+        out
+    }
+
+    /// Both branches' log-weights `(s_θ, s_φ)` of the rotations whose projections are
+    /// `projected` (`[n, width]`, [`FusedHead::project_rotations`]), for one image's
+    /// [`FusedHead::image_term`].
+    pub fn branch_scores(&self, image_term: &[f32], projected: &[f32]) -> (Vec<f32>, Vec<f32>) {
+        let w = self.width;
+        let n = projected.len() / w;
+        let (mut shape, mut feature) = (vec![0.0; n], vec![0.0; n]);
+        shape
+            .par_chunks_mut(TILE_ROWS)
+            .zip(feature.par_chunks_mut(TILE_ROWS))
+            .zip(projected.par_chunks(TILE_ROWS * w))
+            .for_each_init(
+                || Scratch {
+                    x: vec![0.0; TILE_ROWS * w],
+                    a: vec![0.0; TILE_ROWS * w],
+                    b: vec![0.0; TILE_ROWS * w],
+                },
+                |scratch, ((shape, feature), projected)| {
+                    self.tile(image_term, projected, scratch, [shape, feature]);
+                },
+            );
+        (shape, feature)
+    }
+
+    /// `s_θ + s_φ` ([`FusedHead::branch_scores`] summed).
+    pub fn scores(&self, image_term: &[f32], projected: &[f32]) -> Vec<f32> {
+        let (mut shape, feature) = self.branch_scores(image_term, projected);
+        for (s, f) in shape.iter_mut().zip(feature) {
+            *s += f;
+        }
+        shape
+    }
+
+    /// One tile: the shared input, then each branch's layers, into `out[branch][row]`.
+    fn tile(
+        &self,
+        image_term: &[f32],
+        projected: &[f32],
+        scratch: &mut Scratch,
+        out: [&mut [f32]; 2],
+    ) {
+        let w = self.width;
+        let rows = projected.len() / w;
+        let Scratch { x, a, b } = scratch;
+        for (xr, pr) in x.chunks_exact_mut(w).zip(projected.chunks_exact(w)) {
+            for ((xv, &p), &i) in xr.iter_mut().zip(pr).zip(image_term) {
+                *xv = (p + i).max(0.0);
+            }
+        }
+        for (branch, out) in self.branches.iter().zip(out) {
+            // Ping-pong between the two activation buffers; 0 is the shared input.
+            let mut current = 0;
+            for layer in &branch.hidden {
+                let (input, output) = match current {
+                    0 => (&x[..], &mut a[..]),
+                    1 => (&a[..], &mut b[..]),
+                    _ => (&b[..], &mut a[..]),
+                };
+                layer.apply(input, rows, output);
+                relu(&mut output[..rows * w]);
+                current = if current == 1 { 2 } else { 1 };
+            }
+            let last = match current {
+                0 => &x[..],
+                1 => &a[..],
+                _ => &b[..],
+            };
+            for (o, hr) in out.iter_mut().zip(last.chunks_exact(w)) {
+                *o = hr
+                    .iter()
+                    .zip(&branch.output)
+                    .map(|(a, b)| a * b)
+                    .sum::<f32>()
+                    + branch.output_bias;
+            }
+        }
+    }
+}
