@@ -206,3 +206,68 @@ fn the_fused_head_gives_the_burn_heads_scores() {
         &alignist::backend::device_for(alignist::backend::Workload::Conv),
     );
 }
+
+/// The default coarse-to-fine search finds the maximum of the exhaustive grid (level 3) on
+/// fresh renders of the shipped model's five shapes: its top-1 scores as high as the best of all
+/// 36 864 cells (on symmetric shapes an equivalent cell may tie) in all but 2 of 20 images, and
+/// never far below it.
+#[test]
+fn the_default_search_finds_the_exhaustive_maximum_at_level_3() {
+    use alignist::engine::{Engine, EngineConfig, PredictOptions};
+    let path = std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/models/symsol1"));
+    let bundle = alignist::bundle::model::ModelBundle::load(path).unwrap();
+    let fresh = alignist::train::data::FreshRenders {
+        meshes: bundle.experts.iter().map(|e| e.mesh.clone()).collect(),
+        supersample: 2,
+        pool: None,
+    };
+    let names: Vec<String> = bundle
+        .manifest
+        .objects
+        .iter()
+        .map(|o| o.name.clone())
+        .collect();
+    let symmetries: Vec<_> = bundle.experts.iter().map(|e| e.symmetries()).collect();
+    let images = fresh.eval_images(
+        &names,
+        &symmetries,
+        bundle.manifest.network.image_size,
+        4,
+        7,
+    );
+    let model = Engine::load_model(path, EngineConfig::default()).unwrap();
+    let options = PredictOptions {
+        top_k: 5,
+        level: Some(3),
+        mode_angle_deg: None,
+    };
+    let mut misses = Vec::new();
+    for (i, im) in images.iter().enumerate() {
+        let features = model.features(&[&im.rgb]);
+        let logits = model.logits_at(&features, 3).unwrap();
+        let best = logits.iter().copied().fold(f32::MIN, f32::max);
+        let top = model.predict(&features, &options, None).unwrap().top[0].cell;
+        let gap = best - logits[top as usize];
+        assert!(
+            gap >= -1e-4,
+            "image {i}: the search scored above the grid's best"
+        );
+        assert!(
+            gap < 0.1,
+            "image {i} ({}): {gap} nats below the best",
+            im.object
+        );
+        if gap > 1e-3 {
+            misses.push(format!("image {i} ({}): {gap:.3} nats below", im.object));
+        }
+    }
+    eprintln!(
+        "{} of {} images missed the maximum: {misses:?}",
+        misses.len(),
+        images.len()
+    );
+    // Measured: 18 of the 20 (the two misses are icosahedra, whose 60 equivalent modes are the
+    // most diffuse of the model's, 0.05 nats below the best). The study in `alignist-train
+    // bench` gives the same picture at level 5 (92 % of 50 images).
+    assert!(misses.len() <= 2, "{misses:?}");
+}

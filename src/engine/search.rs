@@ -52,13 +52,46 @@ pub fn top_indices(values: &[f64], keep: usize) -> Vec<usize> {
     order
 }
 
+/// Which cells a coarse-to-fine search refines at each level.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Keep {
+    /// Most cells kept.
+    pub max: usize,
+    /// Fewest cells kept.
+    pub min: usize,
+    /// With `Some(f)`, only the most probable cells that hold the fraction `f` of the level's
+    /// estimated mass (between `min` and `max` of them); with `None`, always `max`.
+    pub mass: Option<f64>,
+}
+
+impl Keep {
+    /// Indices of the cells to refine, most probable first, of a level whose cells hold
+    /// `probs` (summing to `covered`).
+    pub fn cells(&self, probs: &[f64], covered: f64) -> Vec<usize> {
+        let mut kept = top_indices(probs, self.max);
+        if let Some(fraction) = self.mass {
+            let goal = fraction * covered;
+            let mut sum = 0.0;
+            let needed = kept
+                .iter()
+                .position(|&j| {
+                    sum += probs[j];
+                    sum >= goal
+                })
+                .map_or(kept.len(), |i| i + 1);
+            kept.truncate(needed.max(self.min));
+        }
+        kept
+    }
+}
+
 /// Coarse-to-fine search, `n` of them in lockstep (`grids` are consecutive levels, coarse first),
 /// so that each level's scoring is one call for all of
 /// them (a batch across requests): `score(grid, cells)` gets every search's cells of that level
 /// (the same number for each) and returns their log-weights in the same order.
 pub fn coarse_to_fine_many(
     grids: &[&GridLevel],
-    keep: usize,
+    keep: Keep,
     n: usize,
     mut score: impl FnMut(&GridLevel, &[Vec<u64>]) -> Vec<Vec<f32>>,
 ) -> Vec<SearchResult> {
@@ -70,7 +103,7 @@ pub fn coarse_to_fine_many(
         if i > 0 {
             let parent = grids[i - 1];
             for s in 0..n {
-                let kept = top_indices(&probs[s], keep);
+                let kept = keep.cells(&probs[s], covered[s]);
                 // `probs` already carry the mass kept so far: the kept ones' sum is the new cover.
                 covered[s] = kept.iter().map(|&j| probs[s][j]).sum::<f64>();
                 cells[s] = kept

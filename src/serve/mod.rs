@@ -4,7 +4,6 @@
 
 pub mod admission;
 pub mod batcher;
-pub mod bench;
 pub mod heads;
 pub mod server;
 pub mod status;

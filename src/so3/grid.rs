@@ -270,6 +270,24 @@ pub fn covering_radius(level: u8) -> f64 {
     (90f64 / f64::from(1u32 << level)).min(60.0).to_radians()
 }
 
+/// Writes the cell centres of `grid` as CSV (`index,qw,qx,qy,qz`, index order, `w ≥ 0`, 9
+/// decimals), calling `progress` with the index every 65 536 cells.
+pub fn write_centres_csv(
+    grid: &GridLevel,
+    w: &mut impl std::io::Write,
+    mut progress: impl FnMut(u64),
+) -> std::io::Result<()> {
+    writeln!(w, "index,qw,qx,qy,qz")?;
+    for i in 0..grid.len() as u64 {
+        let q = super::to_quaternion(&grid.rotation(i));
+        writeln!(w, "{i},{:.9},{:.9},{:.9},{:.9}", q[0], q[1], q[2], q[3])?;
+        if i % 65_536 == 0 {
+            progress(i);
+        }
+    }
+    w.flush()
+}
+
 /// `Rz(φ)·Ry(θ)`: the frame whose z axis has polar angle θ and azimuth φ.
 pub(crate) fn pixel_frame(theta: f64, phi: f64) -> Matrix3<f64> {
     let (st, ct) = theta.sin_cos();

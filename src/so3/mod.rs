@@ -1,7 +1,7 @@
 //! The SO(3) core: the nested equivolumetric grid, sampling, angles and conversions, symmetry
 //! groups, and the metrics of distributions over the grid.
 
-mod grid;
+pub mod grid;
 pub mod metrics;
 mod rotation;
 mod sample;

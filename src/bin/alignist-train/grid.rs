@@ -1,13 +1,13 @@
 //! `alignist-train grid`: the centres of a grid level as CSV.
 
 use std::fs::File;
-use std::io::{BufWriter, Write};
+use std::io::BufWriter;
 use std::path::Path;
 
 use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 
-use alignist::so3::{GridLevel, MAX_LEVEL, to_quaternion};
+use alignist::so3::{GridLevel, MAX_LEVEL};
 
 pub(crate) fn write_grid(level: u8, out: &Path) -> Result<()> {
     if level > MAX_LEVEL {
@@ -27,15 +27,8 @@ pub(crate) fn write_grid(level: u8, out: &Path) -> Result<()> {
             .expect("static progress template"),
     );
     let write_err = || format!("writing {}", tmp.display());
-    writeln!(w, "index,qw,qx,qy,qz").with_context(write_err)?;
-    for i in 0..grid.len() as u64 {
-        let q = to_quaternion(&grid.rotation(i));
-        writeln!(w, "{i},{:.9},{:.9},{:.9},{:.9}", q[0], q[1], q[2], q[3])
-            .with_context(write_err)?;
-        if i % 65_536 == 0 {
-            bar.set_position(i);
-        }
-    }
+    alignist::so3::grid::write_centres_csv(&grid, &mut w, |i| bar.set_position(i))
+        .with_context(write_err)?;
     let file = w
         .into_inner()
         .map_err(|e| e.into_error())

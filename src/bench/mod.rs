@@ -1,16 +1,22 @@
 //! The performance figures of `alignist-train bench`, measured in one run on one bundle: the
-//! backend's f32 matmul peak, full-grid head throughput against it, coarse-to-fine latency,
-//! encoder throughput, and gRPC against in-process throughput. Figures are printed, not asserted.
+//! head library's matmul peak, full-grid head throughput against it and against numpy, the
+//! study of the coarse-to-fine search against the exhaustive level-5 argmax, encoder
+//! throughput, and gRPC against in-process calls. Figures are printed, not asserted. This layer
+//! sits above the engine, the transport and the client (it uses all three).
+
+pub mod search;
 
 use std::path::Path;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use super::BatchConfig;
-use super::proto::{ImageInput, PredictRequest};
-use super::server::{ServerConfig, run};
+use rayon::prelude::*;
+
 use crate::client::load::quantile;
 use crate::engine::{Engine, EngineConfig, ImageRequest, Model, PredictOptions};
+use crate::serve::BatchConfig;
+use crate::serve::proto::{ImageInput, PredictRequest};
+use crate::serve::server::{ServerConfig, run};
 
 /// Best-of-`reps` seconds of `f`.
 fn best_of(reps: usize, mut f: impl FnMut()) -> f64 {
@@ -32,54 +38,90 @@ pub fn head_flops_per_rotation(model: &Model) -> f64 {
     2.0 * per_branch
 }
 
-/// Runs every measurement on the bundle at `bundle` and prints the figures.
-pub fn bench(bundle: &Path, images: &[Vec<u8>]) -> anyhow::Result<()> {
+/// The fused head's library at its best: a 4096×256 · 256×256 f32 product in row tiles of
+/// [`crate::net::fused::TILE_ROWS`], one tile per task over the cores, as the head runs its
+/// layers; GFLOP/s, best of 20.
+pub fn matmul_peak_gflops() -> f64 {
+    let (m, k, n) = (4096usize, 256usize, 256usize);
+    let tile = crate::net::fused::TILE_ROWS;
+    let a: Vec<f32> = (0..m * k)
+        .map(|i| ((i * 7919) % 1000) as f32 / 1e3)
+        .collect();
+    let b: Vec<f32> = (0..k * n)
+        .map(|i| ((i * 104_729) % 1000) as f32 / 1e3)
+        .collect();
+    let mut c = vec![0f32; m * n];
+    let s = best_of(20, || {
+        c.par_chunks_mut(tile * n)
+            .zip(a.par_chunks(tile * k))
+            .for_each(|(c, a)| {
+                let rows = a.len() / k;
+                // SAFETY: `a` is rows×k, `b` k×n and `c` rows×n, row-major, not aliased.
+                unsafe {
+                    matrixmultiply::sgemm(
+                        rows,
+                        k,
+                        n,
+                        1.0,
+                        a.as_ptr(),
+                        k as isize,
+                        1,
+                        b.as_ptr(),
+                        n as isize,
+                        1,
+                        0.0,
+                        c.as_mut_ptr(),
+                        n as isize,
+                        1,
+                    );
+                }
+            });
+    });
+    2.0 * (m * k * n) as f64 / s / 1e9
+}
+
+/// Runs every measurement on the bundle at `bundle` with rendered RGB8 crops of its input size
+/// (several objects, for the search study) and prints the figures.
+pub fn bench(bundle: &Path, crops: &[Vec<u8>]) -> anyhow::Result<()> {
+    anyhow::ensure!(!crops.is_empty(), "the bench needs at least one image");
     let engine_config = EngineConfig::default();
     let model = Arc::new(Engine::load_model(bundle, engine_config)?);
     let size = model.input_size();
     println!(
-        "bundle {} (input {size}², head {}×{}), {} threads",
+        "bundle {} (input {size}², head {}×{}), {} threads, {} images",
         bundle.display(),
         model.network_config().hidden,
         model.network_config().layers,
-        rayon::current_num_threads()
+        rayon::current_num_threads(),
+        crops.len()
     );
-    // The engine runs the head on the dense backend and the encoder on the convolution one.
-    let dense = crate::backend::device_for(crate::backend::Workload::Dense);
-    let conv = crate::backend::device_for(crate::backend::Workload::Conv);
-    let peak = crate::backend::matmul_gflops(&dense, 4096, 256, 256);
+    let peak = matmul_peak_gflops();
     println!(
-        "matmul 4096×256·256×256 f32: {peak:.1} GFLOP/s on the head's backend ({}); {:.1} GFLOP/s on the encoder's ({})",
-        crate::backend::backend_for(crate::backend::Workload::Dense),
-        crate::backend::matmul_gflops(&conv, 4096, 256, 256),
-        crate::backend::backend_for(crate::backend::Workload::Conv)
+        "matmul peak of the head's library (matrixmultiply, 4096×256·256×256 f32 in tiles of {} rows over the cores): {peak:.1} GFLOP/s",
+        crate::net::fused::TILE_ROWS
     );
-    let crops: Vec<Vec<u8>> = images
-        .iter()
-        .map(|png| {
-            model.prepare(&ImageRequest {
-                data: png,
-                raw_size: None,
-                crop: None,
-            })
-        })
-        .collect::<Result<_, _>>()?;
     let one = model.features(&[&crops[0]]);
     let flops = head_flops_per_rotation(&model);
+    let mut ours_ms = Vec::new();
     for level in [3u8, 4] {
         let grid_len = model.grid(level).map_or(0, |g| g.len());
         let s = best_of(3, || {
             let _ = model.distribution(&one, level, None);
         });
+        ours_ms.push((level, s * 1e3));
         let rate = grid_len as f64 / s;
         let gflops = rate * flops / 1e9;
         println!(
-            "full grid level {level} ({grid_len} rotations): {:.1} ms, {:.2} M rotations/s, head {gflops:.1} GFLOP/s = {:.0} % of the matmul peak",
+            "full grid level {level} ({grid_len} rotations): {:.1} ms, {:.2} M rotations/s, {gflops:.1} GFLOP/s, head: {:.0} % of peak",
             s * 1e3,
             rate / 1e6,
             100.0 * gflops / peak
         );
     }
+    numpy_ratio(bundle, &ours_ms);
+    // The coarse-to-fine search against the exhaustive level-5 argmax.
+    let figures = search::study(&model, crops, &search::candidates(), 5, 10)?;
+    search::print(&figures, &engine_config.search());
     let options = PredictOptions {
         top_k: 10,
         level: Some(5),
@@ -93,10 +135,9 @@ pub fn bench(bundle: &Path, images: &[Vec<u8>]) -> anyhow::Result<()> {
         model.predict(&f, &options, None)?;
         lat.push(t.elapsed().as_secs_f64() * 1e3);
     }
+    let in_process_p50 = quantile(&lat, 0.5);
     println!(
-        "coarse-to-fine top-10 to level 5 (keep {}), encoder included: p50 {:.1} ms, p99 {:.1} ms",
-        engine_config.keep,
-        quantile(&lat, 0.5),
+        "top-k p50: {in_process_p50:.1} ms (top-10 to level 5 with the default search, encoder included; p99 {:.1} ms)",
         quantile(&lat, 0.99)
     );
     for batch in [1usize, BatchConfig::default().max_batch] {
@@ -108,12 +149,70 @@ pub fn bench(bundle: &Path, images: &[Vec<u8>]) -> anyhow::Result<()> {
         });
         println!("encoder at batch {batch}: {:.1} images/s", batch as f64 / s);
     }
-    grpc_vs_in_process(model, bundle, &images[0])
+    let mut png = Vec::new();
+    image::RgbImage::from_raw(size, size, crops[0].clone())
+        .ok_or_else(|| anyhow::anyhow!("crop size"))?
+        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)?;
+    grpc_vs_in_process(model, bundle, &png, in_process_p50)
+}
+
+/// Runs the numpy reference (`benches/reference_head.py`) on the same bundle and grids and
+/// prints the ratio of its time to ours, when python3 with numpy is present.
+fn numpy_ratio(bundle: &Path, ours_ms: &[(u8, f64)]) {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("benches/reference_head.py");
+    let dir = std::env::temp_dir().join(format!("alignist-bench-grids-{}", std::process::id()));
+    let run = || -> anyhow::Result<Vec<String>> {
+        std::fs::create_dir_all(&dir)?;
+        let mut lines = Vec::new();
+        for &(level, ours) in ours_ms {
+            let csv = dir.join(format!("grid{level}.csv"));
+            let grid = crate::so3::GridLevel::new(level)?;
+            let mut w = std::io::BufWriter::new(std::fs::File::create(&csv)?);
+            crate::so3::grid::write_centres_csv(&grid, &mut w, |_| {})?;
+            drop(w);
+            let out = std::process::Command::new("python3")
+                .arg(&script)
+                .arg(bundle)
+                .arg(&csv)
+                .output()?;
+            anyhow::ensure!(
+                out.status.success(),
+                "{}",
+                String::from_utf8_lossy(&out.stderr)
+                    .lines()
+                    .last()
+                    .unwrap_or("failed")
+            );
+            let text = String::from_utf8_lossy(&out.stdout).to_string();
+            let ms: f64 = text
+                .split(": ")
+                .nth(1)
+                .and_then(|t| t.split(" ms").next())
+                .and_then(|t| t.trim().parse().ok())
+                .ok_or_else(|| anyhow::anyhow!("unreadable numpy output: {text}"))?;
+            lines.push(format!(
+                "level {level}: {} numpy ratio: {:.2} (numpy {ms:.1} ms / ours {ours:.1} ms)",
+                text.trim(),
+                ms / ours
+            ));
+        }
+        Ok(lines)
+    };
+    match run() {
+        Ok(lines) => lines.iter().for_each(|l| println!("{l}")),
+        Err(e) => println!("numpy reference not run ({e})"),
+    }
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// Predict throughput at concurrency 8: in-process engine calls against gRPC calls to a server on
 /// loopback with the same bundle and request (search to level 3, top-5).
-fn grpc_vs_in_process(model: Arc<Model>, bundle: &Path, png: &[u8]) -> anyhow::Result<()> {
+fn grpc_vs_in_process(
+    model: Arc<Model>,
+    bundle: &Path,
+    png: &[u8],
+    in_process_p50: f64,
+) -> anyhow::Result<()> {
     let concurrency = 8;
     let requests = 96;
     let options = PredictOptions {
@@ -219,7 +318,7 @@ fn grpc_vs_in_process(model: Arc<Model>, bundle: &Path, png: &[u8]) -> anyhow::R
         )
         .await?;
         println!(
-            "gRPC Predict (top-10, search to level 5), one call at a time: p50 {:.1} ms, p99 {:.1} ms",
+            "single call p50: gRPC {:.1} ms, in-process {in_process_p50:.1} ms (top-10 to level 5, one call at a time; gRPC p99 {:.1} ms)",
             single.p50_ms, single.p99_ms
         );
         let mut dist_ms = Vec::new();
@@ -227,7 +326,7 @@ fn grpc_vs_in_process(model: Arc<Model>, bundle: &Path, png: &[u8]) -> anyhow::R
             let t = Instant::now();
             let (_, probs, _) = crate::client::distribution(
                 channel.clone(),
-                super::proto::DistributionRequest {
+                crate::serve::proto::DistributionRequest {
                     image: request.image.clone(),
                     level: 4,
                     ..Default::default()

@@ -1,0 +1,165 @@
+//! The study of the coarse-to-fine search (`alignist-train bench`): for held-out renders, the
+//! exhaustive argmax of the finest level (every cell scored), then, per candidate search (start
+//! level, cells kept per level: a fixed number or the cells that hold a fraction of the level's
+//! estimated mass), how often its top-1 lands in the argmax's cell or a neighbour, how often it
+//! scores as high (on symmetric objects an equivalent mode's cell is as good), how far below the
+//! maximum it ends on average, the mass it estimates to cover, and its latency with the encoder.
+
+use std::time::Instant;
+
+use crate::client::load::quantile;
+use crate::engine::{EngineError, Model, PredictOptions, SearchParams};
+use crate::so3::{covering_radius, geodesic_angle};
+
+/// What one candidate search scored.
+#[derive(Debug, Clone)]
+pub struct SearchFigures {
+    /// The search.
+    pub params: SearchParams,
+    /// Fraction of images whose top-1 is the exhaustive argmax's cell or a neighbour (centres
+    /// within twice the level's covering radius).
+    pub agreement: f64,
+    /// Fraction of images whose top-1 scores within 0.01 of the exhaustive maximum (an equally
+    /// good cell: on symmetric objects, the argmax of another equivalent mode).
+    pub found_maximum: f64,
+    /// Mean of the exhaustive maximum log-weight less the top-1's (0 when the search finds it).
+    pub mean_gap: f64,
+    /// Mean mass the search's finest cells are estimated to cover.
+    pub covered_mass: f64,
+    /// Median time of one call, encoder included, in milliseconds.
+    pub p50_ms: f64,
+}
+
+/// The searches the study compares: start level 1 or 2, keep 32–512, and keeps chosen by mass.
+pub fn candidates() -> Vec<SearchParams> {
+    let mut out = Vec::new();
+    for start_level in [1u8, 2] {
+        for keep in [32usize, 64, 128, 256, 512] {
+            out.push(SearchParams {
+                start_level,
+                keep,
+                keep_mass: None,
+            });
+        }
+        for mass in [0.99, 0.999] {
+            out.push(SearchParams {
+                start_level,
+                keep: 512,
+                keep_mass: Some(mass),
+            });
+        }
+    }
+    out
+}
+
+/// Runs `searches` to `level` (top-`top_k`) on every crop and compares each with the exhaustive
+/// argmax of `level`.
+pub fn study(
+    model: &Model,
+    crops: &[Vec<u8>],
+    searches: &[SearchParams],
+    level: u8,
+    top_k: usize,
+) -> Result<Vec<SearchFigures>, EngineError> {
+    let grid = model
+        .grid(level)
+        .ok_or_else(|| EngineError::InvalidArgument {
+            field: "level".into(),
+            message: format!("{level} is above this model's grids"),
+        })?;
+    let options = PredictOptions {
+        top_k,
+        level: Some(level),
+        mode_angle_deg: None,
+    };
+    let neighbour = 2.0 * covering_radius(level);
+    let started = Instant::now();
+    let mut agree = vec![0usize; searches.len()];
+    let mut found = vec![0usize; searches.len()];
+    let mut mass = vec![0.0f64; searches.len()];
+    let mut gap = vec![0.0f64; searches.len()];
+    let mut times: Vec<Vec<f64>> = vec![Vec::new(); searches.len()];
+    for (n, crop) in crops.iter().enumerate() {
+        let features = model.features(&[crop]);
+        let logits = model.logits_at(&features, level)?;
+        let (best, best_logit) = logits
+            .iter()
+            .enumerate()
+            .fold((0, f32::MIN), |b, (i, &l)| if l > b.1 { (i, l) } else { b });
+        let best_rotation = grid.rotation(best as u64);
+        for (s, search) in searches.iter().enumerate() {
+            let t = Instant::now();
+            let f = model.features(&[crop]);
+            let p = model
+                .predict_searching(&f, &options, search, &[None])?
+                .swap_remove(0);
+            times[s].push(t.elapsed().as_secs_f64() * 1e3);
+            let top = p.top[0].cell;
+            if geodesic_angle(&grid.rotation(top), &best_rotation) <= neighbour {
+                agree[s] += 1;
+            }
+            if logits[top as usize] >= best_logit - 0.01 {
+                found[s] += 1;
+            }
+            mass[s] += p.covered_mass;
+            gap[s] += f64::from(best_logit - logits[top as usize]);
+        }
+        eprint!(
+            "\rsearch study: {}/{} images, {:.0} s",
+            n + 1,
+            crops.len(),
+            started.elapsed().as_secs_f64()
+        );
+    }
+    eprintln!();
+    let n = crops.len().max(1) as f64;
+    Ok(searches
+        .iter()
+        .enumerate()
+        .map(|(s, &params)| SearchFigures {
+            params,
+            agreement: agree[s] as f64 / n,
+            found_maximum: found[s] as f64 / n,
+            mean_gap: gap[s] / n,
+            covered_mass: mass[s] / n,
+            p50_ms: quantile(&times[s], 0.5),
+        })
+        .collect())
+}
+
+/// Prints the study as a table, then the default search's figures.
+pub fn print(figures: &[SearchFigures], default: &SearchParams) {
+    println!("search to level 5, top-10, against the exhaustive level-5 argmax:");
+    println!(
+        "  start  keep             agreement  found max  mean gap  covered mass  p50 (encoder incl.)"
+    );
+    for f in figures {
+        let keep = match f.params.keep_mass {
+            Some(m) => format!("{m} mass ≤{}", f.params.keep),
+            None => f.params.keep.to_string(),
+        };
+        println!(
+            "  {:>5}  {keep:<16} {:>8.1} % {:>8.1} % {:>9.3} {:>12.4}  {:>8.1} ms",
+            f.params.start_level,
+            100.0 * f.agreement,
+            100.0 * f.found_maximum,
+            f.mean_gap,
+            f.covered_mass,
+            f.p50_ms
+        );
+    }
+    if let Some(f) = figures.iter().find(|f| f.params == *default) {
+        println!(
+            "default search (start {}, keep {}{}): agreement: {:.1} %, found max {:.1} %, mean gap {:.3}, covered mass {:.4}",
+            default.start_level,
+            default.keep,
+            default
+                .keep_mass
+                .map_or(String::new(), |m| format!(", mass {m}")),
+            100.0 * f.agreement,
+            100.0 * f.found_maximum,
+            f.mean_gap,
+            f.covered_mass
+        );
+    }
+}
