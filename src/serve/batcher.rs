@@ -1,6 +1,7 @@
 //! Dynamic batching of the image encoder: concurrent requests for one model are collected up to
 //! `max_batch` images or `max_delay`, whichever comes first, and encoded in one pass on a
-//! dedicated thread. The queue is bounded; a full queue is answered at once (UNAVAILABLE) rather
+//! dedicated thread. The encoder waits for company only under load (when its last batch had
+//! more than one image); a lone call is encoded at once. The queue is bounded; a full queue is answered at once (UNAVAILABLE) rather
 //! than letting latency grow without limit. Requests whose caller has gone away are dropped
 //! before they are encoded.
 
@@ -158,14 +159,21 @@ impl Batcher {
     }
 }
 
-/// The next batch of a worker's queue: blocks for the first job, then takes what else arrives
-/// within `max_delay`, up to `max_batch` jobs. `None` once every sender is gone.
-pub(super) fn next_batch<T>(
+/// The next batch of a worker's queue: blocks for the first job, then takes what else is queued
+/// and, when `wait`, what else arrives within `max_delay`, up to `max_batch` jobs. `None` once
+/// every sender is gone.
+fn next_batch<T>(
     receiver: &mut mpsc::Receiver<T>,
     config: &BatchConfig,
+    wait: bool,
 ) -> Option<Vec<T>> {
     let first = receiver.blocking_recv()?;
-    let deadline = Instant::now() + config.max_delay;
+    let deadline = Instant::now()
+        + if wait {
+            config.max_delay
+        } else {
+            Duration::ZERO
+        };
     let mut jobs = vec![first];
     while jobs.len() < config.max_batch {
         match receiver.try_recv() {
@@ -193,7 +201,11 @@ pub(super) fn panic_message(panic: &(dyn std::any::Any + Send)) -> String {
 }
 
 fn run(model: Arc<Model>, config: BatchConfig, mut receiver: mpsc::Receiver<Job>) {
-    while let Some(mut jobs) = next_batch(&mut receiver, &config) {
+    // Wait for a batch to fill only under load (the last batch had company): a lone call is
+    // encoded at once instead of waiting `max_delay` for calls that are not coming.
+    let mut busy = false;
+    while let Some(mut jobs) = next_batch(&mut receiver, &config, busy) {
+        busy = jobs.len() > 1;
         // A caller that gave up (cancelled, deadline) is not worth encoding.
         jobs.retain(|j| !j.reply.is_closed());
         if jobs.is_empty() {
