@@ -15,6 +15,7 @@ pub mod encoding;
 pub mod engine;
 pub mod experts;
 pub mod net;
+pub mod schedule;
 pub mod serve;
 pub mod so3;
 pub mod train;

@@ -180,8 +180,13 @@ pub fn train_sdf(
     ))
 }
 
-/// Cosine decay from `lr` to 5 % of it over `steps`.
+/// Cosine decay from `lr` to 5 % of it over `steps` (no warm-up).
 pub fn cosine_lr(lr: f64, step: usize, steps: usize) -> f64 {
-    let t = step as f64 / steps.max(1) as f64;
-    lr * (0.05 + 0.95 * 0.5 * (1.0 + (std::f64::consts::PI * t).cos()))
+    crate::schedule::CosineSchedule {
+        peak: lr,
+        warmup: 0,
+        steps,
+        floor: 0.05,
+    }
+    .at(step)
 }

@@ -90,9 +90,11 @@ pub struct InitWeights {
 
 /// Learning rate at `step`: linear warm-up, then cosine decay to 1 % of the peak.
 pub fn learning_rate(config: &TrainConfig, step: usize) -> f64 {
-    if step < config.warmup {
-        return config.lr * (step + 1) as f64 / config.warmup as f64;
+    crate::schedule::CosineSchedule {
+        peak: config.lr,
+        warmup: config.warmup,
+        steps: config.steps,
+        floor: 0.01,
     }
-    let t = (step - config.warmup) as f64 / (config.steps - config.warmup).max(1) as f64;
-    config.lr * (0.01 + 0.99 * 0.5 * (1.0 + (std::f64::consts::PI * t.min(1.0)).cos()))
+    .at(step)
 }
