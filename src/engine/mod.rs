@@ -49,7 +49,19 @@ pub enum EngineError {
     /// A bundle that cannot be loaded.
     #[error("{0}")]
     Bundle(#[from] BundleError),
-    /// A models directory that cannot be served.
+    /// A grid level that cannot be built.
+    #[error("grid: {0}")]
+    Grid(#[from] crate::so3::So3Error),
+    /// A models directory that cannot be read.
+    #[error("{path}: {source}")]
+    Io {
+        /// The directory.
+        path: PathBuf,
+        /// Why.
+        #[source]
+        source: std::io::Error,
+    },
+    /// A models directory that cannot be served (no bundle in it, or none loads).
     #[error("{0}")]
     Models(String),
 }
@@ -296,13 +308,11 @@ impl Model {
         }
         let grids = (0..=top)
             .map(GridLevel::new)
-            .collect::<Result<Vec<_>, _>>()
-            .map_err(|e| EngineError::Models(e.to_string()))?;
+            .collect::<Result<Vec<_>, _>>()?;
         let fused = Arc::new(FusedHead::new(&bundle.network.head));
         let projected = (0..=config.max_full_level)
             .map(|l| ProjectedGrid::with_head(fused.clone(), &bundle.manifest.network.encoding, l))
-            .collect::<Result<Vec<_>, _>>()
-            .map_err(|e| EngineError::Models(e.to_string()))?;
+            .collect::<Result<Vec<_>, _>>()?;
         let objects = bundle
             .manifest
             .objects
@@ -618,10 +628,10 @@ impl Model {
         }
         let [b, _] = features.dims();
         if depth.len() != b {
-            return Err(EngineError::Models(format!(
-                "{} depth inputs for {b} images",
-                depth.len()
-            )));
+            return Err(invalid(
+                "depth",
+                format!("{} depth inputs for {b} images", depth.len()),
+            ));
         }
         let start = search.start_level.min(level);
         let grids: Vec<&GridLevel> = self.grids[start as usize..=level as usize].iter().collect();
@@ -743,8 +753,10 @@ impl Engine {
     /// listed by [`Engine::failures`] while the others load. An error only when the directory
     /// cannot be read, holds no bundle, or no bundle loads (naming each failure).
     pub fn load_dir(dir: &Path, config: EngineConfig) -> Result<Engine, EngineError> {
-        let entries = std::fs::read_dir(dir)
-            .map_err(|e| EngineError::Models(format!("{}: {e}", dir.display())))?;
+        let entries = std::fs::read_dir(dir).map_err(|source| EngineError::Io {
+            path: dir.to_path_buf(),
+            source,
+        })?;
         let mut folders: Vec<PathBuf> = entries
             .filter_map(|e| e.ok().map(|e| e.path()))
             .filter(|p| p.join("manifest.json").is_file())

@@ -109,7 +109,10 @@ pub fn status_of(error: EngineError) -> Status {
                 details,
             )
         }
-        EngineError::Bundle(_) | EngineError::Models(_) => {
+        EngineError::Bundle(_)
+        | EngineError::Models(_)
+        | EngineError::Grid(_)
+        | EngineError::Io { .. } => {
             refused(Code::Internal, Reason::ModelFailed, error.to_string(), None)
         }
     }
