@@ -74,7 +74,7 @@ fn render_experts_fit_eval_and_load_a_bundle() {
         "--out",
         s(&experts),
     ]);
-    let fit = |extra: &[&str]| {
+    let fit_to = |out: &Path, extra: &[&str]| {
         let mut args = vec![
             "fit",
             "--data",
@@ -82,7 +82,7 @@ fn render_experts_fit_eval_and_load_a_bundle() {
             "--experts",
             s(&experts),
             "--out",
-            s(&bundle),
+            s(out),
             "--steps",
             "4",
             "--batch",
@@ -101,6 +101,7 @@ fn render_experts_fit_eval_and_load_a_bundle() {
         args.extend_from_slice(extra);
         run(&args)
     };
+    let fit = |extra: &[&str]| fit_to(&bundle, extra);
     let out = fit(&["--fraction", "0.5"]);
     let report = String::from_utf8_lossy(&out.stderr);
     assert!(report.contains("6 training images"), "{report}");
@@ -131,6 +132,24 @@ fn render_experts_fit_eval_and_load_a_bundle() {
             .steps_run,
         0
     );
+
+    // A time-boxed part of a run: --stop-at leaves a checkpoint and no bundle; --resume
+    // finishes the run from there.
+    let parted = dir.path().join("parted");
+    let out = fit_to(&parted, &["--stop-at", "2"]);
+    assert!(
+        String::from_utf8_lossy(&out.stdout).contains("stopped at step 2 of 4"),
+        "{out:?}"
+    );
+    assert!(!parted.join("manifest.json").exists());
+    assert!(parted.with_extension("checkpoints").join("latest").exists());
+    fit_to(&parted, &["--resume"]);
+    let resumed = ModelBundle::load(&parted)
+        .unwrap()
+        .manifest
+        .provenance
+        .report;
+    assert_eq!((resumed.resumed_from, resumed.steps_run), (2, 2));
 
     // eval on the bundle: the overall figures of its report.
     let report = dir.path().join("report.json");

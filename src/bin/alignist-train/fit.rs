@@ -83,6 +83,10 @@ pub(crate) struct FitArgs {
     /// Continue from the last checkpoint.
     #[arg(long)]
     resume: bool,
+    /// Stop after this step (a time-boxed part of a run): write a checkpoint there and exit
+    /// without a bundle; `--resume` continues later. Must be a multiple of --checkpoint-every.
+    #[arg(long)]
+    stop_at: Option<usize>,
     /// Start from a trained model bundle's weights (same network flags) with a new schedule
     /// instead of a seeded initialisation: a warm restart. The manifest records the file and its
     /// sha256.
@@ -284,6 +288,16 @@ pub(crate) fn fit_cmd(args: &FitArgs) -> Result<()> {
             bail!("{flag} must be at least 1");
         }
     }
+    if let Some(stop) = args.stop_at
+        && (stop == 0 || stop > args.steps || !stop.is_multiple_of(args.checkpoint_every.max(1)))
+    {
+        bail!(
+            "--stop-at {stop} must be in 1 ..= --steps ({}) and a multiple of --checkpoint-every \
+             ({}), so that the run stops at a checkpoint",
+            args.steps,
+            args.checkpoint_every
+        );
+    }
     let method = match args.method.as_str() {
         "alignist" => Method::Alignist {
             loss: match args.loss.as_str() {
@@ -372,11 +386,27 @@ pub(crate) fn fit_cmd(args: &FitArgs) -> Result<()> {
             bar.set_position(step as u64);
             bar.set_message(format!("loss {loss:.4}"));
             log_progress(&mut log, step, steps, loss);
-            std::ops::ControlFlow::Continue(())
+            if args.stop_at == Some(step) {
+                std::ops::ControlFlow::Break(())
+            } else {
+                std::ops::ControlFlow::Continue(())
+            }
         },
     )
     .context("training")?;
     bar.finish();
+    if let Some(stop) = args.stop_at
+        && report.resumed_from + report.steps_run == stop
+        && stop < args.steps
+    {
+        println!(
+            "stopped at step {stop} of {} as asked (--stop-at); checkpoint in {}; continue with \
+             --resume",
+            args.steps,
+            checkpoints.display()
+        );
+        return Ok(());
+    }
     if args.profile {
         print_profile(&report.profile);
     }
