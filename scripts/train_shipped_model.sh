@@ -6,7 +6,11 @@
 #      resumable;
 #   3. a warm restart from those weights: 12 000 more steps, peak lr 5e-4, another data seed
 #      (~70 min with other work on the machine), resumable;
-#   4. the bundle is evaluated on 250 fresh renders at level 3, then copied to models/symsol1.
+#   4. a second warm restart (data seed 2), run as it happened: 3 500 steps of a 12 000-step
+#      schedule (peak lr 5e-4), stopped there (--stop-at), then resumed as a 7 000-step schedule
+#      (the rest annealed to the floor in 3 500 steps, ~20 min);
+#   5. a third warm restart (data seed 3): 10 000 steps, peak lr 3e-4 (~35 min);
+#   6. the bundle is evaluated on 250 fresh renders at level 3, then copied to models/symsol1.
 # Usage: scripts/train_shipped_model.sh [WORK_DIR]   (default: target/symsol)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -30,5 +34,15 @@ done
   --eval-level 3 --eval-images 50 --checkpoint-every 500 --seed 1 --profile --resume \
   --init "$WORK/models/alignist-fresh" \
   --out "$WORK/models/alignist-warm"
+FIT_WARM=("$BIN" fit --fresh
+  --experts "$E/tet" --experts "$E/cube" --experts "$E/icosa" --experts "$E/cone" --experts "$E/cyl"
+  --method alignist --image-size 32 --batch 16 --k 256
+  --eval-level 3 --eval-images 50 --checkpoint-every 500 --profile --resume)
+"${FIT_WARM[@]}" --steps 12000 --lr 5e-4 --seed 2 --stop-at 3500 \
+  --init "$WORK/models/alignist-warm" --out "$WORK/models/alignist-warm2"
+"${FIT_WARM[@]}" --steps 7000 --lr 5e-4 --seed 2 \
+  --init "$WORK/models/alignist-warm" --out "$WORK/models/alignist-warm2"
+"${FIT_WARM[@]}" --steps 10000 --lr 3e-4 --seed 3 \
+  --init "$WORK/models/alignist-warm2" --out "$WORK/models/alignist-warm3"
 rm -rf models/symsol1
-cp -r "$WORK/models/alignist-warm" models/symsol1
+cp -r "$WORK/models/alignist-warm3" models/symsol1
