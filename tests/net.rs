@@ -271,3 +271,30 @@ fn the_default_search_finds_the_exhaustive_maximum_at_level_3() {
     // bench` gives the same picture at level 5 (92 % of 50 images).
     assert!(misses.len() <= 2, "{misses:?}");
 }
+
+/// A bundle is served up to the grid levels its manifest records, never above: the shipped one
+/// records search level 5, so a server allowing 6 refuses a level-6 search for it.
+#[test]
+fn the_manifests_levels_cap_what_the_engine_serves() {
+    use alignist::engine::{Engine, EngineConfig, EngineError, PredictOptions};
+    let path = std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/models/symsol1"));
+    let levels = alignist::bundle::model::ModelBundle::load(path)
+        .unwrap()
+        .manifest
+        .levels;
+    let config = EngineConfig::default();
+    assert!(config.search_max_level > levels.search_max, "{levels:?}");
+    let model = Engine::load_model(path, config).unwrap();
+    assert_eq!(model.config().search_max_level, levels.search_max);
+    assert_eq!(model.config().max_full_level, levels.full_max);
+    let features = model.features(&[&vec![128u8; 32 * 32 * 3]]);
+    let above = PredictOptions {
+        top_k: 1,
+        level: Some(levels.search_max + 1),
+        mode_angle_deg: None,
+    };
+    assert!(matches!(
+        model.predict(&features, &above, None),
+        Err(EngineError::InvalidArgument { .. })
+    ));
+}

@@ -64,7 +64,8 @@ pub struct ModelManifest {
     pub files: BTreeMap<String, FileEntry>,
 }
 
-/// Grid levels of a bundle.
+/// Grid levels of a bundle: the server serves it up to these at most
+/// (`EngineConfig::within`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct GridLevels {
     /// Full distributions up to this level.

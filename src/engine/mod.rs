@@ -112,6 +112,18 @@ pub struct SearchParams {
 }
 
 impl EngineConfig {
+    /// The levels a bundle is served at: this configuration's, capped by the levels its
+    /// manifest records (the trainer writes the engine's defaults there).
+    pub fn within(&self, levels: &crate::bundle::model::GridLevels) -> EngineConfig {
+        EngineConfig {
+            max_full_level: self.max_full_level.min(levels.full_max),
+            search_start_level: self.search_start_level.min(levels.full_max),
+            search_default_level: self.search_default_level.min(levels.search_max),
+            search_max_level: self.search_max_level.min(levels.search_max),
+            ..*self
+        }
+    }
+
     /// The search this configuration runs.
     pub fn search(&self) -> SearchParams {
         SearchParams {
@@ -298,6 +310,8 @@ impl Model {
         bundle: ModelBundle,
         config: EngineConfig,
     ) -> Result<Model, EngineError> {
+        let config = config.within(&bundle.manifest.levels);
+        config.validate()?;
         let device = crate::backend::device_for(crate::backend::Workload::Conv);
         let dense = crate::backend::device_for(crate::backend::Workload::Dense);
         let top = config.search_max_level.max(config.max_full_level);

@@ -434,9 +434,10 @@ pub(crate) fn fit_cmd(args: &FitArgs) -> Result<()> {
                 values / 255 (src/data/virtual_crop.rs)"
             .into(),
         objects,
+        // The levels the engine serves by default: what the server caps this model to.
         levels: GridLevels {
-            full_max: 4,
-            search_max: 5,
+            full_max: alignist::engine::EngineConfig::default().max_full_level,
+            search_max: alignist::engine::EngineConfig::default().search_max_level,
         },
         provenance: Provenance {
             command: std::env::args().collect::<Vec<_>>().join(" "),
