@@ -216,25 +216,9 @@ fn the_default_search_finds_the_exhaustive_maximum_at_level_3() {
     use alignist::engine::{Engine, EngineConfig, PredictOptions};
     let path = std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/models/symsol1"));
     let bundle = alignist::bundle::model::ModelBundle::load(path).unwrap();
-    let fresh = alignist::train::data::FreshRenders {
-        meshes: bundle.experts.iter().map(|e| e.mesh.clone()).collect(),
-        supersample: 2,
-        pool: None,
-    };
-    let names: Vec<String> = bundle
-        .manifest
-        .objects
-        .iter()
-        .map(|o| o.name.clone())
-        .collect();
-    let symmetries: Vec<_> = bundle.experts.iter().map(|e| e.symmetries()).collect();
-    let images = fresh.eval_images(
-        &names,
-        &symmetries,
-        bundle.manifest.network.image_size,
-        4,
-        7,
-    );
+    let images = bundle
+        .renders(2)
+        .eval_images(bundle.manifest.network.image_size, 4, 7);
     let model = Engine::load_model(path, EngineConfig::default()).unwrap();
     let options = PredictOptions {
         top_k: 5,

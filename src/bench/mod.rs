@@ -39,11 +39,10 @@ pub fn head_flops_per_rotation(model: &Model) -> f64 {
 }
 
 /// The fused head's library at its best: a 4096×256 · 256×256 f32 product in row tiles of
-/// [`crate::net::fused::TILE_ROWS`], one tile per task over the cores, as the head runs its
-/// layers; GFLOP/s, best of 20.
-pub fn matmul_peak_gflops() -> f64 {
+/// `tile` rows, one tile per task over the cores, as the head runs its layers; GFLOP/s, best
+/// of 20.
+pub fn matmul_peak_gflops(tile: usize) -> f64 {
     let (m, k, n) = (4096usize, 256usize, 256usize);
-    let tile = crate::net::fused::TILE_ROWS;
     let a: Vec<f32> = (0..m * k)
         .map(|i| ((i * 7919) % 1000) as f32 / 1e3)
         .collect();
@@ -95,7 +94,7 @@ pub fn bench(bundle: &Path, crops: &[Vec<u8>]) -> anyhow::Result<()> {
         rayon::current_num_threads(),
         crops.len()
     );
-    let peak = matmul_peak_gflops();
+    let peak = matmul_peak_gflops(crate::net::fused::TILE_ROWS);
     println!(
         "matmul peak of the head's library (matrixmultiply, 4096×256·256×256 f32 in tiles of {} rows over the cores): {peak:.1} GFLOP/s",
         crate::net::fused::TILE_ROWS

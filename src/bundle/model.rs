@@ -103,7 +103,49 @@ pub fn copy_dir(from: &Path, to: &Path) -> Result<(), BundleError> {
     Ok(())
 }
 
+/// A bundle's objects as fresh renders, in object order: the renderer of their meshes, their
+/// names and their symmetries (what `eval_images` and `frame_eval_images` take).
+pub struct BundleRenders {
+    /// The renderer.
+    pub fresh: crate::train::data::FreshRenders,
+    /// Object names.
+    pub names: Vec<String>,
+    /// Each object's proper symmetries.
+    pub symmetries: Vec<Vec<nalgebra::Rotation3<f64>>>,
+}
+
+impl BundleRenders {
+    /// `per_object` fresh evaluation crops of `size` of every object, placed from `seed`.
+    pub fn eval_images(
+        &self,
+        size: u32,
+        per_object: usize,
+        seed: u64,
+    ) -> Vec<crate::train::eval::EvalImage> {
+        self.fresh
+            .eval_images(&self.names, &self.symmetries, size, per_object, seed)
+    }
+}
+
 impl ModelBundle {
+    /// Its objects as fresh renders, supersampled `supersample` times per axis.
+    pub fn renders(&self, supersample: u32) -> BundleRenders {
+        BundleRenders {
+            fresh: crate::train::data::FreshRenders {
+                meshes: self.experts.iter().map(|e| e.mesh.clone()).collect(),
+                supersample,
+                pool: None,
+            },
+            names: self
+                .manifest
+                .objects
+                .iter()
+                .map(|o| o.name.clone())
+                .collect(),
+            symmetries: self.experts.iter().map(|e| e.symmetries()).collect(),
+        }
+    }
+
     /// Writes the bundle into `dir`: the network, a copy of each object's expert set (from the
     /// folders it was loaded from), and the manifest last.
     pub fn save(

@@ -237,8 +237,6 @@ pub struct Model {
     /// The network on the convolution backend: its encoder runs here.
     network: Network,
     device: Device,
-    /// Where image features are handed over as tensors.
-    dense: Device,
     /// The head for inference, fused ([`FusedHead`]): every scoring of the engine runs on it.
     fused: Arc<FusedHead>,
     /// Grids 0 ..= max level, with precomputed projections up to the full level.
@@ -313,7 +311,6 @@ impl Model {
         let config = config.within(&bundle.manifest.levels);
         config.validate()?;
         let device = crate::backend::device_for(crate::backend::Workload::Conv);
-        let dense = crate::backend::device_for(crate::backend::Workload::Dense);
         let top = config.search_max_level.max(config.max_full_level);
         if top > MAX_LEVEL {
             return Err(EngineError::Models(format!(
@@ -348,7 +345,6 @@ impl Model {
             objects,
             network: bundle.network,
             device,
-            dense,
             fused,
             grids,
             projected,
@@ -436,19 +432,18 @@ impl Model {
             .map_or("", |f| f.sha256.as_str())
     }
 
-    /// Image features `[B, D]` of prepared crops (one encoder pass for the batch), on the
-    /// head's device.
+    /// Image features `[B, D]` of prepared crops (one encoder pass for the batch). The fused
+    /// head reads them as plain rows, so they stay on the encoder's device.
     pub fn features(&self, crops: &[&[u8]]) -> Tensor<2> {
         let images = images_tensor(crops, self.input_size() as usize, &self.device);
-        let features = self.network.encoder.forward(images);
-        Tensor::from_data(features.into_data(), &self.dense)
+        self.network.encoder.forward(images)
     }
 
     /// `b` images' features, `d` each, concatenated, as a `[b, d]` tensor.
     pub fn features_tensor_many(&self, features: &[f32], b: usize, d: usize) -> Tensor<2> {
         Tensor::from_data(
             burn::tensor::TensorData::new(features.to_vec(), [b, d]),
-            &self.dense,
+            &self.device,
         )
     }
 
@@ -456,7 +451,7 @@ impl Model {
     pub fn features_tensor(&self, features: &[f32]) -> Tensor<2> {
         Tensor::from_data(
             burn::tensor::TensorData::new(features.to_vec(), [1, features.len()]),
-            &self.dense,
+            &self.device,
         )
     }
 
@@ -518,12 +513,11 @@ impl Model {
         let rows = feature_rows(features.clone());
         let image = self.fused.image_term(&rows[0]);
         let encoding = &self.manifest.network.encoding;
+        let n = grid.len() as u64;
         let mut logits = Vec::with_capacity(grid.len());
-        let cells: Vec<u64> = (0..grid.len() as u64).collect();
-        for chunk in cells.chunks(1 << 16) {
-            let mats: Vec<[f32; 9]> = chunk
-                .iter()
-                .map(|&c| to_row_major_f32(&grid.rotation(c)))
+        for start in (0..n).step_by(1 << 16) {
+            let mats: Vec<[f32; 9]> = (start..(start + (1 << 16)).min(n))
+                .map(|c| to_row_major_f32(&grid.rotation(c)))
                 .collect();
             let projected = self.fused.project_rotations(&encoding.encode(&mats));
             logits.extend(self.fused.scores(&image, &projected));

@@ -1,9 +1,9 @@
 //! Dynamic batching of the image encoder: concurrent requests for one model are collected up to
 //! `max_batch` images or `max_delay`, whichever comes first, and encoded in one pass on a
 //! dedicated thread. The encoder waits for company only under load (when its last batch had
-//! more than one image); a lone call is encoded at once. The queue is bounded; a full queue is answered at once (UNAVAILABLE) rather
-//! than letting latency grow without limit. Requests whose caller has gone away are dropped
-//! before they are encoded.
+//! more than one image); a lone call is encoded at once. The queue is bounded; a full queue is
+//! answered at once (UNAVAILABLE) rather than letting latency grow without limit. Requests whose
+//! caller has gone away are dropped before they are encoded.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};

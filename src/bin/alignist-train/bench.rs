@@ -41,22 +41,11 @@ pub(crate) fn bench_cmd(args: &BenchArgs) -> Result<()> {
     let loaded = alignist::bundle::model::ModelBundle::load(&args.model)
         .with_context(|| format!("--model {}", args.model.display()))?;
     let size = loaded.manifest.network.image_size;
-    let fresh = alignist::train::data::FreshRenders {
-        meshes: loaded.experts.iter().map(|e| e.mesh.clone()).collect(),
-        supersample: 4,
-        pool: None,
-    };
-    let names: Vec<String> = loaded
-        .manifest
-        .objects
-        .iter()
-        .map(|o| o.name.clone())
-        .collect();
-    let symmetries: Vec<_> = loaded.experts.iter().map(|e| e.symmetries()).collect();
-    let per_object = args.images.max(1).div_ceil(names.len().max(1));
+    let renders = loaded.renders(4);
+    let per_object = args.images.max(1).div_ceil(renders.names.len().max(1));
     // A seed no training run uses (training draws from its own seeds, evaluation from 2^40).
-    let crops: Vec<Vec<u8>> = fresh
-        .eval_images(&names, &symmetries, size, per_object, 99)
+    let crops: Vec<Vec<u8>> = renders
+        .eval_images(size, per_object, 99)
         .into_iter()
         .map(|im| im.rgb)
         .collect();

@@ -149,22 +149,16 @@ pub(crate) fn eval_cmd(args: &EvalArgs) -> Result<()> {
         if !(1..=8).contains(&args.supersample) {
             bail!("--supersample must be in 1 ..= 8, got {}", args.supersample);
         }
-        let fresh = alignist::train::data::FreshRenders {
-            meshes: bundle.experts.iter().map(|s| s.mesh.clone()).collect(),
-            supersample: args.supersample,
-            pool: None,
-        };
-        let names: Vec<String> = bundle
-            .manifest
-            .objects
-            .iter()
-            .map(|o| o.name.clone())
-            .collect();
-        let symmetries: Vec<_> = bundle.experts.iter().map(|s| s.symmetries()).collect();
-        tests = fresh.eval_images(&names, &symmetries, size, args.images, args.seed);
+        let renders = bundle.renders(args.supersample);
+        tests = renders.eval_images(size, args.images, args.seed);
         if args.frames {
-            let (corrected, uncorrected) =
-                fresh.frame_eval_images(&names, &symmetries, size, args.images, args.seed);
+            let (corrected, uncorrected) = renders.fresh.frame_eval_images(
+                &renders.names,
+                &renders.symmetries,
+                size,
+                args.images,
+                args.seed,
+            );
             return frames_report(args, &bundle, [tests, corrected, uncorrected]);
         }
     }
