@@ -70,6 +70,21 @@ enum Command {
         /// --intrinsics).
         #[arg(long = "box", id = "boxes", value_parser = parse_crop, requires = "intrinsics")]
         boxes: Vec<[u32; 4]>,
+        /// A depth image registered to --image (16-bit PNG; 0 = no measurement): RGB-D fusion,
+        /// with each object's translation found (needs --intrinsics, --box, --depth-scale).
+        #[arg(long, requires_all = ["intrinsics", "depth_scale"])]
+        depth: Option<PathBuf>,
+        /// Mesh units per depth unit (e.g. 0.001 for depth in mm and a mesh in metres).
+        #[arg(long, requires = "depth")]
+        depth_scale: Option<f64>,
+        /// A mask PNG of the image's size (non-zero on the object), one per --box in order; only
+        /// depth pixels inside it are used.
+        #[arg(long = "mask", requires = "depth")]
+        masks: Vec<PathBuf>,
+        /// Depth points relative to the object's centre, in the camera frame and the mesh's
+        /// units: a text file of "x y z" lines (the older input; for a crop, not --intrinsics).
+        #[arg(long, conflicts_with_all = ["intrinsics", "depth"])]
+        points: Option<PathBuf>,
     },
     /// The full distribution at one grid level, written as CSV (index,probability,log_density).
     Distribution {
@@ -157,6 +172,35 @@ fn read_image(args: &ImageArgs) -> Result<alignist::serve::proto::ImageInput> {
     Ok(client::image_input(data, args.crop))
 }
 
+/// Reads "x y z" lines (blank lines and `#` comments skipped) as depth points.
+fn read_points(path: &PathBuf) -> Result<alignist::serve::proto::DepthPoints> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("reading --points {}", path.display()))?;
+    let mut xyz = Vec::new();
+    for (n, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let values: Vec<f32> = line
+            .split(|c: char| c == ',' || c.is_whitespace())
+            .filter(|s| !s.is_empty())
+            .map(str::parse)
+            .collect::<Result<_, _>>()
+            .with_context(|| format!("--points {} line {}: '{line}'", path.display(), n + 1))?;
+        if values.len() != 3 {
+            bail!(
+                "--points {} line {}: expected 3 numbers x y z, got {}",
+                path.display(),
+                n + 1,
+                values.len()
+            );
+        }
+        xyz.extend(values);
+    }
+    Ok(alignist::serve::proto::DepthPoints { xyz })
+}
+
 fn save_plot(path: &PathBuf, rotations: &[[f64; 4]], probs: &[f64]) -> Result<()> {
     alignist::viz::plot_distribution(rotations, probs, &[], 1200)
         .save(path)
@@ -199,15 +243,45 @@ async fn run(cli: Cli) -> Result<()> {
             plot: _,
             intrinsics: Some([fx, fy, cx, cy]),
             boxes,
+            depth,
+            depth_scale,
+            masks,
+            points: _,
         } => {
-            use alignist::serve::proto::{CropBox, Detection, FrameRequest, Intrinsics};
+            use alignist::serve::proto::{
+                CropBox, DepthImage, Detection, FrameRequest, Intrinsics,
+            };
+            if !masks.is_empty() && masks.len() != boxes.len() {
+                bail!(
+                    "--mask: give one per --box ({} masks for {} boxes)",
+                    masks.len(),
+                    boxes.len()
+                );
+            }
+            let masks: Vec<Vec<u8>> = masks
+                .iter()
+                .map(|m| {
+                    std::fs::read(m).with_context(|| format!("reading --mask {}", m.display()))
+                })
+                .collect::<Result<_>>()?;
+            let depth = match depth {
+                None => None,
+                Some(path) => Some(DepthImage {
+                    data: std::fs::read(&path)
+                        .with_context(|| format!("reading --depth {}", path.display()))?,
+                    width: 0,
+                    height: 0,
+                    scale: depth_scale.unwrap_or_default(),
+                }),
+            };
             let request = FrameRequest {
                 model: image.model.clone(),
                 image: Some(read_image(&image)?),
                 intrinsics: Some(Intrinsics { fx, fy, cx, cy }),
                 detections: boxes
                     .iter()
-                    .map(|&[x, y, width, height]| Detection {
+                    .enumerate()
+                    .map(|(i, &[x, y, width, height])| Detection {
                         r#box: Some(CropBox {
                             x,
                             y,
@@ -215,11 +289,13 @@ async fn run(cli: Cli) -> Result<()> {
                             height,
                         }),
                         object: image.object.clone(),
+                        mask: masks.get(i).cloned().unwrap_or_default(),
                     })
                     .collect(),
                 top_k,
                 level,
                 mode_angle_deg: 0.0,
+                depth,
             };
             let answer = client::predict_frame(channel, request).await?;
             if json {
@@ -238,8 +314,13 @@ async fn run(cli: Cli) -> Result<()> {
             json,
             plot,
             intrinsics: None,
+            points,
             ..
         } => {
+            let depth = match points {
+                None => None,
+                Some(path) => Some(read_points(&path)?),
+            };
             let request = PredictRequest {
                 model: image.model.clone(),
                 object: image.object.clone(),
@@ -247,7 +328,7 @@ async fn run(cli: Cli) -> Result<()> {
                 top_k,
                 level,
                 mode_angle_deg: 0.0,
-                depth: None,
+                depth,
             };
             let answer = client::predict(channel, request).await?;
             if json {

@@ -213,18 +213,28 @@ pub fn predict_table(r: &PredictResponse) -> String {
         if r.depth_fused { ", depth fused" } else { "" },
         r.compute_ms
     );
+    let with_t = r.top.iter().any(|t| t.translation.is_some());
     let _ = writeln!(
         s,
-        "\n rank  probability  log-density  quaternion (w, x, y, z)"
+        "\n rank  probability  log-density  quaternion (w, x, y, z){}",
+        if with_t {
+            "            translation (mesh units)"
+        } else {
+            ""
+        }
     );
     for (i, t) in r.top.iter().enumerate() {
         let _ = writeln!(
             s,
-            " {:>4}  {:>11.6}  {:>11.3}  {}",
+            " {:>4}  {:>11.6}  {:>11.3}  {}{}",
             i + 1,
             t.probability,
             t.log_density,
-            quaternion(&top_quaternion(t))
+            quaternion(&top_quaternion(t)),
+            t.translation
+                .as_ref()
+                .map(|v| format!("  ({:.4}, {:.4}, {:.4})", v.x, v.y, v.z))
+                .unwrap_or_default()
         );
     }
     let _ = writeln!(s, "\n mode  probability  spread°  cells  mean quaternion");
@@ -250,6 +260,7 @@ pub fn predict_json(r: &PredictResponse) -> serde_json::Value {
             "matrix": t.rotation.as_ref().map(|r| r.matrix.clone()),
             "probability": t.probability,
             "log_density": t.log_density, "level": t.level, "cell": t.cell,
+            "translation": t.translation.as_ref().map(|v| [v.x, v.y, v.z]),
         })
     };
     serde_json::json!({

@@ -184,10 +184,14 @@ pub fn random_placement_in<R: Rng + ?Sized>(camera: &Camera, rng: &mut R) -> Pos
 pub struct RenderedCrop {
     /// `size² × 3` RGB8, anti-aliased.
     pub rgb: Vec<u8>,
-    /// The virtual camera's render at `size · supersample` (mask, NOCS).
+    /// The virtual camera's render at `size · supersample` (mask, NOCS, depth).
     pub render: Render,
+    /// The camera of `render` (the virtual camera at `size · supersample` pixels).
+    pub render_camera: Camera,
     /// The object's rotation in the virtual camera, the network's label.
     pub r_virtual: Rotation3<f64>,
+    /// The object's translation in the virtual camera (`x = R_virtual·x_nocs + t`).
+    pub t_virtual: Vector3<f64>,
     /// The virtual camera.
     pub view: VirtualCamera,
 }
@@ -218,7 +222,9 @@ pub fn render_crop(
     RenderedCrop {
         rgb: box_filter(&render.rgb, (size * ss) as usize, ss as usize),
         render,
+        render_camera: big.camera,
         r_virtual: in_view.rotation,
+        t_virtual: in_view.translation,
         view,
     }
 }

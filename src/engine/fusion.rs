@@ -2,26 +2,160 @@
 //! object's SDF expert on the candidate rotations and multiplied into the image's distribution
 //! (a product of experts, like the paper's training targets).
 //!
-//! For a candidate `R` the camera-frame points `p_i` (relative to the object's centre) sit at
-//! `x_i = Rᵀ·p_i` in the object's frame; the fused term is `−U_SDF(R)` on those points, with the
-//! λ, ε and norm the expert set was selected with (DESIGN.md §2).
+//! For a candidate `R` and the object's centre `τ` in the camera frame, the points `q_i` sit at
+//! `x_i = Rᵀ·(q_i − τ)` in the object's frame; the fused term is `−U_SDF(R, τ)` on those points,
+//! with the λ, ε and norm the expert set was selected with (DESIGN.md §2).
+//!
+//! Points relative to the object's centre (the old input) have `τ = 0`. Points as the camera sees
+//! them ([`CameraPoints`], from a depth image) have `τ` found, not given:
+//! - for every candidate, `τ₀(R) = c − R·v(Rᵀ·ĉ)`: the points' centroid `c` less the rotated
+//!   centroid `v` of the object's surface seen from the view direction `Rᵀ·ĉ` ([`ViewTable`],
+//!   rendered from the mesh at load); the centroid weighs each point by `z²`, so that pixels
+//!   count as surface area seen head-on, as in the table's (near-orthographic) renders;
+//! - for the best candidates of a search's finest level, a few Gauss–Newton steps on
+//!   `Σ f_SDF(x_i)²` ([`DepthFusion::fit_translation`]), so that a rotation's fused score is its
+//!   best fit over translation, and the top rotations come with their translation.
 
 use std::sync::OnceLock;
 
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::{Matrix3, Rotation3, Vector3};
 use rayon::prelude::*;
 
 use super::EngineError;
 use crate::bundle::experts::ExpertSet;
+use crate::cad::{Camera, Mesh, Pose, RenderOptions, render};
 use crate::experts::baked::VoxelGrid;
 use crate::experts::energy::{EnergyParams, sdf_energy};
 use crate::experts::run_batched;
 
-/// The SDF expert of one object, baked once ([`DepthFusion::warm`], which the server runs in the
-/// background after loading, or on first use).
+/// HEALPix depth of the view directions of a [`ViewTable`] (768 directions, ~7° apart; looked up
+/// with bilinear interpolation).
+const VIEW_DEPTH: u8 = 3;
+
+/// Gauss–Newton steps of [`DepthFusion::fit_translation`].
+const FIT_STEPS: usize = 6;
+
+/// The centroid of the surface a camera sees, per view direction, in the object's frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ViewTable {
+    centroids: Vec<Vector3<f32>>,
+}
+
+impl ViewTable {
+    /// Renders `mesh` (normalised) from every HEALPix direction of [`VIEW_DEPTH`], from far away
+    /// (near-orthographic), and averages the object coordinates of the pixels it covers.
+    pub fn build(mesh: &Mesh) -> ViewTable {
+        let size = 48u32;
+        let distance = 20.0;
+        let focal = 0.45 * size as f64 * distance;
+        let camera = Camera {
+            fx: focal,
+            fy: focal,
+            cx: size as f64 / 2.0,
+            cy: size as f64 / 2.0,
+            width: size,
+            height: size,
+        };
+        let n = cdshealpix::nested::n_hash(VIEW_DEPTH);
+        let centroids = (0..n)
+            .into_par_iter()
+            .map(|h| {
+                let d = direction(cdshealpix::nested::center(VIEW_DEPTH, h));
+                let pose = Pose {
+                    rotation: looking_along(&d),
+                    translation: Vector3::new(0.0, 0.0, distance),
+                };
+                let r = render(mesh, &camera, &pose, &RenderOptions::default());
+                let (mut sum, mut count) = (Vector3::zeros(), 0usize);
+                for (seen, p) in r.mask.iter().zip(&r.nocs) {
+                    if *seen {
+                        sum += Vector3::new(p[0], p[1], p[2]);
+                        count += 1;
+                    }
+                }
+                sum / count.max(1) as f32
+            })
+            .collect();
+        ViewTable { centroids }
+    }
+
+    /// The seen surface's centroid for the view direction `d` (object frame, unit, from the camera
+    /// towards the object).
+    pub fn centroid(&self, d: &Vector3<f64>) -> Vector3<f32> {
+        let lon = d.y.atan2(d.x);
+        let lat = d.z.clamp(-1.0, 1.0).asin();
+        let lon = if lon < 0.0 {
+            lon + std::f64::consts::TAU
+        } else {
+            lon
+        };
+        cdshealpix::nested::bilinear_interpolation(VIEW_DEPTH, lon, lat)
+            .iter()
+            .map(|&(h, w)| self.centroids[h as usize] * w as f32)
+            .sum()
+    }
+}
+
+fn direction((lon, lat): (f64, f64)) -> Vector3<f64> {
+    Vector3::new(lat.cos() * lon.cos(), lat.cos() * lon.sin(), lat.sin())
+}
+
+/// A rotation `R` with `R·d = ẑ`: a camera looking along `d` (object frame).
+fn looking_along(d: &Vector3<f64>) -> Rotation3<f64> {
+    let z = d.normalize();
+    let helper = if z.x.abs() < 0.9 {
+        Vector3::x()
+    } else {
+        Vector3::y()
+    };
+    let x = helper.cross(&z).normalize();
+    let y = z.cross(&x);
+    Rotation3::from_matrix_unchecked(Matrix3::from_rows(&[
+        x.transpose(),
+        y.transpose(),
+        z.transpose(),
+    ]))
+}
+
+/// Points a depth camera saw on the object, in the object's normalised units, in the frame of the
+/// camera that the candidate rotations are given in.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CameraPoints {
+    /// The points.
+    pub points: Vec<Vector3<f32>>,
+    /// Their centroid, each weighed by `z²`.
+    pub centroid: Vector3<f32>,
+}
+
+impl CameraPoints {
+    /// Wraps points (normalised units, camera frame).
+    pub fn new(points: Vec<Vector3<f32>>) -> CameraPoints {
+        let (mut sum, mut weight) = (Vector3::zeros(), 0f32);
+        for p in &points {
+            let w = p.z * p.z;
+            sum += p * w;
+            weight += w;
+        }
+        CameraPoints {
+            centroid: sum / weight.max(f32::MIN_POSITIVE),
+            points,
+        }
+    }
+
+    /// The same points in a frame turned by `r` (`q' = r·q`).
+    pub fn turned(&self, r: &Rotation3<f32>) -> CameraPoints {
+        CameraPoints {
+            points: self.points.iter().map(|p| r * p).collect(),
+            centroid: r * self.centroid,
+        }
+    }
+}
+
+/// The SDF expert of one object, baked once ([`DepthFusion::warm`], which model loading runs, or
+/// on first use), and the view table of its mesh.
 pub struct DepthFusion {
     set: ExpertSet,
-    baked: OnceLock<VoxelGrid>,
+    baked: OnceLock<(VoxelGrid, ViewTable)>,
 }
 
 impl DepthFusion {
@@ -53,14 +187,24 @@ impl DepthFusion {
         self.baked.get().is_some()
     }
 
-    fn sdf(&self) -> &VoxelGrid {
+    fn baked(&self) -> &(VoxelGrid, ViewTable) {
         self.baked.get_or_init(|| {
             let device = crate::backend::device();
             let bake = &self.set.manifest.bake;
-            VoxelGrid::bake(bake.resolution, bake.bound, 1, |p| {
-                run_batched(&self.set.sdf, p, 1, &device)
-            })
+            let (grid, table) = rayon::join(
+                || {
+                    VoxelGrid::bake(bake.resolution, bake.bound, 1, |p| {
+                        run_batched(&self.set.sdf, p, 1, &device)
+                    })
+                },
+                || ViewTable::build(&self.set.mesh),
+            );
+            (grid, table)
         })
+    }
+
+    fn sdf(&self) -> &VoxelGrid {
+        &self.baked().0
     }
 
     /// Parses flattened camera-frame `xyz` (in the source mesh's units, relative to the object's
@@ -129,5 +273,130 @@ impl DepthFusion {
                 },
             )
             .collect()
+    }
+
+    /// `κ_L`, the tempering of the fused term scored at the cell centres of `grid`. A cell's
+    /// centre stands for the cell's mass: the SDF expert's bell around a pose has a standard
+    /// deviation `s = √2·w` per axis (its selection puts its log at −¼ at the width `w`), and a
+    /// cell of side `h` (`h = 2·(π²/N)^⅓` in rotation angle) spreads a point over a variance of
+    /// `h²/12` per axis (a box's), so the bell seen at the centres is `s² + h²/12` wide:
+    /// `κ_L = s²/(s² + h²/12)` (0.73 at level 3, 0.96 at level 5 for `w` = 2.5°).
+    pub fn tempering(&self, grid: &crate::so3::GridLevel) -> f32 {
+        let w = self
+            .set
+            .manifest
+            .energy_selection
+            .width
+            .map_or(
+                crate::experts::select::WidthCriterion::default().width_deg,
+                |c| c.width_deg,
+            )
+            .to_radians();
+        let s2 = 2.0 * w * w;
+        let h = 2.0 * grid.cell_volume().cbrt();
+        (s2 / (s2 + h * h / 12.0)) as f32
+    }
+
+    /// Converts camera-frame points in the source mesh's units to normalised units; refuses point
+    /// sets that cannot be this object at any pose (a wrong scale, or a box that holds more than
+    /// the object), naming `field`.
+    pub fn camera_points(
+        &self,
+        points: &[Vector3<f64>],
+        field: &str,
+    ) -> Result<CameraPoints, EngineError> {
+        let scale = self.set.manifest.object.normalisation.scale;
+        let points: Vec<Vector3<f32>> = points.iter().map(|p| (p / scale).cast()).collect();
+        let camera = CameraPoints::new(points);
+        let invalid = |message: String| EngineError::InvalidArgument {
+            field: field.into(),
+            message,
+        };
+        let c = camera.centroid;
+        let spread = camera
+            .points
+            .iter()
+            .map(|p| (p - c).norm())
+            .fold(0f32, f32::max);
+        if !c.iter().all(|v| v.is_finite()) || c.z <= 1.0 {
+            return Err(invalid(format!(
+                "the points' centroid is {:.3} object radii in front of the camera: the object \
+                 would hold the camera (is the depth scale right?)",
+                c.z
+            )));
+        }
+        if spread > 3.0 {
+            return Err(invalid(format!(
+                "the points spread {spread:.2} object radii from their centroid, more than the \
+                 object can: the depth scale is wrong, or the box holds more than the object \
+                 (give a mask)"
+            )));
+        }
+        Ok(camera)
+    }
+
+    /// The translation estimate `τ₀(R) = c − R·v(Rᵀ·ĉ)` (module doc).
+    pub fn initial_translation(&self, points: &CameraPoints, r: &Matrix3<f32>) -> Vector3<f32> {
+        let c = points.centroid;
+        let view = (r.transpose() * c.normalize()).cast::<f64>();
+        c - r * self.baked().1.centroid(&view)
+    }
+
+    /// `−U_SDF(R, τ₀(R))` of the camera points for every candidate (row-major rotations).
+    pub fn posed_log_measure(&self, points: &CameraPoints, rotations: &[[f32; 9]]) -> Vec<f32> {
+        let sdf = self.sdf();
+        let params = self.params();
+        rotations
+            .par_iter()
+            .map_init(
+                || vec![0f32; points.points.len()],
+                |buf, m| {
+                    let r = Matrix3::from_row_slice(m);
+                    let t = self.initial_translation(points, &r);
+                    let rt = r.transpose();
+                    for (v, p) in buf.iter_mut().zip(&points.points) {
+                        *v = sdf.value(&(rt * (p - t)));
+                    }
+                    -sdf_energy(buf, params) as f32
+                },
+            )
+            .collect()
+    }
+
+    /// The translation that best fits the points for rotation `r` (row-major), from `τ₀(R)` by
+    /// [`FIT_STEPS`] damped Gauss–Newton steps on `Σ f_SDF(Rᵀ(q_i − τ))²`, with `−U_SDF` there.
+    /// `∂f/∂τ = −R·∇f`, so a step is `δτ = R·(Σ g gᵀ + μI)⁻¹·Σ g f` (object-frame gradients `g`).
+    pub fn fit_translation(&self, points: &CameraPoints, r: &[f32; 9]) -> (Vector3<f32>, f32) {
+        let sdf = self.sdf();
+        let r = Matrix3::from_row_slice(r);
+        let rt = r.transpose();
+        let mut t = self.initial_translation(points, &r);
+        let mut values = vec![0f32; points.points.len()];
+        let h = 0.5 * sdf.step();
+        for _ in 0..FIT_STEPS {
+            let mut normal = Matrix3::<f32>::zeros();
+            let mut rhs = Vector3::<f32>::zeros();
+            for p in &points.points {
+                let x = rt * (p - t);
+                let f = sdf.value(&x);
+                let along = |e: Vector3<f32>| sdf.value(&(x + e * h)) - sdf.value(&(x - e * h));
+                let g = Vector3::new(
+                    along(Vector3::x()),
+                    along(Vector3::y()),
+                    along(Vector3::z()),
+                ) / (2.0 * h);
+                normal += g * g.transpose();
+                rhs += g * f;
+            }
+            let damping = 1e-3 * points.points.len() as f32;
+            let Some(inverse) = (normal + Matrix3::identity() * damping).try_inverse() else {
+                break;
+            };
+            t += r * (inverse * rhs);
+        }
+        for (v, p) in values.iter_mut().zip(&points.points) {
+            *v = sdf.value(&(rt * (p - t)));
+        }
+        (t, -sdf_energy(&values, self.params()) as f32)
     }
 }

@@ -151,6 +151,8 @@ pub struct FrameCrop {
     pub rgb: Vec<u8>,
     /// `R_ray`: `R_camera = R_ray · R_virtual`.
     pub r_ray: nalgebra::Rotation3<f64>,
+    /// Width and height of the whole image.
+    pub image_size: (u32, u32),
 }
 
 /// Decodes a full camera image once and makes the perspective crop of each box
@@ -192,6 +194,7 @@ pub fn prepare_frame(
             Ok(FrameCrop {
                 rgb,
                 r_ray: view.r_ray,
+                image_size: (image.width(), image.height()),
             })
         })
         .collect()

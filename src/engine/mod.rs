@@ -2,6 +2,7 @@
 //! modes and RGB-D fusion. No transport here: the gRPC service (src/serve) is a thin layer over
 //! [`Engine`], and everything below is testable without a socket.
 
+pub mod depth;
 pub mod fusion;
 pub mod image;
 pub mod search;
@@ -11,11 +12,13 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use burn::tensor::{Device, Tensor};
+use rayon::prelude::*;
 
 pub use self::image::{
     CropBox, FrameCrop, ImageLimits, ImageRequest, Intrinsics, prepare_frame, prepare_image,
 };
-pub use fusion::DepthFusion;
+pub use depth::{DepthMap, DepthRequest, back_project, decode_depth, decode_mask};
+pub use fusion::{CameraPoints, DepthFusion};
 pub use search::{CellProbability, Mode, SearchResult, coarse_to_fine_many, group_modes};
 
 use crate::bundle::BundleError;
@@ -97,6 +100,8 @@ pub struct EngineConfig {
     pub image_limits: ImageLimits,
     /// Most depth points per request.
     pub max_depth_points: usize,
+    /// Depth pixels of a depth image used per detection (evenly spaced in the box).
+    pub depth_image_points: usize,
 }
 
 /// How a coarse-to-fine search runs: the level it scores in full, and the cells it refines.
@@ -205,6 +210,7 @@ impl Default for EngineConfig {
             keep_mass: None,
             image_limits: ImageLimits::default(),
             max_depth_points: 10_000,
+            depth_image_points: 256,
         }
     }
 }
@@ -268,12 +274,15 @@ pub struct Prediction {
     pub modes: Vec<Mode>,
     /// Mass the search's finest cells are estimated to cover.
     pub covered_mass: f64,
+    /// With camera depth points, the translation of each top cell (`x_camera = R·x_mesh + t`, in
+    /// the mesh's units, the frame of `rotations`); empty otherwise.
+    pub translations: Vec<[f64; 3]>,
 }
 
 impl Prediction {
     /// The same answer for a crop whose virtual camera is turned by `r_ray` in the real camera:
-    /// every rotation (top cells and modes) becomes `R_ray·R`. Cells keep indexing the grid of
-    /// `R`, the crop camera's frame.
+    /// every rotation (top cells and modes) becomes `R_ray·R` and every translation `R_ray·t`.
+    /// Cells keep indexing the grid of `R`, the crop camera's frame.
     pub fn in_camera_frame(mut self, r_ray: &nalgebra::Rotation3<f64>) -> Prediction {
         let turn = |q: &mut [f64; 4]| {
             let r = crate::so3::from_quaternion(*q).expect("the engine's quaternions are unit");
@@ -281,13 +290,73 @@ impl Prediction {
         };
         self.rotations.iter_mut().for_each(turn);
         self.modes.iter_mut().for_each(|m| turn(&mut m.quaternion));
+        for t in &mut self.translations {
+            *t = (r_ray * nalgebra::Vector3::from(*t)).into();
+        }
         self
     }
 }
 
-/// Depth points of one image for RGB-D fusion: the object they belong to, and the points in its
-/// normalised units (camera frame, relative to the object's centre).
-pub type DepthInput<'a> = (&'a ModelObject, &'a [nalgebra::Vector3<f32>]);
+/// The depth points of one image.
+#[derive(Debug, Clone, PartialEq)]
+pub enum SeenPoints {
+    /// Points relative to the object's centre, normalised units, camera frame (`τ = 0`).
+    Centred(Vec<nalgebra::Vector3<f32>>),
+    /// Points as the camera saw them (from a depth image): the translation is found.
+    Camera(CameraPoints),
+}
+
+/// Depth of one image for RGB-D fusion: the object the points belong to, and the points.
+#[derive(Clone, Copy)]
+pub struct DepthInput<'a> {
+    /// The object (its SDF expert scores the points).
+    pub object: &'a ModelObject,
+    /// The points.
+    pub points: &'a SeenPoints,
+}
+
+impl DepthInput<'_> {
+    /// The fused term of every cell centre of `grid` given (row-major rotations):
+    /// `κ_L·(−U_SDF)` ([`DepthFusion::tempering`]), at `τ = 0` for centred points, at the
+    /// estimate `τ₀(R)` for camera points ([`fusion`]).
+    pub fn cell_log_measure(&self, grid: &GridLevel, rotations: &[[f32; 9]]) -> Vec<f32> {
+        let kappa = self.object.fusion.tempering(grid);
+        let mut terms = self.log_measure(rotations);
+        terms.iter_mut().for_each(|t| *t *= kappa);
+        terms
+    }
+
+    /// The fused term `−U_SDF` of every candidate (row-major rotations): at `τ = 0` for centred
+    /// points, at the estimate `τ₀(R)` for camera points ([`fusion`]).
+    pub fn log_measure(&self, rotations: &[[f32; 9]]) -> Vec<f32> {
+        let fusion = &self.object.fusion;
+        match self.points {
+            SeenPoints::Centred(points) => fusion.log_measure(points, rotations),
+            SeenPoints::Camera(points) => fusion.posed_log_measure(points, rotations),
+        }
+    }
+
+    /// For camera points, the best-fitting translation of rotation `r` (row-major) and the fused
+    /// term there ([`DepthFusion::fit_translation`]); `None` for centred points.
+    pub fn fit(&self, r: &[f32; 9]) -> Option<(nalgebra::Vector3<f32>, f32)> {
+        match self.points {
+            SeenPoints::Centred(_) => None,
+            SeenPoints::Camera(points) => Some(self.object.fusion.fit_translation(points, r)),
+        }
+    }
+
+    /// `τ` (normalised units, camera frame) as the mesh's translation `t`, with
+    /// `x_camera = R·x_mesh + t`: `t = s·τ − R·centre` (`x_object = (x_mesh − centre)/s`).
+    pub fn mesh_translation(
+        &self,
+        r: &nalgebra::Rotation3<f64>,
+        tau: &nalgebra::Vector3<f32>,
+    ) -> [f64; 3] {
+        let n = &self.object.normalisation;
+        let t = tau.cast::<f64>() * n.scale - r * nalgebra::Vector3::from(n.centre);
+        [t.x, t.y, t.z]
+    }
+}
 
 /// What a prediction asks for beyond the image.
 #[derive(Debug, Clone, Default)]
@@ -481,12 +550,10 @@ impl Model {
         let mut logits = self.projected[level as usize]
             .log_weights_of_features(features.clone())
             .swap_remove(0);
-        if let Some((object, points)) = depth {
-            let mats = self.grids[level as usize].matrices_f32();
-            for (l, d) in logits
-                .iter_mut()
-                .zip(object.fusion.log_measure(points, &mats))
-            {
+        if let Some(depth) = depth {
+            let grid = &self.grids[level as usize];
+            let mats = grid.matrices_f32();
+            for (l, d) in logits.iter_mut().zip(depth.cell_log_measure(grid, &mats)) {
                 *l += d;
             }
         }
@@ -651,6 +718,9 @@ impl Model {
             min,
             mass: search.keep_mass,
         };
+        // With camera points, the best cells of the finest level get their translation fitted.
+        let refits = options.top_k.max(MIN_REFITS);
+        let mut fitted: Vec<Vec<(u64, nalgebra::Vector3<f32>)>> = vec![Vec::new(); b];
         let results = coarse_to_fine_many(&grids, keep, b, |grid, cells| {
             let mats: Vec<Vec<[f32; 9]>>;
             let mut logits = if grid.level() == start && (start as usize) < self.projected.len() {
@@ -679,23 +749,24 @@ impl Model {
                 self.score_rotations_many(features, &mats)
             };
             for (i, d) in depth.iter().enumerate() {
-                if let Some((object, points)) = d {
-                    let own;
-                    let m: &[[f32; 9]] = if mats.is_empty() {
-                        own = cells[i]
-                            .iter()
-                            .map(|&c| to_row_major_f32(&grid.rotation(c)))
-                            .collect::<Vec<_>>();
-                        &own
-                    } else {
-                        &mats[i]
-                    };
-                    for (l, d) in logits[i]
-                        .iter_mut()
-                        .zip(object.fusion.log_measure(points, m))
-                    {
-                        *l += d;
-                    }
+                let Some(d) = d else { continue };
+                let own;
+                let m: &[[f32; 9]] = if mats.is_empty() {
+                    own = cells[i]
+                        .iter()
+                        .map(|&c| to_row_major_f32(&grid.rotation(c)))
+                        .collect::<Vec<_>>();
+                    &own
+                } else {
+                    &mats[i]
+                };
+                let fused = d.cell_log_measure(grid, m);
+                if grid.level() == level {
+                    let kappa = d.object.fusion.tempering(grid);
+                    fitted[i] = refit_best(d, m, &cells[i], &mut logits[i], &fused, refits, kappa);
+                }
+                for (l, d) in logits[i].iter_mut().zip(&fused) {
+                    *l += d;
                 }
             }
             logits
@@ -704,18 +775,34 @@ impl Model {
         let angle = options.mode_angle_deg.unwrap_or(15.0).to_radians();
         Ok(results
             .into_iter()
-            .map(|result| {
+            .zip(depth.iter().zip(&fitted))
+            .map(|(result, (depth, fitted))| {
                 let modes = group_modes(grid, &result.cells, angle, 0.9, 0.01);
                 let top: Vec<CellProbability> =
                     result.cells[..options.top_k.min(result.cells.len())].to_vec();
-                Prediction {
-                    rotations: top
+                let rotations: Vec<_> = top.iter().map(|c| grid.rotation(c.cell)).collect();
+                let translations = match depth {
+                    Some(d) if matches!(d.points, SeenPoints::Camera(_)) => top
                         .iter()
-                        .map(|c| crate::so3::to_quaternion(&grid.rotation(c.cell)))
+                        .zip(&rotations)
+                        .map(|(c, r)| {
+                            let tau = match fitted.iter().find(|(cell, _)| *cell == c.cell) {
+                                Some((_, tau)) => *tau,
+                                None => d
+                                    .fit(&to_row_major_f32(r))
+                                    .map_or_else(nalgebra::Vector3::zeros, |(tau, _)| tau),
+                            };
+                            d.mesh_translation(r, &tau)
+                        })
                         .collect(),
+                    _ => Vec::new(),
+                };
+                Prediction {
+                    rotations: rotations.iter().map(crate::so3::to_quaternion).collect(),
                     top,
                     modes,
                     covered_mass: result.covered_mass,
+                    translations,
                 }
             })
             .collect())
@@ -748,6 +835,44 @@ impl Model {
     pub fn config(&self) -> &EngineConfig {
         &self.config
     }
+}
+
+/// Fewest cells of a search's finest level whose translation is fitted, with camera depth points.
+const MIN_REFITS: usize = 16;
+
+/// With camera points, fits the translation of the `n` best cells of a search's finest level (by
+/// image log-weight plus the fused term at `τ₀`), so that their total is the image's plus the
+/// fitted term (tempered by `kappa`, as `fused`); returns the fitted translations by cell.
+/// Nothing for centred points.
+fn refit_best(
+    depth: &DepthInput<'_>,
+    rotations: &[[f32; 9]],
+    cells: &[u64],
+    logits: &mut [f32],
+    fused: &[f32],
+    n: usize,
+    kappa: f32,
+) -> Vec<(u64, nalgebra::Vector3<f32>)> {
+    if !matches!(depth.points, SeenPoints::Camera(_)) {
+        return Vec::new();
+    }
+    let total: Vec<f64> = logits
+        .iter()
+        .zip(fused)
+        .map(|(l, f)| (l + f) as f64)
+        .collect();
+    let best = search::top_indices(&total, n);
+    let fits: Vec<(usize, nalgebra::Vector3<f32>, f32)> = best
+        .par_iter()
+        .filter_map(|&j| depth.fit(&rotations[j]).map(|(tau, term)| (j, tau, term)))
+        .collect();
+    fits.into_iter()
+        .map(|(j, tau, term)| {
+            // `logits` gets the difference, so that `logits + fused` is the fitted total.
+            logits[j] += kappa * term - fused[j];
+            (cells[j], tau)
+        })
+        .collect()
 }
 
 /// Every model of a models directory, by name, and the bundles that failed to load.
@@ -819,7 +944,7 @@ impl Engine {
         self.models.insert(model.name.clone(), model);
     }
 
-    /// Loads one bundle folder.
+    /// Loads one bundle folder, depth fusion included ([`DepthFusion::warm`] for every object).
     pub fn load_model(folder: &Path, config: EngineConfig) -> Result<Model, EngineError> {
         let name = folder
             .file_name()
@@ -827,7 +952,17 @@ impl Engine {
             .unwrap_or_default()
             .to_string();
         let bundle = ModelBundle::load(folder)?;
-        Model::from_bundle(&name, folder, bundle, config)
+        let model = Model::from_bundle(&name, folder, bundle, config)?;
+        // Depth fusion is ready before the first request: the SDF grids and view tables are
+        // built here, while the bundle loads (a server lists the model only after).
+        let started = std::time::Instant::now();
+        model.objects.par_iter().for_each(|o| o.fusion.warm());
+        tracing::info!(
+            model = %name,
+            seconds = started.elapsed().as_secs_f64(),
+            "depth fusion ready"
+        );
+        Ok(model)
     }
 
     /// The model named `name` (empty: the only model, when there is one).

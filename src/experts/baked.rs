@@ -51,6 +51,22 @@ impl VoxelGrid {
         self.channels
     }
 
+    /// Spacing of the grid points.
+    pub fn step(&self) -> f32 {
+        2.0 * self.bound / (self.res - 1) as f32
+    }
+
+    /// The first channel at `p` (trilinear, clamped to the grid).
+    #[inline]
+    pub fn value(&self, p: &Vector3<f32>) -> f32 {
+        let (offsets, weights) = self.corners(p);
+        offsets
+            .iter()
+            .zip(&weights)
+            .map(|(&o, &w)| w * self.data[o])
+            .sum()
+    }
+
     /// Grid points per axis.
     pub fn resolution(&self) -> usize {
         self.res

@@ -12,20 +12,19 @@
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
-use nalgebra::Vector3;
 use tokio::sync::{mpsc, oneshot};
 use tonic::{Code, Status};
 
 use super::BatchConfig;
 use super::status::{Reason, refused, status_of};
-use crate::engine::{Model, PredictOptions, Prediction};
+use crate::engine::{DepthInput, Model, PredictOptions, Prediction, SeenPoints};
 
 /// One call's head work.
 struct HeadJob {
     features: Vec<f32>,
     options: PredictOptions,
     /// The object's index and its depth points, when depth was given.
-    depth: Option<(usize, Vec<Vector3<f32>>)>,
+    depth: Option<(usize, SeenPoints)>,
     reply: oneshot::Sender<Result<Prediction, Status>>,
 }
 
@@ -68,7 +67,7 @@ impl HeadStage {
         &self,
         features: Vec<f32>,
         options: PredictOptions,
-        depth: Option<(usize, Vec<Vector3<f32>>)>,
+        depth: Option<(usize, SeenPoints)>,
     ) -> Result<Prediction, Status> {
         let (reply, answer) = oneshot::channel();
         let job = HeadJob {
@@ -124,10 +123,10 @@ fn answer(model: &Model, job: HeadJob) {
     let started = Instant::now();
     let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
         let features = model.features_tensor(&job.features);
-        let depth = job
-            .depth
-            .as_ref()
-            .map(|(i, points)| (&model.objects[*i], points.as_slice()));
+        let depth = job.depth.as_ref().map(|(i, points)| DepthInput {
+            object: &model.objects[*i],
+            points,
+        });
         model.predict(&features, &job.options, depth)
     }));
     metrics::histogram!("alignist_head_seconds").record(started.elapsed().as_secs_f64());

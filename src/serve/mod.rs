@@ -20,7 +20,7 @@ use tracing::{Instrument, info, info_span, warn};
 
 pub use batcher::{BatchConfig, BatchError, Batcher};
 
-use crate::engine::{CropBox, Engine, ImageRequest, Model, PredictOptions};
+use crate::engine::{CropBox, DepthInput, Engine, ImageRequest, Model, PredictOptions, SeenPoints};
 
 /// Generated protobuf types and the service's file descriptor set (for reflection).
 #[allow(missing_docs, clippy::all)]
@@ -94,16 +94,6 @@ impl Served {
     }
 }
 
-/// Lowers the calling thread to the lowest scheduling priority (nice 19). On Linux a thread has
-/// its own nice value, so this leaves the rest of the server as it is.
-fn lowest_priority() {
-    #[cfg(target_os = "linux")]
-    // SAFETY: setpriority reads no memory of ours; who = 0 is the calling thread on Linux.
-    unsafe {
-        libc::setpriority(libc::PRIO_PROCESS, 0, 19);
-    }
-}
-
 /// The shared, swappable state of the service.
 #[derive(Clone, Default)]
 pub struct ServiceState {
@@ -124,30 +114,6 @@ impl ServiceState {
         for m in served.engine.models() {
             metrics::gauge!("alignist_model_info", "model" => m.name.clone(), "sha256" => m.version().to_string())
                 .set(1.0);
-        }
-        // Depth fusion's SDF grids are baked in the background, not inside a first request, on a
-        // thread of the lowest priority so that the bake does not slow the calls being served.
-        let models: Vec<Arc<Model>> = served.engine.models().cloned().collect();
-        if models
-            .iter()
-            .any(|m| m.objects.iter().any(|o| !o.fusion.is_warm()))
-        {
-            let spawned = std::thread::Builder::new()
-                .name("alignist-bake".into())
-                .spawn(move || {
-                    lowest_priority();
-                    for m in &models {
-                        for o in &m.objects {
-                            if !o.fusion.is_warm() {
-                                o.fusion.warm();
-                                metrics::counter!("alignist_depth_grids_baked_total").increment(1);
-                            }
-                        }
-                    }
-                });
-            if let Err(e) = spawned {
-                tracing::warn!("no thread to bake depth grids ({e}); the first depth call bakes");
-            }
         }
         *slot = Some(Arc::new(served));
     }
@@ -326,7 +292,7 @@ struct Prepared {
     model: Arc<Model>,
     object: Option<usize>,
     /// The object's index and its depth points, when depth was given.
-    depth: Option<(usize, Vec<nalgebra::Vector3<f32>>)>,
+    depth: Option<(usize, SeenPoints)>,
     batcher: Batcher,
     head: heads::HeadStage,
     image: ImageInput,
@@ -379,10 +345,12 @@ fn prepare(
     let depth = match (depth, object) {
         (Some(d), Some(i)) => Some((
             i,
-            model.objects[i]
-                .fusion
-                .parse_points(&d.xyz, model.config().max_depth_points)
-                .map_err(status_of)?,
+            SeenPoints::Centred(
+                model.objects[i]
+                    .fusion
+                    .parse_points(&d.xyz, model.config().max_depth_points)
+                    .map_err(status_of)?,
+            ),
         )),
         _ => None,
     };
@@ -439,6 +407,7 @@ fn rotation_probability(
     level: u8,
     cell: &crate::engine::CellProbability,
     q: [f64; 4],
+    translation: Option<&[f64; 3]>,
 ) -> RotationProbability {
     RotationProbability {
         quaternion: q.to_vec(),
@@ -447,6 +416,11 @@ fn rotation_probability(
         level: level as u32,
         cell: cell.cell,
         rotation: Some(rotation_message(q)),
+        translation: translation.map(|t| proto::Vector3 {
+            x: t[0],
+            y: t[1],
+            z: t[2],
+        }),
     }
 }
 
@@ -475,7 +449,8 @@ fn predict_response(
         .top
         .iter()
         .zip(&prediction.rotations)
-        .map(|(c, q)| rotation_probability(level, c, *q))
+        .enumerate()
+        .map(|(i, (c, q))| rotation_probability(level, c, *q, prediction.translations.get(i)))
         .collect();
     PredictResponse {
         model: model.name.clone(),
@@ -591,9 +566,13 @@ impl AlignistService {
         let served = self.state.current()?;
         let model = served.engine.model(&req.model).map_err(status_of)?;
         let image = required_image(req.image)?;
-        let _admitted = self
-            .admission
-            .admit(admission::image_cost(&image.data, raw_size(&image)?))?;
+        let depth_bytes = req.depth.as_ref().map_or(0, |d| {
+            let raw = (d.width > 0 && d.height > 0).then_some((d.width, d.height));
+            admission::image_cost(&d.data, raw)
+        });
+        let _admitted = self.admission.admit(
+            admission::image_cost(&image.data, raw_size(&image)?).saturating_add(depth_bytes),
+        )?;
         let intrinsics = req
             .intrinsics
             .ok_or_else(|| invalid_field("intrinsics", "is required"))?;
@@ -650,6 +629,29 @@ impl AlignistService {
             .await?
         };
         let rays: Vec<_> = crops.iter().map(|c| c.r_ray).collect();
+        let image_size = crops.first().map(|c| c.image_size);
+        let depth = match req.depth {
+            None => vec![None; boxes.len()],
+            Some(depth) => {
+                let (model, boxes, rays) = (model.clone(), boxes.clone(), rays.clone());
+                let (detections, intrinsics) = (req.detections.clone(), intrinsics);
+                let image_size = image_size
+                    .ok_or_else(|| invalid_field("image", "has no size (it did not decode)"))?;
+                blocking(move || {
+                    frame_depth(
+                        &model,
+                        &depth,
+                        image_size,
+                        &intrinsics,
+                        &detections,
+                        &boxes,
+                        &objects_for_depth(&model, &detections)?,
+                        &rays,
+                    )
+                })
+                .await?
+            }
+        };
         let encoded = batcher
             .encode_many(crops.into_iter().map(|c| c.rgb).collect())
             .await
@@ -663,9 +665,10 @@ impl AlignistService {
         let head = head_of(&served, &model)?;
         let calls: Vec<_> = encoded
             .into_iter()
-            .map(|e| {
+            .zip(depth.clone())
+            .map(|(e, depth)| {
                 let (head, options) = (head.clone(), options.clone());
-                tokio::spawn(async move { head.predict(e.features, options, None).await })
+                tokio::spawn(async move { head.predict(e.features, options, depth).await })
             })
             .collect();
         let mut predictions = Vec::with_capacity(calls.len());
@@ -685,8 +688,8 @@ impl AlignistService {
         let detections = predictions
             .iter()
             .zip(&boxes)
-            .zip(rays.iter().zip(&objects))
-            .map(|((p, b), (ray, object))| DetectionPrediction {
+            .zip(rays.iter().zip(&objects).zip(&depth))
+            .map(|((p, b), ((ray, object), depth))| DetectionPrediction {
                 r#box: Some(proto::CropBox {
                     x: b.x,
                     y: b.y,
@@ -694,7 +697,13 @@ impl AlignistService {
                     height: b.height,
                 }),
                 prediction: Some(predict_response(
-                    &model, *object, level, p, false, started, queued,
+                    &model,
+                    depth.as_ref().map(|(i, _)| *i).or(*object),
+                    level,
+                    p,
+                    depth.is_some(),
+                    started,
+                    queued,
                 )),
                 ray: Some(rotation_message(crate::so3::to_quaternion(ray))),
             })
@@ -706,6 +715,105 @@ impl AlignistService {
             compute_ms: started.elapsed().as_secs_f64() * 1e3,
         })
     }
+}
+
+/// Each detection's object for depth fusion: named, or the model's only one.
+fn objects_for_depth(model: &Model, detections: &[proto::Detection]) -> Result<Vec<usize>, Status> {
+    detections
+        .iter()
+        .enumerate()
+        .map(|(i, d)| match (d.object.is_empty(), model.objects.len()) {
+            (true, 1) => Ok(0),
+            (true, n) => Err(invalid_field(
+                &format!("detections[{i}].object"),
+                format!("is required with depth: this model has {n} objects"),
+            )),
+            (false, _) => model.object_index(&d.object).map_err(status_of),
+        })
+        .collect()
+}
+
+/// The depth points of every detection of a frame request, from its depth image: the valid
+/// pixels inside its box (and mask), back-projected with the frame's intrinsics, in the
+/// normalised units of its object and the frame of its crop's virtual camera (`R_rayᵀ·p`), where
+/// the engine's rotations live.
+#[allow(clippy::too_many_arguments)]
+fn frame_depth(
+    model: &Model,
+    depth: &proto::DepthImage,
+    image_size: (u32, u32),
+    intrinsics: &crate::engine::Intrinsics,
+    detections: &[proto::Detection],
+    boxes: &[CropBox],
+    objects: &[usize],
+    rays: &[nalgebra::Rotation3<f64>],
+) -> Result<Vec<Option<(usize, SeenPoints)>>, Status> {
+    use crate::engine::{DepthRequest, back_project, decode_depth, decode_mask};
+    let raw_size = match (depth.width, depth.height) {
+        (0, 0) => None,
+        (w, h) if w > 0 && h > 0 => Some((w, h)),
+        (w, h) => {
+            return Err(invalid_field(
+                "depth.width",
+                format!(
+                    "depth.width and depth.height must both be set for raw u16 or both 0 for \
+                     PNG (got {w}×{h})"
+                ),
+            ));
+        }
+    };
+    let request = DepthRequest {
+        data: &depth.data,
+        raw_size,
+        scale: depth.scale,
+    };
+    let map = decode_depth(&request, &model.config().image_limits).map_err(status_of)?;
+    if (map.width, map.height) != image_size {
+        return Err(invalid_field(
+            "depth.data",
+            format!(
+                "is {}×{}, not the image's {}×{}: the depth image must be registered to the \
+                 colour image",
+                map.width, map.height, image_size.0, image_size.1
+            ),
+        ));
+    }
+    detections
+        .iter()
+        .enumerate()
+        .map(|(i, d)| {
+            let mask = match d.mask.is_empty() {
+                true => None,
+                false => Some(
+                    decode_mask(
+                        &d.mask,
+                        map.width,
+                        map.height,
+                        &format!("detections[{i}].mask"),
+                    )
+                    .map_err(status_of)?,
+                ),
+            };
+            let points = back_project(
+                &map,
+                intrinsics,
+                &boxes[i],
+                mask.as_deref(),
+                model.config().depth_image_points,
+                &format!("detections[{i}].box"),
+            )
+            .map_err(status_of)?;
+            let seen = model.objects[objects[i]]
+                .fusion
+                .camera_points(&points, "depth.scale")
+                .map_err(status_of)?;
+            let to_virtual = rays[i].inverse().cast::<f32>();
+            Ok(Some((
+                objects[i],
+                SeenPoints::Camera(seen.turned(&to_virtual)),
+            )))
+        })
+        .collect()
 }
 
 type ChunkStream = Pin<Box<dyn Stream<Item = Result<DistributionChunk, Status>> + Send>>;
@@ -823,9 +931,10 @@ impl AlignistService {
         let compute = Instant::now();
         let distribution = blocking(move || {
             let f = model.features_tensor(&features);
-            let fusion = depth
-                .as_ref()
-                .map(|(i, pts)| (&model.objects[*i], pts.as_slice()));
+            let fusion = depth.as_ref().map(|(i, points)| DepthInput {
+                object: &model.objects[*i],
+                points,
+            });
             model.distribution(&f, level, fusion).map_err(status_of)
         })
         .await?;

@@ -198,16 +198,29 @@ impl FreshRenders {
         per_object: usize,
         seed: u64,
     ) -> Vec<EvalImage> {
+        self.eval_crops(size, per_object, seed)
+            .into_iter()
+            .map(|(i, crop)| EvalImage {
+                object: names[i].clone(),
+                rgb: crop.rgb,
+                equivalents: equivalents(&crop.r_virtual, &symmetries[i]),
+            })
+            .collect()
+    }
+
+    /// The crops of [`FreshRenders::eval_images`] (same `seed`, same poses) with their renders
+    /// (depth included) and object indices.
+    pub fn eval_crops(
+        &self,
+        size: u32,
+        per_object: usize,
+        seed: u64,
+    ) -> Vec<(usize, RenderedCrop)> {
         let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0xe7a1);
         let mut out = Vec::with_capacity(per_object * self.meshes.len());
         for i in 0..self.meshes.len() {
             for _ in 0..per_object {
-                let crop = self.random_crop(i, size, &mut rng);
-                out.push(EvalImage {
-                    object: names[i].clone(),
-                    rgb: crop.rgb,
-                    equivalents: equivalents(&crop.r_virtual, &symmetries[i]),
-                });
+                out.push((i, self.random_crop(i, size, &mut rng)));
             }
         }
         out

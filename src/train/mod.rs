@@ -5,6 +5,7 @@ pub mod bench;
 pub mod checkpoint;
 pub mod config;
 pub mod data;
+pub mod depth_eval;
 pub mod eval;
 pub mod sampling;
 pub mod trainer;

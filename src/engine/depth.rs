@@ -1,0 +1,202 @@
+//! Depth images as a camera gives them: a 16-bit depth map registered to the colour image,
+//! decoded within the image limits and back-projected, inside a detection's box (and mask), to
+//! camera-frame points.
+//!
+//! Pixel `(u, v)` (column, row; the top-left pixel's centre at `(0.5, 0.5)`, as the intrinsics
+//! convention of the frame requests) with depth `z` along the optical axis is the point
+//! `z · ((u + 0.5 − cx)/fx, (v + 0.5 − cy)/fy, 1)`. A depth value of 0 is "no measurement".
+
+use image::ImageReader;
+use nalgebra::Vector3;
+
+use super::image::{CropBox, ImageLimits, Intrinsics};
+use super::{EngineError, invalid};
+
+/// A decoded depth map, in the object's mesh units (0 where the camera measured nothing).
+#[derive(Debug, Clone, PartialEq)]
+pub struct DepthMap {
+    /// Columns.
+    pub width: u32,
+    /// Rows.
+    pub height: u32,
+    /// Depth along the optical axis per pixel, row-major, in mesh units.
+    pub values: Vec<f32>,
+}
+
+/// A depth image as a request carries it.
+#[derive(Debug, Clone, Copy)]
+pub struct DepthRequest<'a> {
+    /// A 16-bit single-channel PNG, or raw little-endian `u16` values when `raw_size` is given.
+    pub data: &'a [u8],
+    /// `(width, height)` of raw data.
+    pub raw_size: Option<(u32, u32)>,
+    /// Mesh units per depth unit (e.g. 0.1 for a PNG in 0.1 mm with a mesh in millimetres).
+    pub scale: f64,
+}
+
+/// Decodes a depth image within `limits`; errors name the field (`depth.data`, `depth.scale`, …).
+pub fn decode_depth(
+    request: &DepthRequest<'_>,
+    limits: &ImageLimits,
+) -> Result<DepthMap, EngineError> {
+    if !(request.scale.is_finite() && request.scale > 0.0) {
+        return Err(invalid(
+            "depth.scale",
+            format!(
+                "must be a positive number of mesh units per depth unit, got {}",
+                request.scale
+            ),
+        ));
+    }
+    let data = request.data;
+    if data.is_empty() {
+        return Err(invalid("depth.data", "is empty"));
+    }
+    if data.len() > limits.max_bytes {
+        return Err(EngineError::ResourceExhausted {
+            field: "depth.data".into(),
+            message: format!(
+                "{} bytes is over the limit of {}",
+                data.len(),
+                limits.max_bytes
+            ),
+        });
+    }
+    let check_pixels = |w: u32, h: u32| {
+        if w as u64 * h as u64 > limits.max_pixels {
+            return Err(EngineError::ResourceExhausted {
+                field: "depth.data".into(),
+                message: format!("{w}×{h} is over the limit of {} pixels", limits.max_pixels),
+            });
+        }
+        Ok(())
+    };
+    let (width, height, raw): (u32, u32, Vec<u16>) = match request.raw_size {
+        Some((w, h)) => {
+            check_pixels(w, h)?;
+            let expected = w as u64 * h as u64 * 2;
+            if data.len() as u64 != expected {
+                return Err(invalid(
+                    "depth.data",
+                    format!(
+                        "raw depth of {w}×{h} needs {expected} bytes (little-endian u16), got {}",
+                        data.len()
+                    ),
+                ));
+            }
+            let values = data
+                .chunks_exact(2)
+                .map(|b| u16::from_le_bytes([b[0], b[1]]))
+                .collect();
+            (w, h, values)
+        }
+        None => {
+            let reader = ImageReader::new(std::io::Cursor::new(data))
+                .with_guessed_format()
+                .map_err(|e| invalid("depth.data", format!("unreadable: {e}")))?;
+            let (w, h) = reader
+                .into_dimensions()
+                .map_err(|e| invalid("depth.data", format!("not a PNG: {e}")))?;
+            check_pixels(w, h)?;
+            let image = image::load_from_memory(data)
+                .map_err(|e| invalid("depth.data", format!("not a PNG: {e}")))?;
+            match image {
+                image::DynamicImage::ImageLuma16(gray) => (w, h, gray.into_raw()),
+                other => {
+                    return Err(invalid(
+                        "depth.data",
+                        format!(
+                            "must be a 16-bit single-channel PNG (or raw u16), got {:?}",
+                            other.color()
+                        ),
+                    ));
+                }
+            }
+        }
+    };
+    let scale = request.scale as f32;
+    Ok(DepthMap {
+        width,
+        height,
+        values: raw.into_iter().map(|v| v as f32 * scale).collect(),
+    })
+}
+
+/// The camera-frame points (mesh units) of the valid depth pixels inside `bbox` and, when given,
+/// inside `mask` (row-major over the whole image, `true` on the object), at most `max_points` of
+/// them evenly spaced in pixel order (deterministic). `field` names the box in errors.
+pub fn back_project(
+    map: &DepthMap,
+    intrinsics: &Intrinsics,
+    bbox: &CropBox,
+    mask: Option<&[bool]>,
+    max_points: usize,
+    field: &str,
+) -> Result<Vec<Vector3<f64>>, EngineError> {
+    if bbox.width == 0
+        || bbox.height == 0
+        || bbox.x as u64 + bbox.width as u64 > map.width as u64
+        || bbox.y as u64 + bbox.height as u64 > map.height as u64
+    {
+        return Err(invalid(
+            field,
+            format!(
+                "({}, {}) {}×{} is not inside the {}×{} depth image",
+                bbox.x, bbox.y, bbox.width, bbox.height, map.width, map.height
+            ),
+        ));
+    }
+    let w = map.width as usize;
+    let mut valid = Vec::new();
+    for v in bbox.y as usize..(bbox.y + bbox.height) as usize {
+        for u in bbox.x as usize..(bbox.x + bbox.width) as usize {
+            let i = v * w + u;
+            let z = map.values[i];
+            if z > 0.0 && z.is_finite() && mask.is_none_or(|m| m[i]) {
+                valid.push(i);
+            }
+        }
+    }
+    if valid.is_empty() {
+        return Err(invalid(
+            field,
+            "holds no valid depth (every pixel inside it is 0 or outside the mask)",
+        ));
+    }
+    let n = valid.len().min(max_points.max(1));
+    Ok((0..n)
+        .map(|k| {
+            let i = valid[k * valid.len() / n];
+            let (u, v) = ((i % w) as f64 + 0.5, (i / w) as f64 + 0.5);
+            let z = map.values[i] as f64;
+            Vector3::new(
+                z * (u - intrinsics.cx) / intrinsics.fx,
+                z * (v - intrinsics.cy) / intrinsics.fy,
+                z,
+            )
+        })
+        .collect())
+}
+
+/// Decodes an 8-bit mask PNG of `width × height` (non-zero: the object); `field` names it.
+pub fn decode_mask(
+    data: &[u8],
+    width: u32,
+    height: u32,
+    field: &str,
+) -> Result<Vec<bool>, EngineError> {
+    let image = image::load_from_memory(data)
+        .map_err(|e| invalid(field, format!("not a PNG: {e}")))?
+        .into_luma8();
+    if image.width() != width || image.height() != height {
+        return Err(invalid(
+            field,
+            format!(
+                "is {}×{}, not the image's {width}×{height}",
+                image.width(),
+                image.height()
+            ),
+        ));
+    }
+    Ok(image.into_raw().into_iter().map(|v| v > 0).collect())
+}
