@@ -4,6 +4,7 @@
 //! throughput, and gRPC against in-process calls. Figures are printed, not asserted. This layer
 //! sits above the engine, the transport and the client (it uses all three).
 
+pub mod depth;
 pub mod search;
 
 use std::path::Path;

@@ -200,3 +200,139 @@ pub fn decode_mask(
     }
     Ok(image.into_raw().into_iter().map(|v| v > 0).collect())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn plane(width: u32, height: u32, z: f32) -> DepthMap {
+        DepthMap {
+            width,
+            height,
+            values: vec![z; (width * height) as usize],
+        }
+    }
+
+    const K: Intrinsics = Intrinsics {
+        fx: 2.0,
+        fy: 4.0,
+        cx: 2.0,
+        cy: 2.0,
+    };
+
+    #[test]
+    fn back_projection_inverts_the_pinhole_projection_at_pixel_centres() {
+        let mut map = plane(4, 4, 2.0);
+        map.values[5] = 0.0; // (1, 1): no measurement
+        let whole = CropBox {
+            x: 0,
+            y: 0,
+            width: 4,
+            height: 4,
+        };
+        let points = back_project(&map, &K, &whole, None, 100, "box").unwrap();
+        assert_eq!(points.len(), 15);
+        // Pixel (0, 0) has its centre at (0.5, 0.5).
+        assert_eq!(
+            points[0],
+            Vector3::new(2.0 * -1.5 / 2.0, 2.0 * -1.5 / 4.0, 2.0)
+        );
+        for p in &points {
+            let (u, v) = (K.fx * p.x / p.z + K.cx, K.fy * p.y / p.z + K.cy);
+            assert!((u.fract() - 0.5).abs() < 1e-9 && (v.fract() - 0.5).abs() < 1e-9);
+        }
+        // A mask keeps its pixels only; a cap keeps evenly spaced ones.
+        let mut mask = vec![false; 16];
+        mask[15] = true;
+        let masked = back_project(&map, &K, &whole, Some(&mask), 100, "box").unwrap();
+        assert_eq!(
+            masked,
+            vec![Vector3::new(2.0 * 1.5 / 2.0, 2.0 * 1.5 / 4.0, 2.0)]
+        );
+        assert_eq!(
+            back_project(&map, &K, &whole, None, 4, "box")
+                .unwrap()
+                .len(),
+            4
+        );
+        // Nothing valid, or a box outside the map: an error naming the box.
+        let empty = back_project(&plane(4, 4, 0.0), &K, &whole, None, 100, "det.box");
+        assert!(empty.unwrap_err().to_string().starts_with("det.box"));
+        let outside = CropBox { x: 2, ..whole };
+        let e = back_project(&map, &K, &outside, None, 100, "det.box").unwrap_err();
+        assert!(e.to_string().starts_with("det.box"));
+    }
+
+    #[test]
+    fn depth_images_decode_from_16_bit_png_or_raw_and_bad_ones_name_the_field() {
+        let limits = ImageLimits::default();
+        let values: Vec<u16> = (0..12).map(|v| v * 100).collect();
+        let mut png = Vec::new();
+        image::ImageBuffer::<image::Luma<u16>, _>::from_raw(4, 3, values.clone())
+            .unwrap()
+            .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+            .unwrap();
+        let request = DepthRequest {
+            data: &png,
+            raw_size: None,
+            scale: 0.5,
+        };
+        let map = decode_depth(&request, &limits).unwrap();
+        assert_eq!((map.width, map.height), (4, 3));
+        assert_eq!(map.values[3], 150.0);
+        let raw: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+        let from_raw = DepthRequest {
+            data: &raw,
+            raw_size: Some((4, 3)),
+            scale: 0.5,
+        };
+        assert_eq!(decode_depth(&from_raw, &limits).unwrap(), map);
+
+        let mut gray8 = Vec::new();
+        image::GrayImage::new(4, 3)
+            .write_to(
+                &mut std::io::Cursor::new(&mut gray8),
+                image::ImageFormat::Png,
+            )
+            .unwrap();
+        let field = |r: DepthRequest<'_>| {
+            let e = decode_depth(&r, &limits).unwrap_err().to_string();
+            e[..e.find(':').unwrap()].to_string()
+        };
+        assert_eq!(
+            field(DepthRequest {
+                data: &gray8,
+                ..request
+            }),
+            "depth.data"
+        );
+        assert_eq!(
+            field(DepthRequest {
+                data: &raw[1..],
+                ..from_raw
+            }),
+            "depth.data"
+        );
+        assert_eq!(
+            field(DepthRequest {
+                scale: -1.0,
+                ..request
+            }),
+            "depth.scale"
+        );
+        assert_eq!(
+            field(DepthRequest {
+                scale: f64::NAN,
+                ..request
+            }),
+            "depth.scale"
+        );
+        assert_eq!(
+            field(DepthRequest {
+                data: &[],
+                ..request
+            }),
+            "depth.data"
+        );
+    }
+}

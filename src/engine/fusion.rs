@@ -35,6 +35,10 @@ const VIEW_DEPTH: u8 = 3;
 /// Gauss–Newton steps of [`DepthFusion::fit_translation`].
 const FIT_STEPS: usize = 6;
 
+/// How far in front of each seen point, along its ray and in object radii, the free-space term
+/// looks for material ([`DepthFusion::posed_energy`]).
+const FREE_SPACE_STEPS: [f32; 2] = [0.08, 0.25];
+
 /// The centroid of the surface a camera sees, per view direction, in the object's frame.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ViewTable {
@@ -125,6 +129,9 @@ pub struct CameraPoints {
     pub points: Vec<Vector3<f32>>,
     /// Their centroid, each weighed by `z²`.
     pub centroid: Vector3<f32>,
+    /// For each point, the points [`FREE_SPACE_STEPS`] in front of it along its ray (the camera
+    /// saw through them: they are outside the object).
+    pub free: Vec<Vector3<f32>>,
 }
 
 impl CameraPoints {
@@ -136,9 +143,33 @@ impl CameraPoints {
             sum += p * w;
             weight += w;
         }
+        let free = points
+            .iter()
+            .flat_map(|p| {
+                let ray = p.normalize();
+                FREE_SPACE_STEPS.map(|d| p - ray * d)
+            })
+            .collect();
         CameraPoints {
             centroid: sum / weight.max(f32::MIN_POSITIVE),
             points,
+            free,
+        }
+    }
+
+    /// At most `n` of the points, evenly spaced, with the same centroid (so the same `τ₀`).
+    pub fn subsample(&self, n: usize) -> CameraPoints {
+        let total = self.points.len();
+        let n = n.clamp(1, total.max(1)).min(total);
+        let k = FREE_SPACE_STEPS.len();
+        let picked: Vec<usize> = (0..n).map(|i| i * total / n).collect();
+        CameraPoints {
+            points: picked.iter().map(|&i| self.points[i]).collect(),
+            centroid: self.centroid,
+            free: picked
+                .iter()
+                .flat_map(|&i| self.free[i * k..(i + 1) * k].iter().copied())
+                .collect(),
         }
     }
 
@@ -147,6 +178,7 @@ impl CameraPoints {
         CameraPoints {
             points: self.points.iter().map(|p| r * p).collect(),
             centroid: r * self.centroid,
+            free: self.free.iter().map(|p| r * p).collect(),
         }
     }
 }
@@ -342,29 +374,53 @@ impl DepthFusion {
         c - r * self.baked().1.centroid(&view)
     }
 
-    /// `−U_SDF(R, τ₀(R))` of the camera points for every candidate (row-major rotations).
+    /// `−U(R, τ₀(R))` of the camera points for every candidate (row-major rotations), see
+    /// [`DepthFusion::posed_energy`].
     pub fn posed_log_measure(&self, points: &CameraPoints, rotations: &[[f32; 9]]) -> Vec<f32> {
-        let sdf = self.sdf();
-        let params = self.params();
         rotations
             .par_iter()
-            .map_init(
-                || vec![0f32; points.points.len()],
-                |buf, m| {
-                    let r = Matrix3::from_row_slice(m);
-                    let t = self.initial_translation(points, &r);
-                    let rt = r.transpose();
-                    for (v, p) in buf.iter_mut().zip(&points.points) {
-                        *v = sdf.value(&(rt * (p - t)));
-                    }
-                    -sdf_energy(buf, params) as f32
-                },
-            )
+            .map_init(Vec::new, |buf, m| {
+                let r = Matrix3::from_row_slice(m);
+                let t = self.initial_translation(points, &r);
+                -self.posed_energy(points, &r, &t, buf)
+            })
             .collect()
     }
 
+    /// `U(R, τ) = U_SDF(surface) + k·U_SDF(free)`: the SDF energy of the seen points (on the
+    /// surface at the right pose), plus the same energy of the object's material found in front
+    /// of them, `min(f_SDF, 0)` at the `k` [`FREE_SPACE_STEPS`] along each ray (the camera saw
+    /// through those places). Without the second term, a pose that lays the seen points on any
+    /// surface of the object fits, even one whose other parts would hide them.
+    pub fn posed_energy(
+        &self,
+        points: &CameraPoints,
+        r: &Matrix3<f32>,
+        t: &Vector3<f32>,
+        buf: &mut Vec<f32>,
+    ) -> f32 {
+        let sdf = self.sdf();
+        let rt = r.transpose();
+        buf.clear();
+        buf.extend(points.points.iter().map(|p| sdf.value(&(rt * (p - t)))));
+        let surface = sdf_energy(buf, self.params());
+        if points.free.is_empty() {
+            return surface as f32;
+        }
+        buf.clear();
+        buf.extend(
+            points
+                .free
+                .iter()
+                .map(|p| sdf.value(&(rt * (p - t))).min(0.0)),
+        );
+        let free = sdf_energy(buf, self.params()) * FREE_SPACE_STEPS.len() as f64;
+        (surface + free) as f32
+    }
+
     /// The translation that best fits the points for rotation `r` (row-major), from `τ₀(R)` by
-    /// [`FIT_STEPS`] damped Gauss–Newton steps on `Σ f_SDF(Rᵀ(q_i − τ))²`, with `−U_SDF` there.
+    /// [`FIT_STEPS`] damped Gauss–Newton steps on `Σ f_SDF(Rᵀ(q_i − τ))²`, with `−U` there
+    /// ([`DepthFusion::posed_energy`]).
     /// `∂f/∂τ = −R·∇f`, so a step is `δτ = R·(Σ g gᵀ + μI)⁻¹·Σ g f` (object-frame gradients `g`).
     pub fn fit_translation(&self, points: &CameraPoints, r: &[f32; 9]) -> (Vector3<f32>, f32) {
         let sdf = self.sdf();
@@ -394,9 +450,6 @@ impl DepthFusion {
             };
             t += r * (inverse * rhs);
         }
-        for (v, p) in values.iter_mut().zip(&points.points) {
-            *v = sdf.value(&(rt * (p - t)));
-        }
-        (t, -sdf_energy(&values, self.params()) as f32)
+        (t, -self.posed_energy(points, &r, &t, &mut values))
     }
 }

@@ -721,6 +721,14 @@ impl Model {
         // With camera points, the best cells of the finest level get their translation fitted.
         let refits = options.top_k.max(MIN_REFITS);
         let mut fitted: Vec<Vec<(u64, nalgebra::Vector3<f32>)>> = vec![Vec::new(); b];
+        // Levels above the finest only prune: they score a quarter of the camera points.
+        let coarse: Vec<Option<SeenPoints>> = depth
+            .iter()
+            .map(|d| match d.map(|d| d.points) {
+                Some(SeenPoints::Camera(p)) => Some(SeenPoints::Camera(p.subsample(COARSE_POINTS))),
+                _ => None,
+            })
+            .collect();
         let results = coarse_to_fine_many(&grids, keep, b, |grid, cells| {
             let mats: Vec<Vec<[f32; 9]>>;
             let mut logits = if grid.level() == start && (start as usize) < self.projected.len() {
@@ -760,7 +768,10 @@ impl Model {
                 } else {
                     &mats[i]
                 };
-                let fused = d.cell_log_measure(grid, m);
+                let fused = match (&coarse[i], grid.level() == level) {
+                    (Some(points), false) => DepthInput { points, ..*d }.cell_log_measure(grid, m),
+                    _ => d.cell_log_measure(grid, m),
+                };
                 if grid.level() == level {
                     let kappa = d.object.fusion.tempering(grid);
                     fitted[i] = refit_best(d, m, &cells[i], &mut logits[i], &fused, refits, kappa);
@@ -839,6 +850,9 @@ impl Model {
 
 /// Fewest cells of a search's finest level whose translation is fitted, with camera depth points.
 const MIN_REFITS: usize = 16;
+
+/// Camera depth points scored at the levels of a search above its finest (which scores all).
+const COARSE_POINTS: usize = 64;
 
 /// With camera points, fits the translation of the `n` best cells of a search's finest level (by
 /// image log-weight plus the fused term at `τ₀`), so that their total is the image's plus the
@@ -957,6 +971,8 @@ impl Engine {
         // built here, while the bundle loads (a server lists the model only after).
         let started = std::time::Instant::now();
         model.objects.par_iter().for_each(|o| o.fusion.warm());
+        metrics::histogram!("alignist_depth_fusion_build_seconds")
+            .record(started.elapsed().as_secs_f64());
         tracing::info!(
             model = %name,
             seconds = started.elapsed().as_secs_f64(),

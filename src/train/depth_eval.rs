@@ -119,7 +119,7 @@ pub fn depth_eval_images(
 
 /// `map` with Gaussian noise of `sigma` mesh units on every valid value and a `missing` fraction
 /// of them dropped, from `rng`.
-fn spoil(map: &DepthMap, sigma: f64, missing: f64, rng: &mut ChaCha8Rng) -> DepthMap {
+pub fn spoil(map: &DepthMap, sigma: f64, missing: f64, rng: &mut ChaCha8Rng) -> DepthMap {
     use rand::RngExt;
     let normal = Normal::new(0.0, sigma.max(0.0)).expect("a finite σ ≥ 0");
     let values = map

@@ -17,6 +17,10 @@ pub(crate) struct BenchArgs {
     /// set the benchmark makes itself.
     #[arg(long)]
     training: bool,
+    /// Measure what RGB-D fusion costs a request instead: --images whole-frame requests of the
+    /// bundle's objects, from the image alone and with a depth image (in-process).
+    #[arg(long, conflicts_with = "training")]
+    depth: bool,
     /// Training: images per step.
     #[arg(long, default_value_t = 16)]
     batch: usize,
@@ -42,6 +46,11 @@ pub(crate) fn bench_cmd(args: &BenchArgs) -> Result<()> {
         .with_context(|| format!("--model {}", args.model.display()))?;
     let size = loaded.manifest.network.image_size;
     let renders = loaded.renders(4);
+    if args.depth {
+        let model = alignist::engine::Engine::load_model(&args.model, Default::default())
+            .with_context(|| format!("--model {}", args.model.display()))?;
+        return alignist::bench::depth::depth_cost(&model, &renders, args.images);
+    }
     let per_object = args.images.max(1).div_ceil(renders.names.len().max(1));
     // A seed no training run uses (training draws from its own seeds, evaluation from 2^40).
     let crops: Vec<Vec<u8>> = renders
