@@ -63,6 +63,8 @@ fn frames(
                 )?;
             let b = object_box(mesh, &pose, &camera);
             let (x, y) = (b[0].floor().max(0.0), b[1].floor().max(0.0));
+            let right = (b[0] + b[2]).ceil().min(camera.width as f64);
+            let bottom = (b[1] + b[3]).ceil().min(camera.height as f64);
             Ok(Frame {
                 object: model.object_index(&renders.names[o])?,
                 rgb_png,
@@ -70,8 +72,8 @@ fn frames(
                 bbox: CropBox {
                     x: x as u32,
                     y: y as u32,
-                    width: ((b[0] + b[2]).ceil() - x) as u32,
-                    height: ((b[1] + b[3]).ceil() - y) as u32,
+                    width: (right - x) as u32,
+                    height: (bottom - y) as u32,
                 },
             })
         })

@@ -35,10 +35,6 @@ const VIEW_DEPTH: u8 = 3;
 /// Gauss–Newton steps of [`DepthFusion::fit_translation`].
 const FIT_STEPS: usize = 6;
 
-/// How far in front of each seen point, along its ray and in object radii, the free-space term
-/// looks for material ([`DepthFusion::posed_energy`]).
-const FREE_SPACE_STEPS: [f32; 2] = [0.08, 0.25];
-
 /// The centroid of the surface a camera sees, per view direction, in the object's frame.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ViewTable {
@@ -129,9 +125,6 @@ pub struct CameraPoints {
     pub points: Vec<Vector3<f32>>,
     /// Their centroid, each weighed by `z²`.
     pub centroid: Vector3<f32>,
-    /// For each point, the points [`FREE_SPACE_STEPS`] in front of it along its ray (the camera
-    /// saw through them: they are outside the object).
-    pub free: Vec<Vector3<f32>>,
 }
 
 impl CameraPoints {
@@ -143,17 +136,9 @@ impl CameraPoints {
             sum += p * w;
             weight += w;
         }
-        let free = points
-            .iter()
-            .flat_map(|p| {
-                let ray = p.normalize();
-                FREE_SPACE_STEPS.map(|d| p - ray * d)
-            })
-            .collect();
         CameraPoints {
             centroid: sum / weight.max(f32::MIN_POSITIVE),
             points,
-            free,
         }
     }
 
@@ -161,15 +146,9 @@ impl CameraPoints {
     pub fn subsample(&self, n: usize) -> CameraPoints {
         let total = self.points.len();
         let n = n.clamp(1, total.max(1)).min(total);
-        let k = FREE_SPACE_STEPS.len();
-        let picked: Vec<usize> = (0..n).map(|i| i * total / n).collect();
         CameraPoints {
-            points: picked.iter().map(|&i| self.points[i]).collect(),
+            points: (0..n).map(|i| self.points[i * total / n]).collect(),
             centroid: self.centroid,
-            free: picked
-                .iter()
-                .flat_map(|&i| self.free[i * k..(i + 1) * k].iter().copied())
-                .collect(),
         }
     }
 
@@ -178,7 +157,6 @@ impl CameraPoints {
         CameraPoints {
             points: self.points.iter().map(|p| r * p).collect(),
             centroid: r * self.centroid,
-            free: self.free.iter().map(|p| r * p).collect(),
         }
     }
 }
@@ -387,11 +365,10 @@ impl DepthFusion {
             .collect()
     }
 
-    /// `U(R, τ) = U_SDF(surface) + k·U_SDF(free)`: the SDF energy of the seen points (on the
-    /// surface at the right pose), plus the same energy of the object's material found in front
-    /// of them, `min(f_SDF, 0)` at the `k` [`FREE_SPACE_STEPS`] along each ray (the camera saw
-    /// through those places). Without the second term, a pose that lays the seen points on any
-    /// surface of the object fits, even one whose other parts would hide them.
+    /// `U_SDF(R, τ)`: the SDF energy of the seen points at `x_i = Rᵀ(q_i − τ)`. (A free-space
+    /// term, the object's material found in front of the points along their rays, was measured
+    /// and dropped: on the L-bracket it changed LL by < 0.1 and AR@30 not at all, for 3× the
+    /// lookups.)
     pub fn posed_energy(
         &self,
         points: &CameraPoints,
@@ -403,19 +380,7 @@ impl DepthFusion {
         let rt = r.transpose();
         buf.clear();
         buf.extend(points.points.iter().map(|p| sdf.value(&(rt * (p - t)))));
-        let surface = sdf_energy(buf, self.params());
-        if points.free.is_empty() {
-            return surface as f32;
-        }
-        buf.clear();
-        buf.extend(
-            points
-                .free
-                .iter()
-                .map(|p| sdf.value(&(rt * (p - t))).min(0.0)),
-        );
-        let free = sdf_energy(buf, self.params()) * FREE_SPACE_STEPS.len() as f64;
-        (surface + free) as f32
+        sdf_energy(buf, self.params()) as f32
     }
 
     /// The translation that best fits the points for rotation `r` (row-major), from `τ₀(R)` by
