@@ -107,6 +107,8 @@ fn a_batched_search_answers_each_image_as_its_own_search_does() {
 fn depth_points_from_the_true_pose_sharpen_the_distribution() {
     let engine = Engine::load_dir(models_dir(), EngineConfig::default()).unwrap();
     let model = engine.model("tiny").unwrap();
+    // Depth fusion is built while the bundle loads, before any request.
+    assert!(model.objects.iter().all(|o| o.fusion.is_warm()));
     let object = model.object("cube").unwrap();
     let r = haar_rotations(&mut ChaCha8Rng::seed_from_u64(7), 1)[0];
     // Visible surface points in the camera frame, relative to the object's centre.

@@ -47,8 +47,15 @@ pub(crate) fn bench_cmd(args: &BenchArgs) -> Result<()> {
     let size = loaded.manifest.network.image_size;
     let renders = loaded.renders(4);
     if args.depth {
+        let started = std::time::Instant::now();
         let model = alignist::engine::Engine::load_model(&args.model, Default::default())
             .with_context(|| format!("--model {}", args.model.display()))?;
+        println!(
+            "bundle {} loaded, depth fusion of {} objects built, in {:.1} s",
+            args.model.display(),
+            model.objects.len(),
+            started.elapsed().as_secs_f64()
+        );
         return alignist::bench::depth::depth_cost(&model, &renders, args.images);
     }
     let per_object = args.images.max(1).div_ceil(renders.names.len().max(1));
