@@ -31,19 +31,19 @@ struct Cli {
     )]
     metrics_listen: String,
     /// Highest grid level served in full by PredictDistribution.
-    #[arg(long, env = "ALIGNIST_MAX_LEVEL", default_value_t = 4)]
+    #[arg(long, env = "ALIGNIST_MAX_LEVEL", default_value_t = EngineConfig::default().max_full_level)]
     max_level: u8,
     /// Highest level a Predict search may reach (default 5 per call).
-    #[arg(long, env = "ALIGNIST_MAX_SEARCH_LEVEL", default_value_t = 6)]
+    #[arg(long, env = "ALIGNIST_MAX_SEARCH_LEVEL", default_value_t = EngineConfig::default().search_max_level)]
     max_search_level: u8,
     /// Most images per encoder batch.
-    #[arg(long, env = "ALIGNIST_MAX_BATCH", default_value_t = 16)]
+    #[arg(long, env = "ALIGNIST_MAX_BATCH", default_value_t = BatchConfig::default().max_batch)]
     max_batch: usize,
     /// Longest a request waits for a batch to fill, in milliseconds.
-    #[arg(long, env = "ALIGNIST_MAX_DELAY_MS", default_value_t = 5)]
+    #[arg(long, env = "ALIGNIST_MAX_DELAY_MS", default_value_t = BatchConfig::default().max_delay.as_millis() as u64)]
     max_delay_ms: u64,
     /// Most requests queued per model before UNAVAILABLE.
-    #[arg(long, env = "ALIGNIST_QUEUE", default_value_t = 256)]
+    #[arg(long, env = "ALIGNIST_QUEUE", default_value_t = BatchConfig::default().queue_capacity)]
     queue: usize,
     /// Level a Predict search scores in full first (at most --max-level).
     #[arg(long, env = "ALIGNIST_SEARCH_START_LEVEL", default_value_t = EngineConfig::default().search_start_level)]
@@ -56,11 +56,15 @@ struct Cli {
     /// per core).
     #[arg(long, env = "ALIGNIST_HEAD_WORKERS")]
     head_workers: Option<usize>,
+    /// Depth pixels used per detection of a depth image (evenly spaced in its box): more cost
+    /// more time per depth request.
+    #[arg(long, env = "ALIGNIST_DEPTH_POINTS", default_value_t = EngineConfig::default().depth_image_points)]
+    depth_points: usize,
     /// Largest request image, in bytes.
-    #[arg(long, env = "ALIGNIST_MAX_IMAGE_BYTES", default_value_t = 8 << 20)]
+    #[arg(long, env = "ALIGNIST_MAX_IMAGE_BYTES", default_value_t = ImageLimits::default().max_bytes)]
     max_image_bytes: usize,
     /// Largest request image, in pixels.
-    #[arg(long, env = "ALIGNIST_MAX_IMAGE_PIXELS", default_value_t = 4096 * 4096)]
+    #[arg(long, env = "ALIGNIST_MAX_IMAGE_PIXELS", default_value_t = ImageLimits::default().max_pixels)]
     max_image_pixels: u64,
     /// Seconds between checks of the models directory for changed bundles (0: only on SIGHUP).
     #[arg(long, env = "ALIGNIST_RELOAD_INTERVAL_S", default_value_t = 10)]
@@ -123,6 +127,7 @@ fn main() -> Result<()> {
                 max_bytes: cli.max_image_bytes,
                 max_pixels: cli.max_image_pixels,
             },
+            depth_image_points: cli.depth_points,
             ..EngineConfig::default()
         },
         batch: BatchConfig {
@@ -155,7 +160,7 @@ fn main() -> Result<()> {
     config
         .engine
         .validate()
-        .context("the levels and limits given (--max-level, --max-search-level, image limits)")?;
+        .context("the levels and limits given (--max-level, --max-search-level, --search-*, image limits, --depth-points)")?;
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(run(config, shutdown_signal()))?;
     Ok(())

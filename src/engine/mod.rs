@@ -191,6 +191,15 @@ impl EngineConfig {
                 "keep and the image limits must be positive".into(),
             );
         }
+        if !(1..=self.max_depth_points).contains(&self.depth_image_points) {
+            return bad(
+                "depth_image_points",
+                format!(
+                    "{} must be in 1 ..= {} (max_depth_points)",
+                    self.depth_image_points, self.max_depth_points
+                ),
+            );
+        }
         Ok(())
     }
 }
@@ -552,8 +561,11 @@ impl Model {
             .swap_remove(0);
         if let Some(depth) = depth {
             let grid = &self.grids[level as usize];
-            let mats = grid.matrices_f32();
-            for (l, d) in logits.iter_mut().zip(depth.cell_log_measure(grid, &mats)) {
+            let mut terms = depth.cell_log_measure(grid, &grid.matrices_f32());
+            if let Some(children) = self.grids.get(level as usize + 1) {
+                cell_means(&depth, grid, children, &mut terms);
+            }
+            for (l, d) in logits.iter_mut().zip(terms) {
                 *l += d;
             }
         }
@@ -845,6 +857,30 @@ impl Model {
     /// The engine configuration the model was built with.
     pub fn config(&self) -> &EngineConfig {
         &self.config
+    }
+}
+
+/// How far below the best cell's fused term a cell of a full distribution still gets its term
+/// from its children ([`cell_means`]); below, its mass is negligible either way.
+const CELL_MEAN_RANGE: f32 = 30.0;
+
+/// Replaces the fused term of the cells of `grid` within [`CELL_MEAN_RANGE`] of the best by
+/// `log mean_k exp(term(child_k))` over their 8 children (each scored at `children`'s level):
+/// the cell's share of the depth factor's mass, where a centre alone misses a peak narrower than
+/// the cell.
+fn cell_means(depth: &DepthInput<'_>, grid: &GridLevel, children: &GridLevel, terms: &mut [f32]) {
+    let best = terms.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    let near: Vec<usize> = (0..terms.len())
+        .filter(|&i| terms[i] >= best - CELL_MEAN_RANGE)
+        .collect();
+    let rotations: Vec<[f32; 9]> = near
+        .iter()
+        .flat_map(|&i| grid.children(i as u64))
+        .map(|c| to_row_major_f32(&children.rotation(c)))
+        .collect();
+    let child_terms = depth.cell_log_measure(children, &rotations);
+    for (&i, eight) in near.iter().zip(child_terms.chunks_exact(8)) {
+        terms[i] = search::log_sum_exp(eight) as f32 - 8f32.ln();
     }
 }
 
