@@ -10,7 +10,9 @@
 #      schedule (peak lr 5e-4), stopped there (--stop-at), then resumed as a 7 000-step schedule
 #      (the rest annealed to the floor in 3 500 steps, ~20 min);
 #   5. a third warm restart (data seed 3): 10 000 steps, peak lr 3e-4 (~35 min);
-#   6. the bundle is evaluated on 250 fresh renders at level 3, then copied to models/symsol1.
+#   6. a fourth warm restart (data seed 4): 10 000 steps, peak lr 2e-4 (~35 min alone; 68 min
+#      beside other work);
+#   7. the bundle is evaluated on 250 fresh renders at level 3, then copied to models/symsol1.
 # Usage: scripts/train_shipped_model.sh [WORK_DIR]   (default: target/symsol)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -44,5 +46,7 @@ FIT_WARM=("$BIN" fit --fresh
   --init "$WORK/models/alignist-warm" --out "$WORK/models/alignist-warm2"
 "${FIT_WARM[@]}" --steps 10000 --lr 3e-4 --seed 3 \
   --init "$WORK/models/alignist-warm2" --out "$WORK/models/alignist-warm3"
+"${FIT_WARM[@]}" --steps 10000 --lr 2e-4 --seed 4 \
+  --init "$WORK/models/alignist-warm3" --out "$WORK/models/alignist-warm4"
 rm -rf models/symsol1
-cp -r "$WORK/models/alignist-warm3" models/symsol1
+cp -r "$WORK/models/alignist-warm4" models/symsol1
