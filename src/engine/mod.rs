@@ -878,15 +878,7 @@ fn cell_means(depth: &DepthInput<'_>, grid: &GridLevel, children: &GridLevel, te
         .flat_map(|&i| grid.children(i as u64))
         .map(|c| to_row_major_f32(&children.rotation(c)))
         .collect();
-    let child_terms: Vec<f32> = if std::env::var("FITCHILD").is_ok() {
-        let kappa = depth.object.fusion.tempering(children);
-        rotations
-            .par_iter()
-            .map(|r| depth.fit(r).map_or(0.0, |(_, t)| kappa * t))
-            .collect()
-    } else {
-        depth.cell_log_measure(children, &rotations)
-    };
+    let child_terms = depth.cell_log_measure(children, &rotations);
     for (&i, eight) in near.iter().zip(child_terms.chunks_exact(8)) {
         terms[i] = search::log_sum_exp(eight) as f32 - 8f32.ln();
     }
