@@ -964,6 +964,65 @@ async fn frame_requests_fuse_a_depth_image_and_answer_the_translation() {
     let plain = plain.detections[0].prediction.as_ref().unwrap();
     assert!(!plain.depth_fused && plain.top[0].translation.is_none());
 
+    // The CLI: --depth and --depth-scale give the same fusion, with a translation per rotation.
+    let dir = tempfile::tempdir().unwrap();
+    let (rgb_path, depth_path) = (dir.path().join("rgb.png"), dir.path().join("depth.png"));
+    std::fs::write(&rgb_path, &frame.png).unwrap();
+    std::fs::write(&depth_path, &depth.data).unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_alignist"))
+        .args([
+            "--server",
+            &server.grpc,
+            "predict",
+            "--model",
+            "tiny",
+            "--object",
+            "cube",
+        ])
+        .arg("--image")
+        .arg(&rgb_path)
+        .arg("--depth")
+        .arg(&depth_path)
+        .args([
+            "--depth-scale",
+            &depth.scale.to_string(),
+            "--intrinsics",
+            &format!("{},{},{},{}", k[0], k[4], k[2], k[5]),
+            "--box",
+            &format!("{x},{y},{width},{height}"),
+            "--top-k",
+            "3",
+            "--level",
+            "4",
+            "--json",
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let cli = &json["detections"][0]["prediction"];
+    assert_eq!(cli["depth_fused"], true);
+    let t_cli: Vec<f64> = serde_json::from_value(cli["top"][0]["translation"].clone()).unwrap();
+    assert!(
+        (t_cli[0] - t.x).abs() < 1e-9 && (t_cli[2] - t.z).abs() < 1e-9,
+        "{t_cli:?}"
+    );
+    // --depth without --depth-scale is refused by the CLI, naming the flag.
+    let out = Command::new(env!("CARGO_BIN_EXE_alignist"))
+        .args(["--server", &server.grpc, "predict", "--image"])
+        .arg(&rgb_path)
+        .arg("--depth")
+        .arg(&depth_path)
+        .args(["--intrinsics", "500,500,320,240", "--box", "1,2,3,4"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--depth-scale"));
+
     // Bad depth: INVALID_ARGUMENT naming the field.
     let with_depth = |d: DepthImage| FrameRequest {
         depth: Some(d),
