@@ -730,105 +730,58 @@ impl Model {
             min,
             mass: search.keep_mass,
         };
-        // With camera points, the best cells of the finest level get their translation fitted.
-        let refits = options.top_k.max(MIN_REFITS);
-        let mut fitted: Vec<Vec<(u64, nalgebra::Vector3<f32>)>> = vec![Vec::new(); b];
-        // Levels above the finest only prune: they score a quarter of the camera points.
-        let coarse: Vec<Option<SeenPoints>> = depth
-            .iter()
-            .map(|d| match d.map(|d| d.points) {
-                Some(SeenPoints::Camera(p)) => Some(SeenPoints::Camera(p.subsample(COARSE_POINTS))),
-                _ => None,
-            })
-            .collect();
+        let mut fusion = DepthSearch::new(depth, level, options.top_k.max(MIN_REFITS));
         let results = coarse_to_fine_many(&grids, keep, b, |grid, cells| {
-            let mats: Vec<Vec<[f32; 9]>>;
-            let mut logits = if grid.level() == start && (start as usize) < self.projected.len() {
-                mats = Vec::new();
-                let all = self.projected[start as usize].log_weights_of_features(features.clone());
-                all.into_iter()
-                    .zip(cells)
-                    .map(|(all, cells)| {
-                        if cells.len() == all.len() {
-                            all
-                        } else {
-                            cells.iter().map(|&c| all[c as usize]).collect()
-                        }
-                    })
-                    .collect::<Vec<_>>()
-            } else {
-                mats = cells
-                    .iter()
-                    .map(|cells| {
-                        cells
-                            .iter()
-                            .map(|&c| to_row_major_f32(&grid.rotation(c)))
-                            .collect()
-                    })
-                    .collect();
-                self.score_rotations_many(features, &mats)
-            };
-            for (i, d) in depth.iter().enumerate() {
-                let Some(d) = d else { continue };
-                let own;
-                let m: &[[f32; 9]] = if mats.is_empty() {
-                    own = cells[i]
-                        .iter()
-                        .map(|&c| to_row_major_f32(&grid.rotation(c)))
-                        .collect::<Vec<_>>();
-                    &own
-                } else {
-                    &mats[i]
-                };
-                let fused = match (&coarse[i], grid.level() == level) {
-                    (Some(points), false) => DepthInput { points, ..*d }.cell_log_measure(grid, m),
-                    _ => d.cell_log_measure(grid, m),
-                };
-                if grid.level() == level {
-                    let kappa = d.object.fusion.tempering(grid);
-                    fitted[i] = refit_best(d, m, &cells[i], &mut logits[i], &fused, refits, kappa);
-                }
-                for (l, d) in logits[i].iter_mut().zip(&fused) {
-                    *l += d;
-                }
-            }
+            let (mut logits, mats) = self.search_logits(features, grid, cells, start);
+            fusion.add_terms(grid, cells, &mats, &mut logits);
             logits
         });
         let grid = &self.grids[level as usize];
         let angle = options.mode_angle_deg.unwrap_or(15.0).to_radians();
         Ok(results
             .into_iter()
-            .zip(depth.iter().zip(&fitted))
+            .zip(depth.iter().zip(&fusion.fitted))
             .map(|(result, (depth, fitted))| {
-                let modes = group_modes(grid, &result.cells, angle, 0.9, 0.01);
-                let top: Vec<CellProbability> =
-                    result.cells[..options.top_k.min(result.cells.len())].to_vec();
-                let rotations: Vec<_> = top.iter().map(|c| grid.rotation(c.cell)).collect();
-                let translations = match depth {
-                    Some(d) if matches!(d.points, SeenPoints::Camera(_)) => top
-                        .iter()
-                        .zip(&rotations)
-                        .map(|(c, r)| {
-                            let tau = match fitted.iter().find(|(cell, _)| *cell == c.cell) {
-                                Some((_, tau)) => *tau,
-                                None => d
-                                    .fit(&to_row_major_f32(r))
-                                    .map_or_else(nalgebra::Vector3::zeros, |(tau, _)| tau),
-                            };
-                            d.mesh_translation(r, &tau)
-                        })
-                        .collect(),
-                    _ => Vec::new(),
-                };
-                Prediction {
-                    rotations: rotations.iter().map(crate::so3::to_quaternion).collect(),
-                    top,
-                    modes,
-                    covered_mass: result.covered_mass,
-                    translations,
-                }
+                prediction_of(grid, result, options.top_k, angle, depth.as_ref(), fitted)
             })
             .collect())
+    }
+
+    /// `s_θ + s_φ` of each search's `cells` of `grid`: read from the precomputed projections at
+    /// the start level, scored on their rotations above it. Also returns those rotations
+    /// (row-major; empty at the start level, which does not compute them).
+    fn search_logits(
+        &self,
+        features: &Tensor<2>,
+        grid: &GridLevel,
+        cells: &[Vec<u64>],
+        start: u8,
+    ) -> (Vec<Vec<f32>>, Vec<Vec<[f32; 9]>>) {
+        if grid.level() == start && (start as usize) < self.projected.len() {
+            let all = self.projected[start as usize].log_weights_of_features(features.clone());
+            let logits = all
+                .into_iter()
+                .zip(cells)
+                .map(|(all, cells)| {
+                    if cells.len() == all.len() {
+                        all
+                    } else {
+                        cells.iter().map(|&c| all[c as usize]).collect()
+                    }
+                })
+                .collect();
+            return (logits, Vec::new());
+        }
+        let mats: Vec<Vec<[f32; 9]>> = cells
+            .iter()
+            .map(|cells| {
+                cells
+                    .iter()
+                    .map(|&c| to_row_major_f32(&grid.rotation(c)))
+                    .collect()
+            })
+            .collect();
+        (self.score_rotations_many(features, &mats), mats)
     }
 
     /// `s_θ + s_φ` of `rotations[b]` (row-major, the same number for every image) for each image
@@ -881,6 +834,112 @@ fn cell_means(depth: &DepthInput<'_>, grid: &GridLevel, children: &GridLevel, te
     let child_terms = depth.cell_log_measure(children, &rotations);
     for (&i, eight) in near.iter().zip(child_terms.chunks_exact(8)) {
         terms[i] = search::log_sum_exp(eight) as f32 - 8f32.ln();
+    }
+}
+
+/// The depth side of a batch of coarse-to-fine searches: each image's fused term added at every
+/// level, from a quarter of the camera points above the finest level; at the finest, the best
+/// cells' translations fitted ([`refit_best`]) and kept for the answer.
+struct DepthSearch<'a> {
+    depth: &'a [Option<DepthInput<'a>>],
+    coarse: Vec<Option<SeenPoints>>,
+    finest: u8,
+    refits: usize,
+    fitted: Vec<Vec<(u64, nalgebra::Vector3<f32>)>>,
+}
+
+impl<'a> DepthSearch<'a> {
+    fn new(depth: &'a [Option<DepthInput<'a>>], finest: u8, refits: usize) -> Self {
+        let coarse = depth
+            .iter()
+            .map(|d| match d.map(|d| d.points) {
+                Some(SeenPoints::Camera(p)) => Some(SeenPoints::Camera(p.subsample(COARSE_POINTS))),
+                _ => None,
+            })
+            .collect();
+        DepthSearch {
+            depth,
+            coarse,
+            finest,
+            refits,
+            fitted: vec![Vec::new(); depth.len()],
+        }
+    }
+
+    /// Adds the fused term of each image with depth to its `logits` of `grid`'s `cells`
+    /// (`mats`: their rotations, or empty to compute them here).
+    fn add_terms(
+        &mut self,
+        grid: &GridLevel,
+        cells: &[Vec<u64>],
+        mats: &[Vec<[f32; 9]>],
+        logits: &mut [Vec<f32>],
+    ) {
+        for (i, d) in self.depth.iter().enumerate() {
+            let Some(d) = d else { continue };
+            let own;
+            let m: &[[f32; 9]] = match mats.get(i) {
+                Some(m) => m,
+                None => {
+                    own = cells[i]
+                        .iter()
+                        .map(|&c| to_row_major_f32(&grid.rotation(c)))
+                        .collect::<Vec<_>>();
+                    &own
+                }
+            };
+            let finest = grid.level() == self.finest;
+            let fused = match (&self.coarse[i], finest) {
+                (Some(points), false) => DepthInput { points, ..*d }.cell_log_measure(grid, m),
+                _ => d.cell_log_measure(grid, m),
+            };
+            if finest {
+                let kappa = d.object.fusion.tempering(grid);
+                self.fitted[i] =
+                    refit_best(d, m, &cells[i], &mut logits[i], &fused, self.refits, kappa);
+            }
+            for (l, d) in logits[i].iter_mut().zip(&fused) {
+                *l += d;
+            }
+        }
+    }
+}
+
+/// A search's answer: the top-k cells of its finest level, their rotations, the modes, and with
+/// camera points the translation of each top cell (the fitted ones reused, the others fitted).
+fn prediction_of(
+    grid: &GridLevel,
+    result: SearchResult,
+    top_k: usize,
+    mode_angle: f64,
+    depth: Option<&DepthInput<'_>>,
+    fitted: &[(u64, nalgebra::Vector3<f32>)],
+) -> Prediction {
+    let modes = group_modes(grid, &result.cells, mode_angle, 0.9, 0.01);
+    let top: Vec<CellProbability> = result.cells[..top_k.min(result.cells.len())].to_vec();
+    let rotations: Vec<_> = top.iter().map(|c| grid.rotation(c.cell)).collect();
+    let translations = match depth {
+        Some(d) if matches!(d.points, SeenPoints::Camera(_)) => top
+            .iter()
+            .zip(&rotations)
+            .map(|(c, r)| {
+                let tau = match fitted.iter().find(|(cell, _)| *cell == c.cell) {
+                    Some((_, tau)) => *tau,
+                    None => d
+                        .fit(&to_row_major_f32(r))
+                        .map_or_else(nalgebra::Vector3::zeros, |(tau, _)| tau),
+                };
+                d.mesh_translation(r, &tau)
+            })
+            .collect(),
+        _ => Vec::new(),
+    };
+    Prediction {
+        rotations: rotations.iter().map(crate::so3::to_quaternion).collect(),
+        top,
+        modes,
+        covered_mass: result.covered_mass,
+        translations,
     }
 }
 
