@@ -6,7 +6,7 @@ use std::path::Path;
 
 use alignist::bundle::experts::ExpertSet;
 use alignist::cad::{RenderOptions, render};
-use alignist::data::virtual_crop::{frame_camera, object_box, random_placement};
+use alignist::data::virtual_crop::{frame_camera, object_pixel_box, random_placement};
 use alignist::engine::{CropBox, DepthFusion, DepthMap, Intrinsics, back_project};
 use alignist::so3::{GridLevel, geodesic_angle, to_row_major_f32};
 use alignist::train::depth_eval::spoil;
@@ -22,12 +22,7 @@ fn depth_fusion_finds_the_translation_and_the_rotation_of_a_rendered_cube() {
     let fusion = DepthFusion::new(set);
     fusion.warm();
     let camera = frame_camera();
-    let intrinsics = Intrinsics {
-        fx: camera.fx,
-        fy: camera.fy,
-        cx: camera.cx,
-        cy: camera.cy,
-    };
+    let intrinsics = Intrinsics::from(&camera);
     let grid = GridLevel::new(3).unwrap();
     let rotations = grid.matrices_f32();
     let mut rng = ChaCha8Rng::seed_from_u64(5);
@@ -40,13 +35,12 @@ fn depth_fusion_finds_the_translation_and_the_rotation_of_a_rendered_cube() {
             height: image.height,
             values: image.depth.iter().map(|z| z * scale as f32).collect(),
         };
-        let b = object_box(&mesh, &pose, &camera);
-        let (x, y) = (b[0].floor(), b[1].floor());
+        let [x, y, width, height] = object_pixel_box(&mesh, &pose, &camera);
         let bbox = CropBox {
-            x: x as u32,
-            y: y as u32,
-            width: ((b[0] + b[2]).ceil() - x) as u32,
-            height: ((b[1] + b[3]).ceil() - y) as u32,
+            x,
+            y,
+            width,
+            height,
         };
         // Clean, then σ = 2 % of the radius with 10 % of the pixels missing.
         for (sigma, missing) in [(0.0, 0.0), (0.02, 0.1)] {

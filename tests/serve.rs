@@ -823,7 +823,7 @@ struct RgbdFrame {
 
 fn frame_rgbd(rotation: nalgebra::Rotation3<f64>, u: f64, v: f64) -> RgbdFrame {
     use alignist::cad::{Pose, RenderOptions, render};
-    use alignist::data::virtual_crop::{frame_camera, object_box};
+    use alignist::data::virtual_crop::{frame_camera, object_pixel_box};
     let mesh = Shape::Cube.mesh().normalised().0;
     let camera = frame_camera();
     let z = 5.0;
@@ -836,14 +836,7 @@ fn frame_rgbd(rotation: nalgebra::Rotation3<f64>, u: f64, v: f64) -> RgbdFrame {
         ),
     };
     let full = render(&mesh, &camera, &pose, &RenderOptions::default());
-    let b = object_box(&mesh, &pose, &camera);
-    let (x0, y0) = (b[0].floor().max(0.0), b[1].floor().max(0.0));
-    let bbox = [
-        x0 as u32,
-        y0 as u32,
-        ((b[0] + b[2]).ceil() - x0) as u32,
-        ((b[1] + b[3]).ceil() - y0) as u32,
-    ];
+    let bbox = object_pixel_box(&mesh, &pose, &camera);
     let mut png = Vec::new();
     image::RgbImage::from_raw(camera.width, camera.height, full.rgb)
         .unwrap()

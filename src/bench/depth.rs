@@ -11,7 +11,7 @@ use rand_chacha::ChaCha8Rng;
 use crate::bundle::model::BundleRenders;
 use crate::cad::{RenderOptions, render};
 use crate::client::load::quantile;
-use crate::data::virtual_crop::{frame_camera, object_box, random_placement};
+use crate::data::virtual_crop::{frame_camera, object_pixel_box, random_placement};
 use crate::engine::{
     CropBox, DepthInput, DepthRequest, ImageRequest, Intrinsics, Model, PredictOptions, SeenPoints,
     back_project, decode_depth,
@@ -61,19 +61,16 @@ fn frames(
                     &mut std::io::Cursor::new(&mut depth_png),
                     image::ImageFormat::Png,
                 )?;
-            let b = object_box(mesh, &pose, &camera);
-            let (x, y) = (b[0].floor().max(0.0), b[1].floor().max(0.0));
-            let right = (b[0] + b[2]).ceil().min(camera.width as f64);
-            let bottom = (b[1] + b[3]).ceil().min(camera.height as f64);
+            let [x, y, width, height] = object_pixel_box(mesh, &pose, &camera);
             Ok(Frame {
                 object: model.object_index(&renders.names[o])?,
                 rgb_png,
                 depth_png,
                 bbox: CropBox {
-                    x: x as u32,
-                    y: y as u32,
-                    width: (right - x) as u32,
-                    height: (bottom - y) as u32,
+                    x,
+                    y,
+                    width,
+                    height,
                 },
             })
         })
@@ -84,12 +81,7 @@ fn frames(
 pub fn depth_cost(model: &Model, renders: &BundleRenders, n: usize) -> anyhow::Result<()> {
     let frames = frames(model, renders, n.max(1), 7)?;
     let camera = frame_camera();
-    let intrinsics = Intrinsics {
-        fx: camera.fx,
-        fy: camera.fy,
-        cx: camera.cx,
-        cy: camera.cy,
-    };
+    let intrinsics = Intrinsics::from(&camera);
     let options = PredictOptions {
         top_k: 10,
         ..Default::default()

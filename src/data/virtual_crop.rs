@@ -155,6 +155,16 @@ pub fn random_placement<R: Rng + ?Sized>(rng: &mut R) -> Pose {
     }
 }
 
+/// [`object_box`] rounded out to whole pixels and clipped to the image: `[x, y, width, height]`,
+/// as a detector would give it.
+pub fn object_pixel_box(mesh: &Mesh, pose: &Pose, camera: &Camera) -> [u32; 4] {
+    let b = object_box(mesh, pose, camera);
+    let (x, y) = (b[0].floor().max(0.0), b[1].floor().max(0.0));
+    let right = (b[0] + b[2]).ceil().min(camera.width as f64);
+    let bottom = (b[1] + b[3]).ceil().min(camera.height as f64);
+    [x as u32, y as u32, (right - x) as u32, (bottom - y) as u32]
+}
+
 /// A random position of a NOCS object (radius 1) in `camera`'s frame, the identity rotation: a
 /// distance in [`FRAME_DISTANCE`] and a centre whose projection lies at least the projected
 /// sphere's radius from every edge, so the whole object is in the frame.

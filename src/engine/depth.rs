@@ -6,10 +6,9 @@
 //! convention of the frame requests) with depth `z` along the optical axis is the point
 //! `z · ((u + 0.5 − cx)/fx, (v + 0.5 − cy)/fy, 1)`. A depth value of 0 is "no measurement".
 
-use image::ImageReader;
 use nalgebra::Vector3;
 
-use super::image::{CropBox, ImageLimits, Intrinsics};
+use super::image::{CropBox, ImageLimits, Intrinsics, check_bytes, check_pixels, decode_within};
 use super::{EngineError, invalid};
 
 /// A decoded depth map, in the object's mesh units (0 where the camera measured nothing).
@@ -49,31 +48,10 @@ pub fn decode_depth(
         ));
     }
     let data = request.data;
-    if data.is_empty() {
-        return Err(invalid("depth.data", "is empty"));
-    }
-    if data.len() > limits.max_bytes {
-        return Err(EngineError::ResourceExhausted {
-            field: "depth.data".into(),
-            message: format!(
-                "{} bytes is over the limit of {}",
-                data.len(),
-                limits.max_bytes
-            ),
-        });
-    }
-    let check_pixels = |w: u32, h: u32| {
-        if w as u64 * h as u64 > limits.max_pixels {
-            return Err(EngineError::ResourceExhausted {
-                field: "depth.data".into(),
-                message: format!("{w}×{h} is over the limit of {} pixels", limits.max_pixels),
-            });
-        }
-        Ok(())
-    };
+    check_bytes(data, limits, "depth.data")?;
     let (width, height, raw): (u32, u32, Vec<u16>) = match request.raw_size {
         Some((w, h)) => {
-            check_pixels(w, h)?;
+            check_pixels(w, h, limits, "depth")?;
             let expected = w as u64 * h as u64 * 2;
             if data.len() as u64 != expected {
                 return Err(invalid(
@@ -90,29 +68,20 @@ pub fn decode_depth(
                 .collect();
             (w, h, values)
         }
-        None => {
-            let reader = ImageReader::new(std::io::Cursor::new(data))
-                .with_guessed_format()
-                .map_err(|e| invalid("depth.data", format!("unreadable: {e}")))?;
-            let (w, h) = reader
-                .into_dimensions()
-                .map_err(|e| invalid("depth.data", format!("not a PNG: {e}")))?;
-            check_pixels(w, h)?;
-            let image = image::load_from_memory(data)
-                .map_err(|e| invalid("depth.data", format!("not a PNG: {e}")))?;
-            match image {
-                image::DynamicImage::ImageLuma16(gray) => (w, h, gray.into_raw()),
-                other => {
-                    return Err(invalid(
-                        "depth.data",
-                        format!(
-                            "must be a 16-bit single-channel PNG (or raw u16), got {:?}",
-                            other.color()
-                        ),
-                    ));
-                }
+        None => match decode_within(data, limits, "depth.data", "depth", "u16")? {
+            image::DynamicImage::ImageLuma16(gray) => {
+                (gray.width(), gray.height(), gray.into_raw())
             }
-        }
+            other => {
+                return Err(invalid(
+                    "depth.data",
+                    format!(
+                        "must be a 16-bit single-channel PNG (or raw u16), got {:?}",
+                        other.color()
+                    ),
+                ));
+            }
+        },
     };
     let scale = request.scale as f32;
     Ok(DepthMap {
@@ -178,16 +147,17 @@ pub fn back_project(
         .collect())
 }
 
-/// Decodes an 8-bit mask PNG of `width × height` (non-zero: the object); `field` names it.
+/// Decodes a mask PNG of `width × height` within `limits` (non-zero: the object); `field` names
+/// it.
 pub fn decode_mask(
     data: &[u8],
     width: u32,
     height: u32,
+    limits: &ImageLimits,
     field: &str,
 ) -> Result<Vec<bool>, EngineError> {
-    let image = image::load_from_memory(data)
-        .map_err(|e| invalid(field, format!("not a PNG: {e}")))?
-        .into_luma8();
+    check_bytes(data, limits, field)?;
+    let image = decode_within(data, limits, field, field, "pixels (no raw masks)")?.into_luma8();
     if image.width() != width || image.height() != height {
         return Err(invalid(
             field,

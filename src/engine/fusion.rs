@@ -117,6 +117,15 @@ fn looking_along(d: &Vector3<f64>) -> Rotation3<f64> {
     ]))
 }
 
+/// `κ = s²/(s² + h²/12)` for a selection width of `width_deg` and cells of volume `cell_volume`
+/// (π²-normalised measure; side `h = 2·volume^⅓` in rotation angle): [`DepthFusion::tempering`].
+pub fn cell_tempering(width_deg: f64, cell_volume: f64) -> f32 {
+    let w = width_deg.to_radians();
+    let s2 = 2.0 * w * w;
+    let h = 2.0 * cell_volume.cbrt();
+    (s2 / (s2 + h * h / 12.0)) as f32
+}
+
 /// Points a depth camera saw on the object, in the object's normalised units, in the frame of the
 /// camera that the candidate rotations are given in.
 #[derive(Debug, Clone, PartialEq)]
@@ -290,21 +299,13 @@ impl DepthFusion {
     /// deviation `s = √2·w` per axis (its selection puts its log at −¼ at the width `w`), and a
     /// cell of side `h` (`h = 2·(π²/N)^⅓` in rotation angle) spreads a point over a variance of
     /// `h²/12` per axis (a box's), so the bell seen at the centres is `s² + h²/12` wide:
-    /// `κ_L = s²/(s² + h²/12)` (0.73 at level 3, 0.96 at level 5 for `w` = 2.5°).
+    /// `κ_L = s²/(s² + h²/12)` (0.733 at level 3, 0.978 at level 5 for `w` = 2.5°: see the test).
     pub fn tempering(&self, grid: &crate::so3::GridLevel) -> f32 {
-        let w = self
-            .set
-            .manifest
-            .energy_selection
-            .width
-            .map_or(
-                crate::experts::select::WidthCriterion::default().width_deg,
-                |c| c.width_deg,
-            )
-            .to_radians();
-        let s2 = 2.0 * w * w;
-        let h = 2.0 * grid.cell_volume().cbrt();
-        (s2 / (s2 + h * h / 12.0)) as f32
+        let width = self.set.manifest.energy_selection.width.map_or(
+            crate::experts::select::WidthCriterion::default().width_deg,
+            |c| c.width_deg,
+        );
+        cell_tempering(width, grid.cell_volume())
     }
 
     /// Converts camera-frame points in the source mesh's units to normalised units; refuses point
@@ -392,7 +393,7 @@ impl DepthFusion {
         let r = Matrix3::from_row_slice(r);
         let rt = r.transpose();
         let mut t = self.initial_translation(points, &r);
-        let mut values = vec![0f32; points.points.len()];
+        let mut values = Vec::new();
         let h = 0.5 * sdf.step();
         for _ in 0..FIT_STEPS {
             let mut normal = Matrix3::<f32>::zeros();
@@ -416,5 +417,20 @@ impl DepthFusion {
             t += r * (inverse * rhs);
         }
         (t, -self.posed_energy(points, &r, &t, &mut values))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::so3::GridLevel;
+
+    #[test]
+    fn tempering_grows_to_one_as_cells_shrink_below_the_experts_width() {
+        let kappa = |level| cell_tempering(2.5, GridLevel::new(level).unwrap().cell_volume());
+        assert!((kappa(3) - 0.733).abs() < 5e-4, "{}", kappa(3));
+        assert!((kappa(4) - 0.917).abs() < 5e-4, "{}", kappa(4));
+        assert!((kappa(5) - 0.978).abs() < 5e-4, "{}", kappa(5));
+        assert!(kappa(2) < kappa(3));
     }
 }

@@ -118,6 +118,17 @@ pub struct Intrinsics {
     pub cy: f64,
 }
 
+impl From<&crate::cad::Camera> for Intrinsics {
+    fn from(c: &crate::cad::Camera) -> Intrinsics {
+        Intrinsics {
+            fx: c.fx,
+            fy: c.fy,
+            cx: c.cx,
+            cy: c.cy,
+        }
+    }
+}
+
 impl Intrinsics {
     /// Checks the values; the error names the field (`intrinsics.fx`, …).
     pub fn validate(&self) -> Result<(), EngineError> {
@@ -227,15 +238,18 @@ fn check_box(c: &CropBox, image: &RgbImage, field: &str) -> Result<(), EngineErr
     Ok(())
 }
 
-/// Decodes PNG/JPEG or raw RGB8 within the limits (checked before decoding).
-fn decode_image(request: &ImageRequest<'_>, limits: &ImageLimits) -> Result<RgbImage, EngineError> {
-    let data = request.data;
+/// Checks encoded (or raw) request data against the byte limit; `field` names it.
+pub(super) fn check_bytes(
+    data: &[u8],
+    limits: &ImageLimits,
+    field: &str,
+) -> Result<(), EngineError> {
     if data.is_empty() {
-        return Err(invalid("image.data", "is empty"));
+        return Err(invalid(field, "is empty"));
     }
     if data.len() > limits.max_bytes {
         return Err(too_large(
-            "image.data",
+            field,
             format!(
                 "{} bytes is over the limit of {} bytes",
                 data.len(),
@@ -243,24 +257,76 @@ fn decode_image(request: &ImageRequest<'_>, limits: &ImageLimits) -> Result<RgbI
             ),
         ));
     }
-    let check_pixels = |w: u32, h: u32| -> Result<(), EngineError> {
-        if w == 0 || h == 0 {
-            return Err(invalid("image", format!("has zero size ({w}×{h})")));
-        }
-        if w as u64 * h as u64 > limits.max_pixels {
-            return Err(too_large(
-                "image",
-                format!(
-                    "{w}×{h} pixels is over the limit of {} pixels",
-                    limits.max_pixels
-                ),
-            ));
-        }
-        Ok(())
-    };
+    Ok(())
+}
+
+/// Checks an image size against the pixel limit; `field` names the image.
+pub(super) fn check_pixels(
+    w: u32,
+    h: u32,
+    limits: &ImageLimits,
+    field: &str,
+) -> Result<(), EngineError> {
+    if w == 0 || h == 0 {
+        return Err(invalid(field, format!("has zero size ({w}×{h})")));
+    }
+    if w as u64 * h as u64 > limits.max_pixels {
+        return Err(too_large(
+            field,
+            format!(
+                "{w}×{h} pixels is over the limit of {} pixels",
+                limits.max_pixels
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// Decodes an encoded image whose size is checked against the limits before any pixel is
+/// decoded (and the decoder bounded to that size); `field` names the data, `image` the image,
+/// `raw` the raw pixel format the request could have sent instead.
+pub(super) fn decode_within(
+    data: &[u8],
+    limits: &ImageLimits,
+    field: &str,
+    image: &str,
+    raw: &str,
+) -> Result<image::DynamicImage, EngineError> {
+    let reader = ImageReader::new(std::io::Cursor::new(data))
+        .with_guessed_format()
+        .map_err(|e| invalid(field, format!("cannot be read: {e}")))?;
+    if reader.format().is_none() {
+        return Err(invalid(
+            field,
+            format!(
+                "is not a PNG or JPEG image (for raw {raw} set {image}.width and {image}.height)"
+            ),
+        ));
+    }
+    let (w, h) = reader
+        .into_dimensions()
+        .map_err(|e| invalid(field, format!("is not a valid image: {e}")))?;
+    check_pixels(w, h, limits, image)?;
+    let mut reader = ImageReader::new(std::io::Cursor::new(data))
+        .with_guessed_format()
+        .map_err(|e| invalid(field, format!("cannot be read: {e}")))?;
+    let mut decoder_limits = image::Limits::default();
+    decoder_limits.max_image_width = Some(w);
+    decoder_limits.max_image_height = Some(h);
+    decoder_limits.max_alloc = Some(limits.max_pixels * 16);
+    reader.limits(decoder_limits);
+    reader
+        .decode()
+        .map_err(|e| invalid(field, format!("is not a valid image: {e}")))
+}
+
+/// Decodes PNG/JPEG or raw RGB8 within the limits (checked before decoding).
+fn decode_image(request: &ImageRequest<'_>, limits: &ImageLimits) -> Result<RgbImage, EngineError> {
+    let data = request.data;
+    check_bytes(data, limits, "image.data")?;
     Ok(match request.raw_size {
         Some((w, h)) => {
-            check_pixels(w, h)?;
+            check_pixels(w, h, limits, "image")?;
             let expected = w as u64 * h as u64 * 3;
             if data.len() as u64 != expected {
                 return Err(invalid(
@@ -274,33 +340,7 @@ fn decode_image(request: &ImageRequest<'_>, limits: &ImageLimits) -> Result<RgbI
             RgbImage::from_raw(w, h, data.to_vec())
                 .ok_or_else(|| invalid("image.data", "raw RGB8 does not fit its size"))?
         }
-        None => {
-            let reader = ImageReader::new(std::io::Cursor::new(data))
-                .with_guessed_format()
-                .map_err(|e| invalid("image.data", format!("cannot be read: {e}")))?;
-            if reader.format().is_none() {
-                return Err(invalid(
-                    "image.data",
-                    "is not a PNG or JPEG image (for raw RGB8 set image.width and image.height)",
-                ));
-            }
-            let (w, h) = reader
-                .into_dimensions()
-                .map_err(|e| invalid("image.data", format!("is not a valid image: {e}")))?;
-            check_pixels(w, h)?;
-            let mut reader = ImageReader::new(std::io::Cursor::new(data))
-                .with_guessed_format()
-                .map_err(|e| invalid("image.data", format!("cannot be read: {e}")))?;
-            let mut decoder_limits = image::Limits::default();
-            decoder_limits.max_image_width = Some(w);
-            decoder_limits.max_image_height = Some(h);
-            decoder_limits.max_alloc = Some(limits.max_pixels * 16);
-            reader.limits(decoder_limits);
-            reader
-                .decode()
-                .map_err(|e| invalid("image.data", format!("is not a valid image: {e}")))?
-                .to_rgb8()
-        }
+        None => decode_within(data, limits, "image.data", "image", "RGB8")?.to_rgb8(),
     })
 }
 

@@ -789,6 +789,7 @@ fn frame_depth(
                         &d.mask,
                         map.width,
                         map.height,
+                        &model.config().image_limits,
                         &format!("detections[{i}].mask"),
                     )
                     .map_err(status_of)?,

@@ -99,18 +99,12 @@ pub fn depth_eval_images(
                     .map(|&z| z * n.scale as f32)
                     .collect(),
             };
-            let c = &crop.render_camera;
             Ok(DepthEvalImage {
                 object,
                 rgb: crop.rgb,
                 equivalents: equivalents(&crop.r_virtual, &renders.symmetries[i]),
                 depth,
-                intrinsics: Intrinsics {
-                    fx: c.fx,
-                    fy: c.fy,
-                    cx: c.cx,
-                    cy: c.cy,
-                },
+                intrinsics: Intrinsics::from(&crop.render_camera),
                 translation: crop.t_virtual * n.scale - crop.r_virtual * Vector3::from(n.centre),
             })
         })
