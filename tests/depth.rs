@@ -66,3 +66,71 @@ fn depth_fusion_finds_the_translation_and_the_rotation_of_a_rendered_cube() {
         }
     }
 }
+
+/// The view table's `τ₀` on a cylinder rendered close up (2.7 radii, where a camera sees much
+/// less than a hemisphere) and further away (8 radii): within 3 % of the radius at the true
+/// rotation, where the far layer alone (the table before it had distances) is off by several %.
+#[test]
+fn the_view_table_places_a_close_cylinder_from_its_depth_alone() {
+    use alignist::cad::{Camera, Pose, Shape};
+    use alignist::engine::{CameraPoints, ViewTable};
+    use alignist::so3::haar_rotation;
+    let (mesh, _) = Shape::Cylinder.mesh().normalised();
+    let table = ViewTable::build(&mesh);
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let (mut layered, mut far) = (Vec::new(), Vec::new());
+    for distance in [2.7, 8.0] {
+        let focal = 0.45 * 160.0 * f64::sqrt(distance * distance - 1.0);
+        let camera = Camera {
+            fx: focal,
+            fy: focal,
+            cx: 80.0,
+            cy: 80.0,
+            width: 160,
+            height: 160,
+        };
+        for _ in 0..8 {
+            let pose = Pose {
+                rotation: haar_rotation(&mut rng),
+                translation: nalgebra::Vector3::new(0.0, 0.0, distance),
+            };
+            let image = render(&mesh, &camera, &pose, &RenderOptions::default());
+            let map = DepthMap {
+                width: image.width,
+                height: image.height,
+                values: image.depth.clone(),
+            };
+            let whole = CropBox {
+                x: 0,
+                y: 0,
+                width: map.width,
+                height: map.height,
+            };
+            let back =
+                back_project(&map, &Intrinsics::from(&camera), &whole, None, 256, "d").unwrap();
+            let seen = CameraPoints {
+                points: back.points.iter().map(|p| p.cast::<f32>()).collect(),
+                centroid: back.centroid.cast(),
+            };
+            let r = pose.rotation.matrix().cast::<f32>();
+            let truth = pose.translation.cast::<f32>();
+            let tau = table.initial_translation(&seen, &r);
+            layered.push((distance, (tau - truth).norm()));
+            let view = (r.transpose() * seen.centroid.normalize()).cast::<f64>();
+            let tau_far = seen.centroid - r * table.centroid(&view, 20.0);
+            far.push((distance, (tau_far - truth).norm()));
+        }
+    }
+    let worst = layered.iter().map(|e| e.1).fold(0f32, f32::max);
+    assert!(worst < 0.03, "τ₀ off by up to {worst} radii: {layered:?}");
+    let mean_close = |errors: &[(f64, f32)]| {
+        let close: Vec<f32> = errors.iter().filter(|e| e.0 < 3.0).map(|e| e.1).collect();
+        close.iter().sum::<f32>() / close.len() as f32
+    };
+    assert!(
+        mean_close(&far) > 2.0 * mean_close(&layered),
+        "close up, the far layer alone errs {} radii on average, the table {}",
+        mean_close(&far),
+        mean_close(&layered)
+    );
+}

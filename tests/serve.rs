@@ -608,6 +608,106 @@ async fn concurrent_requests_are_batched() {
     assert!(r.queue_ms >= 0.0 && r.compute_ms > 0.0);
 }
 
+/// The observing layer at the server builder: every method (the Alignist service's and health)
+/// gets its request id echoed, and is counted per method and code when its answer ends (a
+/// streamed answer at its trailers, one dropped by its client as CANCELLED).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_call_is_observed_with_its_request_id_and_its_code() {
+    let server = start_server(&[]);
+    let ch = channel(&server).await;
+    wait_serving(ch.clone()).await;
+    let mut client = AlignistClient::new(ch.clone());
+    let mut request = tonic::Request::new(predict_request(3, 3, 3));
+    request
+        .metadata_mut()
+        .insert("x-request-id", "planner-42".parse().unwrap());
+    let answer = client.predict(request).await.unwrap();
+    assert_eq!(answer.metadata().get("x-request-id").unwrap(), "planner-42");
+    let own = client.list_models(ListModelsRequest {}).await.unwrap();
+    let own = own
+        .metadata()
+        .get("x-request-id")
+        .unwrap()
+        .to_str()
+        .unwrap();
+    assert!(
+        own.starts_with('r') && own[1..].parse::<u64>().is_ok(),
+        "{own}"
+    );
+    let missing = client
+        .get_model(GetModelRequest {
+            name: "nope".into(),
+        })
+        .await
+        .expect_err("unknown model");
+    assert_eq!(
+        missing.metadata().get("x-request-id").map(|v| v.is_empty()),
+        Some(false)
+    );
+    // The dropped stream comes one cell a chunk (36 864 messages, megabytes): more than the
+    // HTTP/2 window and the server's send buffer, so that it is still being answered when its
+    // client goes away.
+    let distribution = |chunk_size| DistributionRequest {
+        model: "tiny".into(),
+        image: image(cube_png(3)),
+        level: 3,
+        chunk_size,
+        ..Default::default()
+    };
+    let mut stream = client
+        .predict_distribution(distribution(10_000))
+        .await
+        .unwrap()
+        .into_inner();
+    while stream.message().await.unwrap().is_some() {}
+    let mut abandoned = client
+        .predict_distribution(distribution(1))
+        .await
+        .unwrap()
+        .into_inner();
+    abandoned.message().await.unwrap().expect("a first chunk");
+    drop(abandoned);
+    let counted = |text: &str, method: &str, code: &str| {
+        metric(
+            text,
+            "alignist_requests_total",
+            &[&format!("method=\"{method}\""), &format!("code=\"{code}\"")],
+        )
+    };
+    let mut text = String::new();
+    for _ in 0..50 {
+        text = common::http_get(&server.metrics).await;
+        if counted(&text, "PredictDistribution", "CANCELLED") >= 1.0 {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    assert_eq!(counted(&text, "Predict", "OK"), 1.0, "{text}");
+    assert_eq!(counted(&text, "ListModels", "OK"), 1.0, "{text}");
+    assert_eq!(counted(&text, "GetModel", "NOT_FOUND"), 1.0, "{text}");
+    assert_eq!(counted(&text, "PredictDistribution", "OK"), 1.0, "{text}");
+    assert_eq!(
+        counted(&text, "PredictDistribution", "CANCELLED"),
+        1.0,
+        "{text}"
+    );
+    assert!(
+        counted(&text, "Check", "OK") >= 1.0,
+        "health is observed too: {text}"
+    );
+    for method in ["Predict", "PredictDistribution", "ListModels", "GetModel"] {
+        assert_eq!(
+            metric(
+                &text,
+                "alignist_in_flight_requests",
+                &[&format!("method=\"{method}\"")]
+            ),
+            0.0,
+            "{method}: {text}"
+        );
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn server_levels_are_checked_at_start_up_and_level_0_is_the_default_everywhere() {
     // A search maximum below the usual default lowers the default with it: default calls work.

@@ -8,10 +8,10 @@
 //!
 //! Points relative to the object's centre (the old input) have `τ = 0`. Points as the camera sees
 //! them ([`CameraPoints`], from a depth image) have `τ` found, not given:
-//! - for every candidate, `τ₀(R) = c − R·v(Rᵀ·ĉ)`: the points' centroid `c` less the rotated
-//!   centroid `v` of the object's surface seen from the view direction `Rᵀ·ĉ` ([`ViewTable`],
-//!   rendered from the mesh at load); the centroid weighs each point by `z²`, so that pixels
-//!   count as surface area seen head-on, as in the table's (near-orthographic) renders;
+//! - for every candidate, `τ₀(R) = c − R·v(Rᵀ·τ̂, ‖τ‖)`: the points' centroid `c` less the rotated
+//!   centroid `v` of the object's surface seen from the view direction `Rᵀ·τ̂` at the distance
+//!   `‖τ‖` ([`ViewTable`], rendered from the mesh at load at seven distances); both centroids
+//!   weigh each pixel by `z²`, so that pixels count as surface area seen head-on;
 //! - for the best candidates of a search's finest level, a few Gauss–Newton steps on
 //!   `Σ f_SDF(x_i)²` ([`DepthFusion::fit_translation`]), so that a rotation's fused score is its
 //!   best fit over translation, and the top rotations come with their translation.
@@ -22,66 +22,87 @@ use nalgebra::{Matrix3, Rotation3, Vector3};
 use rayon::prelude::*;
 
 use super::EngineError;
+use super::depth::BackProjected;
 use crate::bundle::experts::ExpertSet;
 use crate::cad::{Camera, Mesh, Pose, RenderOptions, render};
 use crate::experts::baked::VoxelGrid;
 use crate::experts::energy::{EnergyParams, sdf_energy};
 use crate::experts::run_batched;
 
-/// HEALPix depth of the view directions of a [`ViewTable`] (768 directions, ~7° apart; looked up
+/// HEALPix depth of the view directions of a [`ViewTable`] (3 072 directions, ~3.7° apart; looked up
 /// with bilinear interpolation).
-const VIEW_DEPTH: u8 = 3;
+const VIEW_DEPTH: u8 = 4;
 
 /// Gauss–Newton steps of [`DepthFusion::fit_translation`].
 const FIT_STEPS: usize = 6;
 
-/// The centroid of the surface a camera sees, per view direction, in the object's frame.
+/// Camera distances (object radii, centre to camera) of a [`ViewTable`]'s layers, far to near:
+/// evenly spaced in `1/D` from 0.05 to 0.5, the nearest a request can be (its points' centroid
+/// must lie ≥ 1 radius in front of the camera). Up close a camera sees less of the object than
+/// from afar (a sphere at 3 radii shows a cap of 70.5°, not a hemisphere), and the seen surface's
+/// centroid moves towards it by up to a tenth of the radius: a far table alone put `τ₀` off by
+/// 8–10 % of the radius on cylinders seen from 2.7–3.6 radii.
+const VIEW_INVERSE_DISTANCES: [f64; 7] = [0.05, 0.125, 0.2, 0.275, 0.35, 0.425, 0.5];
+
+/// The centroid of the surface a camera sees, per view direction and camera distance, in the
+/// object's frame.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ViewTable {
-    centroids: Vec<Vector3<f32>>,
+    /// Per layer of [`VIEW_INVERSE_DISTANCES`], per HEALPix direction.
+    layers: Vec<Vec<Vector3<f32>>>,
 }
 
 impl ViewTable {
-    /// Renders `mesh` (normalised) from every HEALPix direction of [`VIEW_DEPTH`], from far away
-    /// (near-orthographic), and averages the object coordinates of the pixels it covers.
+    /// Renders `mesh` (normalised) from every HEALPix direction of [`VIEW_DEPTH`] at every
+    /// distance of [`VIEW_INVERSE_DISTANCES`], and averages the object coordinates of the pixels
+    /// it covers, each weighted by its depth² (its surface area seen head-on, as
+    /// [`CameraPoints::centroid`] weighs the camera's points).
     pub fn build(mesh: &Mesh) -> ViewTable {
         let size = 48u32;
-        let distance = 20.0;
-        let focal = 0.45 * size as f64 * distance;
-        let camera = Camera {
-            fx: focal,
-            fy: focal,
-            cx: size as f64 / 2.0,
-            cy: size as f64 / 2.0,
-            width: size,
-            height: size,
-        };
         let n = cdshealpix::nested::n_hash(VIEW_DEPTH);
-        let centroids = (0..n)
-            .into_par_iter()
-            .map(|h| {
-                let d = direction(cdshealpix::nested::center(VIEW_DEPTH, h));
-                let pose = Pose {
-                    rotation: looking_along(&d),
-                    translation: Vector3::new(0.0, 0.0, distance),
+        let layers = VIEW_INVERSE_DISTANCES
+            .iter()
+            .map(|&u| {
+                let distance = 1.0 / u;
+                // The bounding sphere's silhouette fills 0.9 of the image.
+                let focal = 0.45 * size as f64 * (distance * distance - 1.0).sqrt();
+                let camera = Camera {
+                    fx: focal,
+                    fy: focal,
+                    cx: size as f64 / 2.0,
+                    cy: size as f64 / 2.0,
+                    width: size,
+                    height: size,
                 };
-                let r = render(mesh, &camera, &pose, &RenderOptions::default());
-                let (mut sum, mut count) = (Vector3::zeros(), 0usize);
-                for (seen, p) in r.mask.iter().zip(&r.nocs) {
-                    if *seen {
-                        sum += Vector3::new(p[0], p[1], p[2]);
-                        count += 1;
-                    }
-                }
-                sum / count.max(1) as f32
+                (0..n)
+                    .into_par_iter()
+                    .map(|h| {
+                        let d = direction(cdshealpix::nested::center(VIEW_DEPTH, h));
+                        let pose = Pose {
+                            rotation: looking_along(&d),
+                            translation: Vector3::new(0.0, 0.0, distance),
+                        };
+                        let r = render(mesh, &camera, &pose, &RenderOptions::default());
+                        let (mut sum, mut weight) = (Vector3::zeros(), 0f64);
+                        for ((seen, p), z) in r.mask.iter().zip(&r.nocs).zip(&r.depth) {
+                            if *seen {
+                                let w = (*z as f64).powi(2);
+                                sum += Vector3::new(p[0], p[1], p[2]).cast::<f64>() * w;
+                                weight += w;
+                            }
+                        }
+                        (sum / weight.max(f64::MIN_POSITIVE)).cast()
+                    })
+                    .collect()
             })
             .collect();
-        ViewTable { centroids }
+        ViewTable { layers }
     }
 
     /// The seen surface's centroid for the view direction `d` (object frame, unit, from the camera
-    /// towards the object).
-    pub fn centroid(&self, d: &Vector3<f64>) -> Vector3<f32> {
+    /// towards the object) from `distance` radii: bilinear over directions, linear in `1/D`
+    /// between layers (clamped to the table's range).
+    pub fn centroid(&self, d: &Vector3<f64>, distance: f64) -> Vector3<f32> {
         let lon = d.y.atan2(d.x);
         let lat = d.z.clamp(-1.0, 1.0).asin();
         let lon = if lon < 0.0 {
@@ -89,10 +110,30 @@ impl ViewTable {
         } else {
             lon
         };
+        let last = VIEW_INVERSE_DISTANCES.len() - 1;
+        let (u0, u1) = (VIEW_INVERSE_DISTANCES[0], VIEW_INVERSE_DISTANCES[last]);
+        let at = ((1.0 / distance).clamp(u0, u1) - u0) / (u1 - u0) * last as f64;
+        let below = (at.floor() as usize).min(last - 1);
+        let frac = (at - below as f64) as f32;
         cdshealpix::nested::bilinear_interpolation(VIEW_DEPTH, lon, lat)
             .iter()
-            .map(|&(h, w)| self.centroids[h as usize] * w as f32)
+            .map(|&(h, w)| {
+                let h = h as usize;
+                (self.layers[below][h] * (1.0 - frac) + self.layers[below + 1][h] * frac) * w as f32
+            })
             .sum()
+    }
+
+    /// The translation estimate `τ₀(R) = c − R·v(Rᵀ·τ̂, ‖τ‖)` for camera points seen at rotation
+    /// `r` (module doc), found in two passes: first looking from the camera towards the points'
+    /// centroid `c` at its distance, then towards the first estimate at its distance.
+    pub fn initial_translation(&self, points: &CameraPoints, r: &Matrix3<f32>) -> Vector3<f32> {
+        let c = points.centroid;
+        let seen_from = |t: &Vector3<f32>| {
+            let view = (r.transpose() * t.normalize()).cast::<f64>();
+            c - r * self.centroid(&view, t.norm() as f64)
+        };
+        seen_from(&seen_from(&c))
     }
 }
 
@@ -313,12 +354,14 @@ impl DepthFusion {
     /// the object), naming `field`.
     pub fn camera_points(
         &self,
-        points: &[Vector3<f64>],
+        seen: &BackProjected,
         field: &str,
     ) -> Result<CameraPoints, EngineError> {
         let scale = self.set.manifest.object.normalisation.scale;
-        let points: Vec<Vector3<f32>> = points.iter().map(|p| (p / scale).cast()).collect();
-        let camera = CameraPoints::new(points);
+        let camera = CameraPoints {
+            points: seen.points.iter().map(|p| (p / scale).cast()).collect(),
+            centroid: (seen.centroid / scale).cast(),
+        };
         let invalid = |message: String| EngineError::InvalidArgument {
             field: field.into(),
             message,
@@ -346,11 +389,9 @@ impl DepthFusion {
         Ok(camera)
     }
 
-    /// The translation estimate `τ₀(R) = c − R·v(Rᵀ·ĉ)` (module doc).
+    /// The translation estimate `τ₀(R)` ([`ViewTable::initial_translation`]).
     pub fn initial_translation(&self, points: &CameraPoints, r: &Matrix3<f32>) -> Vector3<f32> {
-        let c = points.centroid;
-        let view = (r.transpose() * c.normalize()).cast::<f64>();
-        c - r * self.baked().1.centroid(&view)
+        self.baked().1.initial_translation(points, r)
     }
 
     /// `−U(R, τ₀(R))` of the camera points for every candidate (row-major rotations), see

@@ -17,8 +17,8 @@ use rayon::prelude::*;
 pub use self::image::{
     CropBox, FrameCrop, ImageLimits, ImageRequest, Intrinsics, prepare_frame, prepare_image,
 };
-pub use depth::{DepthMap, DepthRequest, back_project, decode_depth, decode_mask};
-pub use fusion::{CameraPoints, DepthFusion};
+pub use depth::{BackProjected, DepthMap, DepthRequest, back_project, decode_depth, decode_mask};
+pub use fusion::{CameraPoints, DepthFusion, ViewTable};
 pub use search::{CellProbability, Mode, SearchResult, coarse_to_fine_many, group_modes};
 
 use crate::bundle::BundleError;

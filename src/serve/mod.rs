@@ -5,18 +5,18 @@
 pub mod admission;
 pub mod batcher;
 pub mod heads;
+pub mod observe;
 pub mod server;
 pub mod status;
 
 use std::collections::BTreeMap;
 use std::pin::Pin;
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, RwLock};
 use std::time::Instant;
 
+use std::sync::atomic::Ordering;
 use tokio_stream::Stream;
 use tonic::{Request, Response, Status};
-use tracing::{Instrument, info, info_span, warn};
 
 pub use batcher::{BatchConfig, BatchError, Batcher};
 
@@ -139,7 +139,6 @@ impl ServiceState {
 /// The `alignist.v1.Alignist` service.
 pub struct AlignistService {
     state: ServiceState,
-    next_id: AtomicU64,
     admission: admission::Admission,
 }
 
@@ -153,102 +152,13 @@ impl AlignistService {
     pub fn with_admission(state: ServiceState, admission: admission::AdmissionConfig) -> Self {
         Self {
             state,
-            next_id: AtomicU64::new(1),
             admission: admission::Admission::new(admission),
         }
-    }
-
-    /// Runs a call's work with what every call gets: its request id on a tracing span, the
-    /// in-flight gauge, and its count, end-to-end latency and log line.
-    async fn observed<T>(
-        &self,
-        method: &'static str,
-        id: String,
-        work: impl std::future::Future<Output = Result<T, Status>>,
-    ) -> Result<Response<T>, Status> {
-        let started = Instant::now();
-        let _in_flight = InFlight::start(method);
-        let result = work
-            .instrument(info_span!("call", method, request_id = %id))
-            .await;
-        record(method, started, &result);
-        result.map(Response::new)
-    }
-
-    fn request_id<T>(&self, request: &Request<T>) -> String {
-        request
-            .metadata()
-            .get("x-request-id")
-            .and_then(|v| v.to_str().ok())
-            .map(|s| s.chars().take(64).collect())
-            .unwrap_or_else(|| format!("r{}", self.next_id.fetch_add(1, Ordering::Relaxed)))
     }
 }
 
 use status::invalid_field;
 pub use status::{batch_status, status_of};
-
-fn code_name(code: tonic::Code) -> &'static str {
-    use tonic::Code::*;
-    match code {
-        Ok => "OK",
-        Cancelled => "CANCELLED",
-        Unknown => "UNKNOWN",
-        InvalidArgument => "INVALID_ARGUMENT",
-        DeadlineExceeded => "DEADLINE_EXCEEDED",
-        NotFound => "NOT_FOUND",
-        AlreadyExists => "ALREADY_EXISTS",
-        PermissionDenied => "PERMISSION_DENIED",
-        ResourceExhausted => "RESOURCE_EXHAUSTED",
-        FailedPrecondition => "FAILED_PRECONDITION",
-        Aborted => "ABORTED",
-        OutOfRange => "OUT_OF_RANGE",
-        Unimplemented => "UNIMPLEMENTED",
-        Internal => "INTERNAL",
-        Unavailable => "UNAVAILABLE",
-        DataLoss => "DATA_LOSS",
-        Unauthenticated => "UNAUTHENTICATED",
-    }
-}
-
-/// Counts a call as in flight while it lives (`alignist_in_flight_requests{method}`).
-struct InFlight(&'static str);
-
-impl InFlight {
-    fn start(method: &'static str) -> InFlight {
-        metrics::gauge!("alignist_in_flight_requests", "method" => method).increment(1.0);
-        InFlight(method)
-    }
-}
-
-impl Drop for InFlight {
-    fn drop(&mut self) {
-        metrics::gauge!("alignist_in_flight_requests", "method" => self.0).decrement(1.0);
-    }
-}
-
-/// Counts a finished call, records its end-to-end latency per method and code, and logs it.
-fn record<T>(method: &'static str, started: Instant, result: &Result<T, Status>) {
-    let code = match result {
-        Ok(_) => tonic::Code::Ok,
-        Err(s) => s.code(),
-    };
-    metrics::counter!("alignist_requests_total", "method" => method, "code" => code_name(code))
-        .increment(1);
-    metrics::histogram!("alignist_request_seconds", "method" => method, "code" => code_name(code))
-        .record(started.elapsed().as_secs_f64());
-    let ms = started.elapsed().as_secs_f64() * 1e3;
-    match result {
-        Ok(_) => info!(method, code = code_name(code), ms, "done"),
-        Err(s) => warn!(
-            method,
-            code = code_name(code),
-            ms,
-            message = s.message(),
-            "failed"
-        ),
-    }
-}
 
 /// Runs CPU work off the async threads; a panic inside becomes INTERNAL (and is counted), never
 /// a crash. Work whose caller went away (cancelled, deadline) before it started is skipped.
@@ -825,9 +735,9 @@ impl Alignist for AlignistService {
         &self,
         request: Request<PredictRequest>,
     ) -> Result<Response<PredictResponse>, Status> {
-        let id = self.request_id(&request);
-        self.observed("Predict", id, self.do_predict(request.into_inner()))
+        self.do_predict(request.into_inner())
             .await
+            .map(Response::new)
     }
 
     type PredictDistributionStream = ChunkStream;
@@ -836,65 +746,52 @@ impl Alignist for AlignistService {
         &self,
         request: Request<DistributionRequest>,
     ) -> Result<Response<Self::PredictDistributionStream>, Status> {
-        let id = self.request_id(&request);
-        self.observed(
-            "PredictDistribution",
-            id,
-            self.do_distribution(request.into_inner()),
-        )
-        .await
+        self.do_distribution(request.into_inner())
+            .await
+            .map(Response::new)
     }
 
     async fn predict_frame(
         &self,
         request: Request<FrameRequest>,
     ) -> Result<Response<FrameResponse>, Status> {
-        let id = self.request_id(&request);
-        self.observed("PredictFrame", id, self.do_frame(request.into_inner()))
-            .await
+        self.do_frame(request.into_inner()).await.map(Response::new)
     }
 
     async fn list_models(
         &self,
-        request: Request<ListModelsRequest>,
+        _request: Request<ListModelsRequest>,
     ) -> Result<Response<ListModelsResponse>, Status> {
-        let id = self.request_id(&request);
-        let work = async {
-            self.state.current().map(|served| ListModelsResponse {
-                models: served.engine.models().map(|m| model_info(m)).collect(),
-                failed: served
-                    .engine
-                    .failures()
-                    .iter()
-                    .map(|(name, error)| ModelFailure {
-                        name: name.clone(),
-                        error: error.clone(),
-                        serving_previous: served.engine.model(name).is_ok(),
-                    })
-                    .collect(),
-            })
-        };
-        self.observed("ListModels", id, work).await
+        let served = self.state.current()?;
+        Ok(Response::new(ListModelsResponse {
+            models: served.engine.models().map(|m| model_info(m)).collect(),
+            failed: served
+                .engine
+                .failures()
+                .iter()
+                .map(|(name, error)| ModelFailure {
+                    name: name.clone(),
+                    error: error.clone(),
+                    serving_previous: served.engine.model(name).is_ok(),
+                })
+                .collect(),
+        }))
     }
 
     async fn get_model(
         &self,
         request: Request<GetModelRequest>,
     ) -> Result<Response<ModelInfo>, Status> {
-        let id = self.request_id(&request);
         let name = request.into_inner().name;
-        let work = async {
-            let served = self.state.current()?;
-            if name.is_empty() {
-                return Err(invalid_field("name", "is required"));
-            }
-            served
-                .engine
-                .model(&name)
-                .map(|m| model_info(&m))
-                .map_err(status_of)
-        };
-        self.observed("GetModel", id, work).await
+        let served = self.state.current()?;
+        if name.is_empty() {
+            return Err(invalid_field("name", "is required"));
+        }
+        served
+            .engine
+            .model(&name)
+            .map(|m| Response::new(model_info(&m)))
+            .map_err(status_of)
     }
 }
 

@@ -326,7 +326,9 @@ pub async fn run(
     // TCP_NODELAY on every accepted connection: with Nagle's algorithm a response waits for the
     // client's delayed ACK (~40 ms on Linux); tonic sets it only on listeners it binds itself.
     let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
-    let mut builder = Server::builder().max_concurrent_streams(config.max_concurrent_streams);
+    let mut builder = Server::builder()
+        .max_concurrent_streams(config.max_concurrent_streams)
+        .layer(super::observe::ObserveLayer::default());
     if let Some(age) = config.max_connection_age {
         builder = builder
             .max_connection_age(age)
