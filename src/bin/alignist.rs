@@ -46,60 +46,9 @@ struct ImageArgs {
 #[derive(Subcommand)]
 enum Command {
     /// Top-k rotations, MAP and modes for an image.
-    Predict {
-        #[command(flatten)]
-        image: ImageArgs,
-        /// How many rotations.
-        #[arg(long, default_value_t = 10)]
-        top_k: u32,
-        /// Finest search level (0: the server's default).
-        #[arg(long, default_value_t = 0)]
-        level: u32,
-        /// Print JSON instead of a table.
-        #[arg(long)]
-        json: bool,
-        /// Also draw the distribution at level 3 (IPDF-style plot) to this PNG.
-        #[arg(long, conflicts_with = "intrinsics")]
-        plot: Option<PathBuf>,
-        /// The camera's intrinsics fx,fy,cx,cy in pixels: --image is then the full camera image,
-        /// each --box is cropped as a virtual camera looking at it sees it, and every rotation is
-        /// answered in the real camera's frame (PredictFrame).
-        #[arg(long, value_parser = parse_intrinsics, requires = "boxes", conflicts_with = "crop")]
-        intrinsics: Option<[f64; 4]>,
-        /// A detection box x,y,width,height in pixels of the full image; repeat per object (needs
-        /// --intrinsics).
-        #[arg(long = "box", id = "boxes", value_parser = parse_crop, requires = "intrinsics")]
-        boxes: Vec<[u32; 4]>,
-        /// A depth image registered to --image (16-bit PNG; 0 = no measurement): RGB-D fusion,
-        /// with each object's translation found (needs --intrinsics, --box, --depth-scale).
-        #[arg(long, requires_all = ["intrinsics", "depth_scale"])]
-        depth: Option<PathBuf>,
-        /// Mesh units per depth unit (e.g. 0.001 for depth in mm and a mesh in metres).
-        #[arg(long, requires = "depth")]
-        depth_scale: Option<f64>,
-        /// A mask PNG of the image's size (non-zero on the object), one per --box in order; only
-        /// depth pixels inside it are used.
-        #[arg(long = "mask", requires = "depth")]
-        masks: Vec<PathBuf>,
-        /// Depth points relative to the object's centre, in the camera frame and the mesh's
-        /// units: a text file of "x y z" lines (the older input; for a crop, not --intrinsics).
-        #[arg(long, conflicts_with_all = ["intrinsics", "depth"])]
-        points: Option<PathBuf>,
-    },
+    Predict(PredictArgs),
     /// The full distribution at one grid level, written as CSV (index,probability,log_density).
-    Distribution {
-        #[command(flatten)]
-        image: ImageArgs,
-        /// Grid level.
-        #[arg(long, default_value_t = 3)]
-        level: u32,
-        /// Output CSV.
-        #[arg(long)]
-        out: PathBuf,
-        /// Also draw the distribution to this PNG.
-        #[arg(long)]
-        plot: Option<PathBuf>,
-    },
+    Distribution(DistributionArgs),
     /// The models the server holds.
     Models {
         /// Print JSON instead of a table.
@@ -108,35 +57,95 @@ enum Command {
     },
     /// A bounded load test of Predict against a server on this machine (loopback only):
     /// prints requests/s, latency p50/p90/p99 and counts by status code; exits 1 on any failure.
-    Load {
-        /// Model name (empty: the server's only model).
-        #[arg(long, default_value = "")]
-        model: String,
-        /// PNG or JPEG image sent with every call (default: a rendered cube at the model's size).
-        #[arg(long)]
-        image: Option<PathBuf>,
-        /// Total calls.
-        #[arg(long, default_value_t = 1000)]
-        requests: usize,
-        /// Calls in flight at once.
-        #[arg(long, default_value_t = 8)]
-        concurrency: usize,
-        /// HTTP/2 connections the calls are spread over.
-        #[arg(long, default_value_t = 4)]
-        connections: usize,
-        /// Top-k per call.
-        #[arg(long, default_value_t = 5)]
-        top_k: u32,
-        /// Search level per call (0: the server's default).
-        #[arg(long, default_value_t = 0)]
-        level: u32,
-    },
+    Load(LoadArgs),
     /// The server's health (grpc.health.v1); exits 1 unless SERVING.
     Health {
         /// Service name ("" for the whole server).
         #[arg(long, default_value = "")]
         service: String,
     },
+}
+
+#[derive(Args)]
+struct PredictArgs {
+    #[command(flatten)]
+    image: ImageArgs,
+    /// How many rotations.
+    #[arg(long, default_value_t = 10)]
+    top_k: u32,
+    /// Finest search level (0: the server's default).
+    #[arg(long, default_value_t = 0)]
+    level: u32,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    json: bool,
+    /// Also draw the distribution at level 3 (IPDF-style plot) to this PNG.
+    #[arg(long, conflicts_with = "intrinsics")]
+    plot: Option<PathBuf>,
+    /// The camera's intrinsics fx,fy,cx,cy in pixels: --image is then the full camera image,
+    /// each --box is cropped as a virtual camera looking at it sees it, and every rotation is
+    /// answered in the real camera's frame (PredictFrame).
+    #[arg(long, value_parser = parse_intrinsics, requires = "boxes", conflicts_with = "crop")]
+    intrinsics: Option<[f64; 4]>,
+    /// A detection box x,y,width,height in pixels of the full image; repeat per object (needs
+    /// --intrinsics).
+    #[arg(long = "box", id = "boxes", value_parser = parse_crop, requires = "intrinsics")]
+    boxes: Vec<[u32; 4]>,
+    /// A depth image registered to --image (16-bit PNG; 0 = no measurement): RGB-D fusion,
+    /// with each object's translation found (needs --intrinsics, --box, --depth-scale).
+    #[arg(long, requires_all = ["intrinsics", "depth_scale"])]
+    depth: Option<PathBuf>,
+    /// Mesh units per depth unit (e.g. 0.001 for depth in mm and a mesh in metres).
+    #[arg(long, requires = "depth")]
+    depth_scale: Option<f64>,
+    /// A mask PNG of the image's size (non-zero on the object), one per --box in order; only
+    /// depth pixels inside it are used.
+    #[arg(long = "mask", requires = "depth")]
+    masks: Vec<PathBuf>,
+    /// Depth points relative to the object's centre, in the camera frame and the mesh's
+    /// units: a text file of "x y z" lines (the older input; for a crop, not --intrinsics).
+    #[arg(long, conflicts_with_all = ["intrinsics", "depth"])]
+    points: Option<PathBuf>,
+}
+
+#[derive(Args)]
+struct DistributionArgs {
+    #[command(flatten)]
+    image: ImageArgs,
+    /// Grid level.
+    #[arg(long, default_value_t = 3)]
+    level: u32,
+    /// Output CSV.
+    #[arg(long)]
+    out: PathBuf,
+    /// Also draw the distribution to this PNG.
+    #[arg(long)]
+    plot: Option<PathBuf>,
+}
+
+#[derive(Args)]
+struct LoadArgs {
+    /// Model name (empty: the server's only model).
+    #[arg(long, default_value = "")]
+    model: String,
+    /// PNG or JPEG image sent with every call (default: a rendered cube at the model's size).
+    #[arg(long)]
+    image: Option<PathBuf>,
+    /// Total calls.
+    #[arg(long, default_value_t = 1000)]
+    requests: usize,
+    /// Calls in flight at once.
+    #[arg(long, default_value_t = 8)]
+    concurrency: usize,
+    /// HTTP/2 connections the calls are spread over.
+    #[arg(long, default_value_t = 4)]
+    connections: usize,
+    /// Top-k per call.
+    #[arg(long, default_value_t = 5)]
+    top_k: u32,
+    /// Search level per call (0: the server's default).
+    #[arg(long, default_value_t = 0)]
+    level: u32,
 }
 
 fn parse_crop(s: &str) -> Result<[u32; 4], String> {
@@ -201,8 +210,11 @@ fn read_points(path: &PathBuf) -> Result<alignist::serve::proto::DepthPoints> {
     Ok(alignist::serve::proto::DepthPoints { xyz })
 }
 
-fn save_plot(path: &PathBuf, rotations: &[[f64; 4]], probs: &[f64]) -> Result<()> {
-    alignist::viz::plot_distribution(rotations, probs, &[], 1200)
+/// Draws a distribution of `level` (IPDF-style) to `path`.
+fn save_plot(path: &PathBuf, level: u32, probs: &[f32]) -> Result<()> {
+    let grid = alignist::so3::GridLevel::new(level as u8)?;
+    let probs: Vec<f64> = probs.iter().map(|&p| p as f64).collect();
+    alignist::viz::plot_distribution(&grid.quaternions(), &probs, &[], 1200)
         .save(path)
         .with_context(|| format!("writing --plot {}", path.display()))
 }
@@ -235,238 +247,224 @@ async fn run(cli: Cli) -> Result<()> {
     }
     let channel = client::connect(&cli.server, timeout).await?;
     match cli.command {
-        Command::Predict {
-            image,
-            top_k,
-            level,
-            json,
-            plot: _,
-            intrinsics: Some([fx, fy, cx, cy]),
-            boxes,
-            depth,
-            depth_scale,
-            masks,
-            points: _,
-        } => {
-            use alignist::serve::proto::{
-                CropBox, DepthImage, Detection, FrameRequest, Intrinsics,
-            };
-            if !masks.is_empty() && masks.len() != boxes.len() {
-                bail!(
-                    "--mask: give one per --box ({} masks for {} boxes)",
-                    masks.len(),
-                    boxes.len()
-                );
-            }
-            let masks: Vec<Vec<u8>> = masks
-                .iter()
-                .map(|m| {
-                    std::fs::read(m).with_context(|| format!("reading --mask {}", m.display()))
-                })
-                .collect::<Result<_>>()?;
-            let depth = match depth {
-                None => None,
-                Some(path) => Some(DepthImage {
-                    data: std::fs::read(&path)
-                        .with_context(|| format!("reading --depth {}", path.display()))?,
-                    width: 0,
-                    height: 0,
-                    scale: depth_scale.unwrap_or_default(),
-                }),
-            };
-            let request = FrameRequest {
-                model: image.model.clone(),
-                image: Some(read_image(&image)?),
-                intrinsics: Some(Intrinsics { fx, fy, cx, cy }),
-                detections: boxes
-                    .iter()
-                    .enumerate()
-                    .map(|(i, &[x, y, width, height])| Detection {
-                        r#box: Some(CropBox {
-                            x,
-                            y,
-                            width,
-                            height,
-                        }),
-                        object: image.object.clone(),
-                        mask: masks.get(i).cloned().unwrap_or_default(),
-                    })
-                    .collect(),
-                top_k,
-                level,
-                mode_angle_deg: 0.0,
-                depth,
-            };
-            let answer = client::predict_frame(channel, request).await?;
-            if json {
-                println!(
-                    "{}",
-                    serde_json::to_string_pretty(&client::frame_json(&answer))?
-                );
-            } else {
-                print!("{}", client::frame_table(&answer));
-            }
-        }
-        Command::Predict {
-            image,
-            top_k,
-            level,
-            json,
-            plot,
-            intrinsics: None,
-            points,
-            ..
-        } => {
-            let depth = match points {
-                None => None,
-                Some(path) => Some(read_points(&path)?),
-            };
-            let request = PredictRequest {
-                model: image.model.clone(),
-                object: image.object.clone(),
-                image: Some(read_image(&image)?),
-                top_k,
-                level,
-                mode_angle_deg: 0.0,
-                depth,
-            };
-            let answer = client::predict(channel, request).await?;
-            if json {
-                println!(
-                    "{}",
-                    serde_json::to_string_pretty(&client::predict_json(&answer))?
-                );
-            } else {
-                print!("{}", client::predict_table(&answer));
-            }
-            if let Some(path) = plot {
-                // The plot shows the whole distribution (level 3), not just the top-k.
-                let request = DistributionRequest {
-                    model: image.model.clone(),
-                    object: image.object.clone(),
-                    image: Some(read_image(&image)?),
-                    level: 3,
-                    chunk_size: 0,
-                    depth: None,
-                };
-                let channel = client::connect(&cli.server, timeout).await?;
-                let (level, probs, _) = client::distribution(channel, request).await?;
-                let grid = alignist::so3::GridLevel::new(level as u8)?;
-                let probs: Vec<f64> = probs.iter().map(|&p| p as f64).collect();
-                save_plot(&path, &grid.quaternions(), &probs)?;
-            }
-        }
-        Command::Distribution {
-            image,
-            level,
-            out,
-            plot,
-        } => {
-            let request = DistributionRequest {
-                model: image.model.clone(),
-                object: image.object.clone(),
-                image: Some(read_image(&image)?),
-                level,
-                chunk_size: 0,
-                depth: None,
-            };
-            let (level, probs, logs) = client::distribution(channel, request).await?;
-            let mut csv = String::from("index,probability,log_density\n");
-            for (i, (p, l)) in probs.iter().zip(&logs).enumerate() {
-                csv.push_str(&format!("{i},{p:e},{l}\n"));
-            }
-            std::fs::write(&out, csv)
-                .with_context(|| format!("writing --out {}", out.display()))?;
-            let total: f64 = probs.iter().map(|&p| p as f64).sum();
-            println!(
-                "level {level}: {} cells, total probability {total:.6}, written to {}",
-                probs.len(),
-                out.display()
-            );
-            if let Some(path) = plot {
-                let grid = alignist::so3::GridLevel::new(level as u8)?;
-                let rotations: Vec<[f64; 4]> = grid.quaternions();
-                let probs: Vec<f64> = probs.iter().map(|&p| p as f64).collect();
-                save_plot(&path, &rotations, &probs)?;
-            }
-        }
-        Command::Models { json } => {
-            let list = client::models(channel).await?;
-            if json {
-                let v: Vec<serde_json::Value> = list
-                    .models
-                    .iter()
-                    .map(|m| {
-                        serde_json::json!({
-                            "name": m.name, "input_size": m.input_size,
-                            "full_max_level": m.full_max_level,
-                            "search_max_level": m.search_max_level,
-                            "objects": m.objects.iter().map(|o| &o.name).collect::<Vec<_>>(),
-                        })
-                    })
-                    .collect();
-                let failed: Vec<serde_json::Value> = list
-                    .failed
-                    .iter()
-                    .map(|f| {
-                        serde_json::json!({
-                            "name": f.name, "error": f.error,
-                            "serving_previous": f.serving_previous,
-                        })
-                    })
-                    .collect();
-                println!(
-                    "{}",
-                    serde_json::to_string_pretty(&serde_json::json!({
-                        "models": v, "failed": failed,
-                    }))?
-                );
-            } else {
-                print!("{}", client::models_table(&list));
-            }
-        }
-        Command::Load {
-            model,
-            image,
-            requests,
-            concurrency,
-            connections,
-            top_k,
-            level,
-        } => {
-            if requests == 0 || concurrency == 0 || connections == 0 {
-                bail!("--requests, --concurrency and --connections must be at least 1");
-            }
-            let data = match image {
-                Some(path) => std::fs::read(&path)
-                    .with_context(|| format!("reading --image {}", path.display()))?,
-                None => default_image()?,
-            };
-            let mut channels = vec![channel];
-            for _ in 1..connections {
-                channels.push(client::connect(&cli.server, timeout).await?);
-            }
-            let request = PredictRequest {
-                model,
-                image: Some(client::image_input(data, None)),
-                top_k,
-                level,
-                ..Default::default()
-            };
-            let report =
-                client::load::run_load(channels, request, requests, concurrency, timeout).await?;
-            println!("{report}");
-            if report.failures() > 0 {
-                bail!("{} of {} calls failed", report.failures(), report.requests);
-            }
-        }
+        Command::Predict(args) => match args.intrinsics {
+            Some(intrinsics) => predict_frame(channel, &args, intrinsics).await,
+            None => predict(channel, &args, &cli.server, timeout).await,
+        },
+        Command::Distribution(args) => distribution(channel, &args).await,
+        Command::Models { json } => models(channel, json).await,
+        Command::Load(args) => load(channel, args, &cli.server, timeout).await,
         Command::Health { service } => {
             let status = client::health(channel, &service).await?;
             println!("{status}");
             if status != "Serving" {
                 bail!("server is {status}");
             }
+            Ok(())
         }
+    }
+}
+
+/// `predict --intrinsics … --box …`: PredictFrame, with depth and masks when given.
+async fn predict_frame(
+    channel: tonic::transport::Channel,
+    args: &PredictArgs,
+    [fx, fy, cx, cy]: [f64; 4],
+) -> Result<()> {
+    use alignist::serve::proto::{CropBox, DepthImage, Detection, FrameRequest, Intrinsics};
+    if !args.masks.is_empty() && args.masks.len() != args.boxes.len() {
+        bail!(
+            "--mask: give one per --box ({} masks for {} boxes)",
+            args.masks.len(),
+            args.boxes.len()
+        );
+    }
+    let masks: Vec<Vec<u8>> = args
+        .masks
+        .iter()
+        .map(|m| std::fs::read(m).with_context(|| format!("reading --mask {}", m.display())))
+        .collect::<Result<_>>()?;
+    let depth = match &args.depth {
+        None => None,
+        Some(path) => Some(DepthImage {
+            data: std::fs::read(path)
+                .with_context(|| format!("reading --depth {}", path.display()))?,
+            width: 0,
+            height: 0,
+            scale: args.depth_scale.unwrap_or_default(),
+        }),
+    };
+    let detections = args
+        .boxes
+        .iter()
+        .enumerate()
+        .map(|(i, &[x, y, width, height])| Detection {
+            r#box: Some(CropBox {
+                x,
+                y,
+                width,
+                height,
+            }),
+            object: args.image.object.clone(),
+            mask: masks.get(i).cloned().unwrap_or_default(),
+        })
+        .collect();
+    let request = FrameRequest {
+        model: args.image.model.clone(),
+        image: Some(read_image(&args.image)?),
+        intrinsics: Some(Intrinsics { fx, fy, cx, cy }),
+        detections,
+        top_k: args.top_k,
+        level: args.level,
+        mode_angle_deg: 0.0,
+        depth,
+    };
+    let answer = client::predict_frame(channel, request).await?;
+    if args.json {
+        let json = serde_json::to_string_pretty(&client::frame_json(&answer))?;
+        println!("{json}");
+    } else {
+        print!("{}", client::frame_table(&answer));
+    }
+    Ok(())
+}
+
+/// `predict` of a crop: Predict, with centred depth points when given, and the level-3 plot.
+async fn predict(
+    channel: tonic::transport::Channel,
+    args: &PredictArgs,
+    server: &str,
+    timeout: Duration,
+) -> Result<()> {
+    let depth = match &args.points {
+        None => None,
+        Some(path) => Some(read_points(path)?),
+    };
+    let request = PredictRequest {
+        model: args.image.model.clone(),
+        object: args.image.object.clone(),
+        image: Some(read_image(&args.image)?),
+        top_k: args.top_k,
+        level: args.level,
+        mode_angle_deg: 0.0,
+        depth,
+    };
+    let answer = client::predict(channel, request).await?;
+    if args.json {
+        let json = serde_json::to_string_pretty(&client::predict_json(&answer))?;
+        println!("{json}");
+    } else {
+        print!("{}", client::predict_table(&answer));
+    }
+    if let Some(path) = &args.plot {
+        // The plot shows the whole distribution (level 3), not just the top-k.
+        let request = distribution_request(&args.image, 3)?;
+        let channel = client::connect(server, timeout).await?;
+        let (level, probs, _) = client::distribution(channel, request).await?;
+        save_plot(path, level, &probs)?;
+    }
+    Ok(())
+}
+
+fn distribution_request(image: &ImageArgs, level: u32) -> Result<DistributionRequest> {
+    Ok(DistributionRequest {
+        model: image.model.clone(),
+        object: image.object.clone(),
+        image: Some(read_image(image)?),
+        level,
+        chunk_size: 0,
+        depth: None,
+    })
+}
+
+/// `distribution`: the CSV, and the plot when asked.
+async fn distribution(channel: tonic::transport::Channel, args: &DistributionArgs) -> Result<()> {
+    let request = distribution_request(&args.image, args.level)?;
+    let (level, probs, logs) = client::distribution(channel, request).await?;
+    let mut csv = String::from("index,probability,log_density\n");
+    for (i, (p, l)) in probs.iter().zip(&logs).enumerate() {
+        csv.push_str(&format!("{i},{p:e},{l}\n"));
+    }
+    std::fs::write(&args.out, csv)
+        .with_context(|| format!("writing --out {}", args.out.display()))?;
+    let total: f64 = probs.iter().map(|&p| p as f64).sum();
+    println!(
+        "level {level}: {} cells, total probability {total:.6}, written to {}",
+        probs.len(),
+        args.out.display()
+    );
+    if let Some(path) = &args.plot {
+        save_plot(path, level, &probs)?;
+    }
+    Ok(())
+}
+
+/// `models`: the table, or JSON.
+async fn models(channel: tonic::transport::Channel, json: bool) -> Result<()> {
+    let list = client::models(channel).await?;
+    if !json {
+        print!("{}", client::models_table(&list));
+        return Ok(());
+    }
+    let models: Vec<serde_json::Value> = list
+        .models
+        .iter()
+        .map(|m| {
+            serde_json::json!({
+                "name": m.name, "input_size": m.input_size,
+                "full_max_level": m.full_max_level,
+                "search_max_level": m.search_max_level,
+                "objects": m.objects.iter().map(|o| &o.name).collect::<Vec<_>>(),
+            })
+        })
+        .collect();
+    let failed: Vec<serde_json::Value> = list
+        .failed
+        .iter()
+        .map(|f| {
+            serde_json::json!({
+                "name": f.name, "error": f.error,
+                "serving_previous": f.serving_previous,
+            })
+        })
+        .collect();
+    let json = serde_json::json!({ "models": models, "failed": failed });
+    println!("{}", serde_json::to_string_pretty(&json)?);
+    Ok(())
+}
+
+/// `load`: the bounded load test over `--connections` channels.
+async fn load(
+    channel: tonic::transport::Channel,
+    args: LoadArgs,
+    server: &str,
+    timeout: Duration,
+) -> Result<()> {
+    if args.requests == 0 || args.concurrency == 0 || args.connections == 0 {
+        bail!("--requests, --concurrency and --connections must be at least 1");
+    }
+    let data = match &args.image {
+        Some(path) => {
+            std::fs::read(path).with_context(|| format!("reading --image {}", path.display()))?
+        }
+        None => default_image()?,
+    };
+    let mut channels = vec![channel];
+    for _ in 1..args.connections {
+        channels.push(client::connect(server, timeout).await?);
+    }
+    let request = PredictRequest {
+        model: args.model,
+        image: Some(client::image_input(data, None)),
+        top_k: args.top_k,
+        level: args.level,
+        ..Default::default()
+    };
+    let report =
+        client::load::run_load(channels, request, args.requests, args.concurrency, timeout).await?;
+    println!("{report}");
+    if report.failures() > 0 {
+        bail!("{} of {} calls failed", report.failures(), report.requests);
     }
     Ok(())
 }

@@ -64,6 +64,36 @@ pub struct ModelManifest {
     pub files: BTreeMap<String, FileEntry>,
 }
 
+/// The input convention every bundle records (`ModelManifest::input`).
+pub const INPUT_CONVENTION: &str = "RGB crop as a virtual camera looking at the centre of the \
+    object's box sees it: a square of 1.2 × the box's longer side (never stretched), side \
+    image_size, values / 255 (src/data/virtual_crop.rs)";
+
+impl ModelManifest {
+    /// The manifest of a bundle trained now (no files yet: [`ModelBundle::save`] adds them), with
+    /// the [`INPUT_CONVENTION`].
+    pub fn new(
+        name: String,
+        network: NetworkConfig,
+        objects: Vec<BundleObject>,
+        levels: GridLevels,
+        provenance: Provenance,
+        evaluation: Option<EvalReport>,
+    ) -> ModelManifest {
+        ModelManifest {
+            format_version: MODEL_FORMAT_VERSION,
+            name,
+            network,
+            input: INPUT_CONVENTION.into(),
+            objects,
+            levels,
+            provenance,
+            evaluation,
+            files: Default::default(),
+        }
+    }
+}
+
 /// Grid levels of a bundle: the server serves it up to these at most
 /// (`EngineConfig::within`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]

@@ -109,32 +109,46 @@ async fn watch_models(
             continue;
         }
         seen = now;
-        let dir = models.clone();
-        match tokio::task::spawn_blocking(move || Engine::load_dir(&dir, engine_config)).await {
-            Ok(Ok(engine)) => match Served::reloaded(engine, state.installed().as_deref(), batch) {
-                Ok(served) => {
-                    info!(
-                        models = ?served.engine.names(),
-                        refused = ?served.engine.failures().keys().collect::<Vec<_>>(),
-                        "models reloaded"
-                    );
-                    state.install(served);
-                    metrics::counter!("alignist_reloads_total", "result" => "ok").increment(1);
-                }
-                Err(e) => {
-                    error!(
-                        "reload failed to start encoder threads, still serving the previous models: {e}"
-                    );
-                    metrics::counter!("alignist_reloads_total", "result" => "refused").increment(1);
-                }
-            },
-            Ok(Err(e)) => {
+        match load_served(models.clone(), engine_config, batch, state.installed()).await {
+            Ok(served) => {
+                info!(
+                    models = ?served.engine.names(),
+                    refused = ?served.engine.failures().keys().collect::<Vec<_>>(),
+                    "models reloaded"
+                );
+                state.install(served);
+                metrics::counter!("alignist_reloads_total", "result" => "ok").increment(1);
+            }
+            Err(e) => {
                 error!("reload refused, still serving the previous models: {e}");
                 metrics::counter!("alignist_reloads_total", "result" => "refused").increment(1);
             }
-            Err(e) => error!("reload failed: {e}"),
         }
     }
+}
+
+/// Loads the models of `models` off the async threads and starts their workers: the one loading
+/// routine of start-up (`previous` = `None`) and of reloads, where a bundle that fails to load
+/// now keeps serving as it was ([`Served::reloaded`]).
+async fn load_served(
+    models: PathBuf,
+    engine_config: EngineConfig,
+    batch: BatchConfig,
+    previous: Option<std::sync::Arc<Served>>,
+) -> Result<Served, ServeError> {
+    let path = models.display().to_string();
+    let engine = tokio::task::spawn_blocking(move || Engine::load_dir(&models, engine_config))
+        .await
+        .map_err(|e| ServeError::Loader {
+            path: path.clone(),
+            source: e,
+        })?
+        .map_err(|source| ServeError::Models {
+            path: path.clone(),
+            source,
+        })?;
+    Served::reloaded(engine, previous.as_deref(), batch)
+        .map_err(|source| ServeError::Workers { path, source })
 }
 
 /// Errors that stop the server.
@@ -157,12 +171,31 @@ pub enum ServeError {
         message: String,
     },
     /// The models cannot be loaded.
-    #[error("loading models from {path}: {message}")]
+    #[error("loading models from {path}: {source}")]
     Models {
         /// The models directory.
         path: String,
         /// Why.
-        message: String,
+        #[source]
+        source: crate::engine::EngineError,
+    },
+    /// The loading task died (a panic while loading).
+    #[error("loading models from {path}: the loader failed: {source}")]
+    Loader {
+        /// The models directory.
+        path: String,
+        /// The task's failure.
+        #[source]
+        source: tokio::task::JoinError,
+    },
+    /// The models' encoder or head threads could not be started.
+    #[error("starting the workers of the models from {path}: {source}")]
+    Workers {
+        /// The models directory.
+        path: String,
+        /// Why.
+        #[source]
+        source: std::io::Error,
     },
     /// Transport failure.
     #[error("gRPC transport: {0}")]
@@ -204,52 +237,92 @@ pub async fn shutdown_signal() {
     let _ = ctrl_c.await;
 }
 
-/// Serves until `shutdown` resolves, then drains. Prints `listening on ADDR` once bound (tests and
-/// scripts read the port from it when the address's port is 0).
+/// Installs the Prometheus exporter on `addr`: histograms with buckets (aggregatable across
+/// replicas, unlike summaries), times in seconds from 1 ms to 30 s, batch sizes in powers of two.
+fn install_metrics(addr: SocketAddr) -> Result<(), ServeError> {
+    use metrics_exporter_prometheus::{Matcher, PrometheusBuilder};
+    let err = |e: metrics_exporter_prometheus::BuildError| ServeError::Metrics {
+        addr,
+        message: e.to_string(),
+    };
+    PrometheusBuilder::new()
+        .with_http_listener(addr)
+        .set_buckets_for_metric(
+            Matcher::Suffix("_seconds".into()),
+            &[
+                0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0,
+            ],
+        )
+        .map_err(err)?
+        .set_buckets_for_metric(
+            Matcher::Suffix("batch_size".into()),
+            &[1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0],
+        )
+        .map_err(err)?
+        .install()
+        .map_err(err)?;
+    info!(%addr, "metrics listening");
+    Ok(())
+}
+
+/// Binds `listen`; prints `listening on ADDR` (tests and scripts read the port from it when the
+/// address's port is 0).
+async fn bind(listen: SocketAddr) -> Result<TcpListener, ServeError> {
+    let bind_error = |source| ServeError::Bind {
+        addr: listen,
+        source,
+    };
+    let listener = TcpListener::bind(listen).await.map_err(bind_error)?;
+    let local = listener.local_addr().map_err(bind_error)?;
+    println!("listening on {local}");
+    info!(%local, "gRPC listening");
+    Ok(listener)
+}
+
+/// Loads the models while the server already answers health checks (NOT_SERVING meanwhile), then
+/// serves them and watches for reloads.
+fn spawn_loader(
+    config: &ServerConfig,
+    state: ServiceState,
+    health: tonic_health::server::HealthReporter,
+    hup: Option<tokio::signal::unix::Signal>,
+) -> tokio::task::JoinHandle<Result<(), ServeError>> {
+    let (models, engine_config, batch) = (config.models.clone(), config.engine, config.batch);
+    let reload_interval = config.reload_interval;
+    tokio::spawn(async move {
+        let fingerprint = models_fingerprint(&models);
+        let served = load_served(models.clone(), engine_config, batch, None).await?;
+        info!(
+            models = ?served.engine.names(),
+            refused = ?served.engine.failures().keys().collect::<Vec<_>>(),
+            "models loaded"
+        );
+        state.install(served);
+        report_health(&health, ServingStatus::Serving).await;
+        let watch = watch_models(
+            models,
+            engine_config,
+            batch,
+            reload_interval,
+            state,
+            fingerprint,
+            hup,
+        );
+        tokio::spawn(watch);
+        Ok(())
+    })
+}
+
+/// Serves until `shutdown` resolves, then drains: stops accepting, reports NOT_SERVING, and waits
+/// up to the drain timeout for the calls in flight.
 pub async fn run(
     config: ServerConfig,
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServeError> {
     if let Some(addr) = config.metrics_listen {
-        use metrics_exporter_prometheus::{Matcher, PrometheusBuilder};
-        let err = |e: metrics_exporter_prometheus::BuildError| ServeError::Metrics {
-            addr,
-            message: e.to_string(),
-        };
-        // Histograms with buckets (aggregatable across replicas, unlike summaries): times in
-        // seconds from 1 ms to 30 s, batch sizes in powers of two.
-        PrometheusBuilder::new()
-            .with_http_listener(addr)
-            .set_buckets_for_metric(
-                Matcher::Suffix("_seconds".into()),
-                &[
-                    0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0,
-                    30.0,
-                ],
-            )
-            .map_err(err)?
-            .set_buckets_for_metric(
-                Matcher::Suffix("batch_size".into()),
-                &[1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0],
-            )
-            .map_err(err)?
-            .install()
-            .map_err(err)?;
-        info!(%addr, "metrics listening");
+        install_metrics(addr)?;
     }
-    let listener = TcpListener::bind(config.listen)
-        .await
-        .map_err(|source| ServeError::Bind {
-            addr: config.listen,
-            source,
-        })?;
-    let local = listener.local_addr().map_err(|source| ServeError::Bind {
-        addr: config.listen,
-        source,
-    })?;
-    println!("listening on {local}");
-    info!(%local, "gRPC listening");
-
+    let listener = bind(config.listen).await?;
     let (health, health_service) = tonic_health::server::health_reporter();
     health.set_service_status("", ServingStatus::Serving).await;
     report_health(&health, ServingStatus::NotServing).await;
@@ -262,7 +335,6 @@ pub async fn run(
     };
     let reflection = reflection_builder().build_v1()?;
     let reflection_v1alpha = reflection_builder().build_v1alpha()?;
-
     // SIGHUP is handled from the start (its default action would end the process while the
     // models load); hang-ups before the models are loaded trigger a reload check afterwards.
     let hup = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()).ok();
@@ -274,54 +346,7 @@ pub async fn run(
         config.admission,
     ))
     .max_decoding_message_size(config.engine.image_limits.max_bytes + (1 << 20));
-
-    // Load the models while already answering health checks (NOT_SERVING meanwhile).
-    let loader = {
-        let (state, health) = (state.clone(), health.clone());
-        let (models, engine_config, batch) = (config.models.clone(), config.engine, config.batch);
-        let reload_interval = config.reload_interval;
-        tokio::spawn(async move {
-            let path = models.display().to_string();
-            let fingerprint = models_fingerprint(&models);
-            let watched = models.clone();
-            let loaded =
-                tokio::task::spawn_blocking(move || Engine::load_dir(&models, engine_config)).await;
-            match loaded {
-                Ok(Ok(engine)) => {
-                    info!(
-                        models = ?engine.names(),
-                        refused = ?engine.failures().keys().collect::<Vec<_>>(),
-                        "models loaded"
-                    );
-                    let served = Served::new(engine, batch).map_err(|e| ServeError::Models {
-                        path: path.clone(),
-                        message: format!("starting encoder threads: {e}"),
-                    })?;
-                    state.install(served);
-                    report_health(&health, ServingStatus::Serving).await;
-                    tokio::spawn(watch_models(
-                        watched,
-                        engine_config,
-                        batch,
-                        reload_interval,
-                        state,
-                        fingerprint,
-                        hup,
-                    ));
-                    Ok(())
-                }
-                Ok(Err(e)) => Err(ServeError::Models {
-                    path,
-                    message: e.to_string(),
-                }),
-                Err(e) => Err(ServeError::Models {
-                    path,
-                    message: format!("loader failed: {e}"),
-                }),
-            }
-        })
-    };
-
+    let loader = spawn_loader(&config, state, health.clone(), hup);
     let (stop_accepting, stopped) = tokio::sync::oneshot::channel::<()>();
     // TCP_NODELAY on every accepted connection: with Nagle's algorithm a response waits for the
     // client's delayed ACK (~40 ms on Linux); tonic sets it only on listeners it binds itself.
@@ -351,25 +376,38 @@ pub async fn run(
             result = &mut server => return result.map_err(ServeError::from),
             loaded = &mut loader, if !loader_done => {
                 loader_done = true;
-                match loaded {
-                    Ok(Ok(())) => {}
-                    Ok(Err(e)) => { error!("{e}"); return Err(e); }
-                    Err(e) => return Err(ServeError::Models { path: config.models.display().to_string(), message: e.to_string() }),
-                }
+                let failed = match loaded {
+                    Ok(Ok(())) => continue,
+                    Ok(Err(e)) => e,
+                    Err(source) => ServeError::Loader { path: config.models.display().to_string(), source },
+                };
+                error!("{failed}");
+                return Err(failed);
             }
             _ = &mut shutdown => break,
         }
     }
+    drain(&health, stop_accepting, server, config.drain_timeout).await
+}
+
+/// Stops accepting, reports NOT_SERVING (the service and the whole server), and waits up to
+/// `timeout` for the calls in flight.
+async fn drain(
+    health: &tonic_health::server::HealthReporter,
+    stop_accepting: tokio::sync::oneshot::Sender<()>,
+    server: impl std::future::Future<Output = Result<(), tonic::transport::Error>>,
+    timeout: Duration,
+) -> Result<(), ServeError> {
     info!(
-        timeout_s = config.drain_timeout.as_secs_f64(),
+        timeout_s = timeout.as_secs_f64(),
         "shutdown: draining in-flight calls"
     );
-    report_health(&health, ServingStatus::NotServing).await;
+    report_health(health, ServingStatus::NotServing).await;
     health
         .set_service_status("", ServingStatus::NotServing)
         .await;
     let _ = stop_accepting.send(());
-    match tokio::time::timeout(config.drain_timeout, &mut server).await {
+    match tokio::time::timeout(timeout, server).await {
         Ok(result) => {
             info!("drained; exiting");
             result.map_err(ServeError::from)

@@ -32,25 +32,24 @@ pub(crate) struct FitArgs {
     /// Output bundle folder (e.g. models/symsol1).
     #[arg(long)]
     out: PathBuf,
-    /// alignist (GKL from the experts, both branches) or ipdf (the baseline).
-    #[arg(long, default_value = "alignist")]
-    method: String,
-    /// Measure loss of the alignist method: gkl or l1.
-    #[arg(long, default_value = "gkl")]
-    loss: String,
-    /// Sampling of the alignist method: modes (mode-focused) or random (uniform).
-    #[arg(long, default_value = "modes")]
-    sampling: String,
-    /// Experts fitted by the alignist method: both, shape (the SDF expert only) or feature (the
-    /// feature expert only); a single-expert run silences the other branch.
-    #[arg(long, default_value = "both")]
-    fit_experts: String,
+    /// The method: alignist (the experts' measures) or ipdf (the baseline).
+    #[arg(long, value_enum, default_value_t = MethodArg::Alignist)]
+    method: MethodArg,
+    /// Measure loss of the alignist method.
+    #[arg(long, value_enum, default_value_t = LossArg::Gkl)]
+    loss: LossArg,
+    /// Sampling of the alignist method.
+    #[arg(long, value_enum, default_value_t = SamplingArg::Modes)]
+    sampling: SamplingArg,
+    /// Experts fitted by the alignist method; a single-expert run silences the other branch.
+    #[arg(long, value_enum, default_value_t = FitExpertsArg::Both)]
+    fit_experts: FitExpertsArg,
     /// Encoder layout.
     #[arg(long, value_enum, default_value_t = Layout::Tiny)]
     layout: Layout,
-    /// Rotation encoding: cube or ipdf.
-    #[arg(long, default_value = "cube")]
-    encoding: String,
+    /// Rotation encoding.
+    #[arg(long, value_enum, default_value_t = EncodingArg::Cube)]
+    encoding: EncodingArg,
     /// Crop side in pixels.
     #[arg(long, default_value_t = 64)]
     image_size: u32,
@@ -98,6 +97,155 @@ pub(crate) struct FitArgs {
     /// Test images per object in the evaluation (0 skips it).
     #[arg(long, default_value_t = 50)]
     eval_images: usize,
+}
+
+/// `--method`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub(crate) enum MethodArg {
+    /// Alignist: both branches fit the experts' measures.
+    Alignist,
+    /// IPDF: the softmax of the ground truth among uniform rotations.
+    Ipdf,
+}
+
+/// `--loss`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub(crate) enum LossArg {
+    /// Generalised KL (the paper's).
+    Gkl,
+    /// L1 between the measures (ablation).
+    L1,
+}
+
+/// `--sampling`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub(crate) enum SamplingArg {
+    /// Mode-focused (the paper's).
+    Modes,
+    /// Uniform (ablation).
+    Random,
+}
+
+/// `--fit-experts`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub(crate) enum FitExpertsArg {
+    /// Both experts (the paper's).
+    Both,
+    /// The SDF expert only.
+    Shape,
+    /// The feature expert only.
+    Feature,
+}
+
+/// `--encoding`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub(crate) enum EncodingArg {
+    /// The cube encoding (the paper's).
+    Cube,
+    /// IPDF's positional encoding (3 frequencies).
+    Ipdf,
+}
+
+impl From<EncodingArg> for alignist::encoding::RotationEncoding {
+    fn from(e: EncodingArg) -> Self {
+        match e {
+            EncodingArg::Cube => Self::Cube,
+            EncodingArg::Ipdf => Self::Ipdf { frequencies: 3 },
+        }
+    }
+}
+
+impl FitArgs {
+    /// The training method the flags ask for.
+    fn method(&self) -> alignist::train::Method {
+        use alignist::train::{ExpertBranches, MeasureLoss, Method, SamplingStrategy};
+        match self.method {
+            MethodArg::Ipdf => Method::Ipdf,
+            MethodArg::Alignist => Method::Alignist {
+                loss: match self.loss {
+                    LossArg::Gkl => MeasureLoss::Gkl,
+                    LossArg::L1 => MeasureLoss::L1,
+                },
+                sampling: match self.sampling {
+                    SamplingArg::Modes => SamplingStrategy::mode_focused(self.k),
+                    SamplingArg::Random => SamplingStrategy::Uniform,
+                },
+                experts: match self.fit_experts {
+                    FitExpertsArg::Both => ExpertBranches::Both,
+                    FitExpertsArg::Shape => ExpertBranches::ShapeOnly,
+                    FitExpertsArg::Feature => ExpertBranches::FeatureOnly,
+                },
+            },
+        }
+    }
+
+    /// The training configuration the flags ask for, for `network`.
+    fn train_config(
+        &self,
+        network: &alignist::train::NetworkConfig,
+    ) -> Result<alignist::train::TrainConfig> {
+        Ok(alignist::train::TrainConfig {
+            network: network.clone(),
+            method: self.method(),
+            steps: self.steps,
+            batch: self.batch,
+            k: self.k,
+            lr: self.lr,
+            warmup: (self.steps / 20).max(1),
+            seed: self.seed,
+            checkpoint_every: self.checkpoint_every,
+            init: self
+                .init
+                .as_deref()
+                .map(|dir| init_weights(dir, network))
+                .transpose()?,
+        })
+    }
+
+    /// Checks what clap cannot: counts, ranges and the flags that go together.
+    fn check(&self) -> Result<()> {
+        if !self.fresh && self.data.len() != self.experts.len() {
+            bail!(
+                "give one --experts per --data ({} --data, {} --experts)",
+                self.data.len(),
+                self.experts.len()
+            );
+        }
+        if !(self.fraction > 0.0 && self.fraction <= 1.0) {
+            bail!("--fraction must be in (0, 1], got {}", self.fraction);
+        }
+        if self.image_size < 16 || !self.image_size.is_multiple_of(8) {
+            bail!(
+                "--image-size must be a multiple of 8 and at least 16, got {}",
+                self.image_size
+            );
+        }
+        if self.eval_level > 5 {
+            bail!("--eval-level {} is above 5", self.eval_level);
+        }
+        for (flag, v) in [
+            ("--steps", self.steps),
+            ("--batch", self.batch),
+            ("--k", self.k),
+        ] {
+            if v == 0 {
+                bail!("{flag} must be at least 1");
+            }
+        }
+        if let Some(stop) = self.stop_at
+            && (stop == 0
+                || stop > self.steps
+                || !stop.is_multiple_of(self.checkpoint_every.max(1)))
+        {
+            bail!(
+                "--stop-at {stop} must be in 1 ..= --steps ({}) and a multiple of \
+                 --checkpoint-every ({}), so that the run stops at a checkpoint",
+                self.steps,
+                self.checkpoint_every
+            );
+        }
+        Ok(())
+    }
 }
 
 /// Encoder layouts on the command line.
@@ -250,82 +398,12 @@ pub(crate) fn fresh_fit_data(args: &FitArgs) -> Result<FitData> {
 }
 
 pub(crate) fn fit_cmd(args: &FitArgs) -> Result<()> {
-    use alignist::bundle::model::{
-        GridLevels, MODEL_FORMAT_VERSION, ModelBundle, ModelManifest, Provenance,
-    };
-    use alignist::encoding::RotationEncoding;
-    use alignist::train::eval::evaluate;
-    use alignist::train::{
-        ExpertBranches, MeasureLoss, Method, NetworkConfig, SamplingStrategy, TrainConfig,
-        TrainingSet, train,
-    };
+    use alignist::bundle::model::{GridLevels, ModelBundle, ModelManifest, Provenance};
+    use alignist::train::NetworkConfig;
 
-    if !args.fresh && args.data.len() != args.experts.len() {
-        bail!(
-            "give one --experts per --data ({} --data, {} --experts)",
-            args.data.len(),
-            args.experts.len()
-        );
-    }
-    if !(args.fraction > 0.0 && args.fraction <= 1.0) {
-        bail!("--fraction must be in (0, 1], got {}", args.fraction);
-    }
-    if args.image_size < 16 || !args.image_size.is_multiple_of(8) {
-        bail!(
-            "--image-size must be a multiple of 8 and at least 16, got {}",
-            args.image_size
-        );
-    }
-    if args.eval_level > 5 {
-        bail!("--eval-level {} is above 5", args.eval_level);
-    }
-    for (flag, v) in [
-        ("--steps", args.steps),
-        ("--batch", args.batch),
-        ("--k", args.k),
-    ] {
-        if v == 0 {
-            bail!("{flag} must be at least 1");
-        }
-    }
-    if let Some(stop) = args.stop_at
-        && (stop == 0 || stop > args.steps || !stop.is_multiple_of(args.checkpoint_every.max(1)))
-    {
-        bail!(
-            "--stop-at {stop} must be in 1 ..= --steps ({}) and a multiple of --checkpoint-every \
-             ({}), so that the run stops at a checkpoint",
-            args.steps,
-            args.checkpoint_every
-        );
-    }
-    let method = match args.method.as_str() {
-        "alignist" => Method::Alignist {
-            loss: match args.loss.as_str() {
-                "gkl" => MeasureLoss::Gkl,
-                "l1" => MeasureLoss::L1,
-                other => bail!("--loss must be gkl or l1, got '{other}'"),
-            },
-            sampling: match args.sampling.as_str() {
-                "modes" => SamplingStrategy::mode_focused(args.k),
-                "random" => SamplingStrategy::Uniform,
-                other => bail!("--sampling must be modes or random, got '{other}'"),
-            },
-            experts: match args.fit_experts.as_str() {
-                "both" => ExpertBranches::Both,
-                "shape" => ExpertBranches::ShapeOnly,
-                "feature" => ExpertBranches::FeatureOnly,
-                other => bail!("--fit-experts must be both, shape or feature, got '{other}'"),
-            },
-        },
-        "ipdf" => Method::Ipdf,
-        other => bail!("--method must be alignist or ipdf, got '{other}'"),
-    };
-    let encoding = match args.encoding.as_str() {
-        "cube" => RotationEncoding::Cube,
-        "ipdf" => RotationEncoding::Ipdf { frequencies: 3 },
-        other => bail!("--encoding must be cube or ipdf, got '{other}'"),
-    };
-    let network = NetworkConfig::new(args.layout.into(), encoding).with_image_size(args.image_size);
+    args.check()?;
+    let network = NetworkConfig::new(args.layout.into(), args.encoding.into())
+        .with_image_size(args.image_size);
     let FitData {
         objects,
         sets,
@@ -337,6 +415,7 @@ pub(crate) fn fit_cmd(args: &FitArgs) -> Result<()> {
     } else {
         dataset_fit_data(args)?
     };
+    let config = args.train_config(&network)?;
     let baked: Vec<_> = sets.iter().map(|s| s.bake()).collect();
     let modes = sets
         .iter()
@@ -344,28 +423,81 @@ pub(crate) fn fit_cmd(args: &FitArgs) -> Result<()> {
         .map(|(s, b)| s.mode_table(b))
         .collect::<Result<Vec<_>, _>>()
         .context("building the mode tables")?;
-    let training = TrainingSet {
+    let training = alignist::train::TrainingSet {
         objects: baked,
         modes,
         images,
         fresh,
     };
-    let config = TrainConfig {
-        network: network.clone(),
-        method,
-        steps: args.steps,
-        batch: args.batch,
-        k: args.k,
-        lr: args.lr,
-        warmup: (args.steps / 20).max(1),
-        seed: args.seed,
-        checkpoint_every: args.checkpoint_every,
-        init: args
-            .init
-            .as_deref()
-            .map(|dir| init_weights(dir, &network))
-            .transpose()?,
+    let Some((trained, report)) = train_with_progress(args, &config, &training)? else {
+        return Ok(());
     };
+    if args.profile {
+        print_profile(&report.profile);
+    }
+    let evaluation = evaluate_fit(args, &trained, &network, &tests)?;
+    let engine = alignist::engine::EngineConfig::default();
+    let mut manifest = ModelManifest::new(
+        args.out
+            .file_name()
+            .and_then(|n| n.to_str())
+            .unwrap_or("model")
+            .to_string(),
+        network,
+        objects,
+        // The levels the engine serves by default: what the server caps this model to.
+        GridLevels {
+            full_max: engine.max_full_level,
+            search_max: engine.search_max_level,
+        },
+        Provenance {
+            command: std::env::args().collect::<Vec<_>>().join(" "),
+            train: config,
+            report: report.clone(),
+        },
+        evaluation.clone(),
+    );
+    let dirs: Vec<&Path> = args.experts.iter().map(|p| p.as_path()).collect();
+    ModelBundle::save(&mut manifest, &trained, &dirs, &args.out)
+        .with_context(|| format!("writing the bundle to {}", args.out.display()))?;
+    eprintln!(
+        "trained {} steps in {:.0} s (final loss {:.4}); bundle written to {}",
+        report.steps_run,
+        report.seconds,
+        report.final_loss,
+        args.out.display()
+    );
+    if let Some(e) = evaluation {
+        print_eval(&e);
+    }
+    Ok(())
+}
+
+/// The trained network evaluated on the test images at `--eval-level` (none without images).
+fn evaluate_fit(
+    args: &FitArgs,
+    trained: &alignist::net::Network,
+    network: &alignist::train::NetworkConfig,
+    tests: &[alignist::train::eval::EvalImage],
+) -> Result<Option<alignist::train::eval::EvalReport>> {
+    if tests.is_empty() {
+        return Ok(None);
+    }
+    let bar = ProgressBar::new(tests.len() as u64);
+    let report = alignist::train::eval::evaluate(trained, network, tests, args.eval_level, |n| {
+        bar.set_position(n as u64)
+    })?;
+    bar.finish_and_clear();
+    Ok(Some(report))
+}
+
+/// Trains with a progress bar and a log line now and then, checkpointing to `--checkpoints`;
+/// `None` when the run stopped at `--stop-at` as asked.
+fn train_with_progress(
+    args: &FitArgs,
+    config: &alignist::train::TrainConfig,
+    training: &alignist::train::TrainingSet,
+) -> Result<Option<(alignist::net::Network, alignist::train::TrainReport)>> {
     let checkpoints = args
         .checkpoints
         .clone()
@@ -377,9 +509,9 @@ pub(crate) fn fit_cmd(args: &FitArgs) -> Result<()> {
             .expect("static progress template"),
     );
     let mut log = ProgressLog::new();
-    let (trained, report) = train(
-        &config,
-        &training,
+    let (trained, report) = alignist::train::train(
+        config,
+        training,
         Some(&checkpoints),
         args.resume,
         |step, steps, loss| {
@@ -405,62 +537,9 @@ pub(crate) fn fit_cmd(args: &FitArgs) -> Result<()> {
             args.steps,
             checkpoints.display()
         );
-        return Ok(());
+        return Ok(None);
     }
-    if args.profile {
-        print_profile(&report.profile);
-    }
-    let evaluation = if tests.is_empty() {
-        None
-    } else {
-        let bar = ProgressBar::new(tests.len() as u64);
-        let r = evaluate(&trained, &network, &tests, args.eval_level, |n| {
-            bar.set_position(n as u64)
-        })?;
-        bar.finish_and_clear();
-        Some(r)
-    };
-    let mut manifest = ModelManifest {
-        format_version: MODEL_FORMAT_VERSION,
-        name: args
-            .out
-            .file_name()
-            .and_then(|n| n.to_str())
-            .unwrap_or("model")
-            .to_string(),
-        network,
-        input: "RGB crop as a virtual camera looking at the centre of the object's box sees it: \
-                a square of 1.2 × the box's longer side (never stretched), side image_size, \
-                values / 255 (src/data/virtual_crop.rs)"
-            .into(),
-        objects,
-        // The levels the engine serves by default: what the server caps this model to.
-        levels: GridLevels {
-            full_max: alignist::engine::EngineConfig::default().max_full_level,
-            search_max: alignist::engine::EngineConfig::default().search_max_level,
-        },
-        provenance: Provenance {
-            command: std::env::args().collect::<Vec<_>>().join(" "),
-            train: config,
-            report: report.clone(),
-        },
-        evaluation: evaluation.clone(),
-        files: Default::default(),
-    };
-    let dirs: Vec<&Path> = args.experts.iter().map(|p| p.as_path()).collect();
-    ModelBundle::save(&mut manifest, &trained, &dirs, &args.out)
-        .with_context(|| format!("writing the bundle to {}", args.out.display()))?;
-    eprintln!(
-        "trained {} steps in {:.0} s (final loss {:.4}); bundle written to {}",
-        report.steps_run,
-        report.seconds,
-        report.final_loss,
-        args.out.display()
-    );
-    if let Some(e) = evaluation {
-        print_eval(&e);
-    }
-    Ok(())
+    Ok(Some((trained, report)))
 }
 
 /// The weights of the bundle in `dir`, checked to be of the network `fit` is asked to train.
