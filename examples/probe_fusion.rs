@@ -2,6 +2,7 @@
 //! `cargo run --release --example probe_fusion MODEL_DIR OBJECT N` prints, per crop, the spread
 //! (max − min, std) of κ·(−U) over the level-3 cells of the equivalents, their mean below the
 //! grid's best term, and the translation error of τ₀ at the ground truth.
+//! `probe_fusion --table-time` prints how long the cylinder's view table takes to build.
 use alignist::bundle::model::ModelBundle;
 use alignist::engine::{CropBox, DepthInput, Engine, EngineConfig, SeenPoints, back_project};
 use alignist::so3::to_row_major_f32;
@@ -9,6 +10,16 @@ use alignist::train::depth_eval::depth_eval_images;
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
+    if args.get(1).map(String::as_str) == Some("--table-time") {
+        let (mesh, _) = alignist::cad::Shape::Cylinder.mesh().normalised();
+        let started = std::time::Instant::now();
+        let _ = alignist::engine::ViewTable::build(&mesh);
+        println!(
+            "view table of the cylinder built in {:.2} s",
+            started.elapsed().as_secs_f64()
+        );
+        return;
+    }
     let dir = std::path::Path::new(&args[1]);
     let object_name = &args[2];
     let n: usize = args[3].parse().unwrap();

@@ -8,8 +8,8 @@ use std::path::Path;
 use std::time::Instant;
 
 use burn::module::Module;
-use burn::optim::{AdamConfig, GradientsParams};
-use burn::tensor::{Tensor, TensorData};
+use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
+use burn::tensor::{Device, Tensor, TensorData};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -230,6 +230,149 @@ fn mode_samplers(config: &TrainConfig, set: &TrainingSet) -> Result<Vec<ModeSamp
         .collect()
 }
 
+/// Refuses a training set that cannot train: no images, or fresh renders without a mesh per
+/// object.
+fn check_set(set: &TrainingSet) -> Result<(), TrainError> {
+    match &set.fresh {
+        None if set.images.is_empty() => {
+            Err(TrainError::Data("the training set has no images".into()))
+        }
+        Some(fresh) if fresh.meshes.len() != set.objects.len() => Err(TrainError::Data(format!(
+            "fresh renders need one mesh per object: {} meshes for {} objects",
+            fresh.meshes.len(),
+            set.objects.len()
+        ))),
+        _ => Ok(()),
+    }
+}
+
+/// The network and optimiser a run starts from, and its first step: the last checkpoint of
+/// `checkpoints` when resuming, else the `init` weights (a warm restart), else a seeded
+/// initialisation whose output biases start at the targets' mean (a silenced branch for a
+/// single-expert run).
+fn starting_point(
+    config: &TrainConfig,
+    set: &TrainingSet,
+    checkpoints: Option<&Path>,
+    resume: bool,
+    samplers: &[ModeSampler],
+    device: &Device,
+) -> Result<(Network, ModuleOptimizer, usize), TrainError> {
+    let mut network =
+        crate::backend::seeded_init(device, config.seed, || config.network.init(device));
+    let optim = AdamConfig::new().init();
+    if let (Some(dir), true) = (checkpoints, resume)
+        && let Some(latest) = latest_checkpoint(dir)?
+    {
+        let (net, opt, state) = load_checkpoint(&latest, network, optim, device)?;
+        return Ok((net, opt, state.step));
+    }
+    if let Some(init) = &config.init {
+        let loaded = crate::bundle::load_weights(network, Path::new(&init.path), &init.file)
+            .map_err(|e| TrainError::Checkpoint {
+                path: init.path.clone(),
+                message: format!("the weights to start from: {e}"),
+            })?;
+        // As after a checkpoint: loading runs ops on the parameters, fork gives them a graph.
+        return Ok((loaded.valid().train().fork(device), optim, 0));
+    }
+    if let Method::Alignist { experts, .. } = config.method {
+        let (sdf, se) = mean_log_targets(config, set, config.batch, samplers);
+        network.head = network.head.with_output_biases(sdf, se);
+        match experts {
+            ExpertBranches::ShapeOnly => network.head = network.head.with_silenced_branch(false),
+            ExpertBranches::FeatureOnly => network.head = network.head.with_silenced_branch(true),
+            ExpertBranches::Both => {}
+        }
+    }
+    Ok((network, optim, 0))
+}
+
+/// The loss of one batch (scores of `rotations` for the encoder's `features`) for the method:
+/// per branch against the experts' log-targets (Alignist), or IPDF's softmax loss.
+fn method_loss(
+    config: &TrainConfig,
+    network: &Network,
+    features: Tensor<2>,
+    rotations: &[Vec<[f32; 9]>],
+    log_sdf: Vec<f32>,
+    log_se: Vec<f32>,
+) -> Tensor<1> {
+    let scores = network.scores_of_features(features, rotations, &config.network.encoding);
+    let Method::Alignist { loss, experts, .. } = &config.method else {
+        return ipdf_loss(scores.combined());
+    };
+    let device = scores.shape.device();
+    let target = |v: Vec<f32>| -> Tensor<2> {
+        Tensor::from_data(TensorData::new(v, [rotations.len(), config.k]), &device)
+    };
+    let f = match loss {
+        MeasureLoss::Gkl => gkl_loss,
+        MeasureLoss::L1 => l1_measure_loss,
+    };
+    match experts {
+        ExpertBranches::Both => {
+            f(target(log_sdf), scores.shape) + f(target(log_se), scores.feature)
+        }
+        ExpertBranches::ShapeOnly => f(target(log_sdf), scores.shape),
+        ExpertBranches::FeatureOnly => f(target(log_se), scores.feature),
+    }
+}
+
+/// One optimiser step at `step` (its images, rotations and targets drawn from the step's own
+/// seed, so that a resumed run continues exactly): the network after it, and the loss.
+fn train_step(
+    config: &TrainConfig,
+    set: &TrainingSet,
+    samplers: &[ModeSampler],
+    (network, optim): (Network, &mut ModuleOptimizer),
+    step: usize,
+    profile: &mut StepProfile,
+    device: &Device,
+) -> Result<(Network, f64), TrainError> {
+    let seed = config
+        .seed
+        .wrapping_mul(1_000_003)
+        .wrapping_add(step as u64);
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let started = Instant::now();
+    let picks = step_images(config, set, &mut rng);
+    let crops: Vec<&[u8]> = picks.iter().map(|im| im.rgb.as_slice()).collect();
+    let images = images_tensor(&crops, config.network.image_size as usize, device);
+    profile.data += started.elapsed().as_secs_f64();
+    let mut rotations = Vec::with_capacity(picks.len());
+    let mut log_sdf = Vec::with_capacity(picks.len() * config.k);
+    let mut log_se = Vec::with_capacity(picks.len() * config.k);
+    for im in &picks {
+        let (mats, targets) = sample_image(config, set, im, samplers, &mut rng, profile);
+        if let Some(t) = targets {
+            log_sdf.extend(t.log_a_sdf);
+            log_se.extend(t.log_a_se);
+        }
+        rotations.push(mats);
+    }
+    let started = Instant::now();
+    let features = network.encoder.forward(images);
+    profile.encoder_forward += started.elapsed().as_secs_f64();
+    let started = Instant::now();
+    let loss = method_loss(config, &network, features, &rotations, log_sdf, log_se);
+    let loss_value = loss.clone().into_scalar::<f32>() as f64;
+    profile.head_forward += started.elapsed().as_secs_f64();
+    if !loss_value.is_finite() {
+        return Err(TrainError::Diverged {
+            step,
+            loss: loss_value,
+        });
+    }
+    let started = Instant::now();
+    let grads = GradientsParams::from_grads(loss.backward(), &network);
+    profile.backward += started.elapsed().as_secs_f64();
+    let started = Instant::now();
+    let network = optim.step(learning_rate(config, step), network, grads);
+    profile.optimiser += started.elapsed().as_secs_f64();
+    Ok((network, loss_value))
+}
+
 /// Trains (or resumes, when `checkpoints` holds one and `resume` is set) and returns the network
 /// on the plain (non-autodiff) device. `progress(step, steps, loss)` runs after every step (and
 /// its checkpoint); returning `ControlFlow::Break` stops the run there, as an interruption would.
@@ -240,144 +383,36 @@ pub fn train(
     resume: bool,
     mut progress: impl FnMut(usize, usize, f64) -> ControlFlow<()>,
 ) -> Result<(Network, TrainReport), TrainError> {
-    match &set.fresh {
-        None if set.images.is_empty() => {
-            return Err(TrainError::Data("the training set has no images".into()));
-        }
-        Some(fresh) if fresh.meshes.len() != set.objects.len() => {
-            return Err(TrainError::Data(format!(
-                "fresh renders need one mesh per object: {} meshes for {} objects",
-                fresh.meshes.len(),
-                set.objects.len()
-            )));
-        }
-        _ => {}
-    }
+    check_set(set)?;
     let started = Instant::now();
     let device = crate::backend::device_for(crate::backend::Workload::Conv).autodiff();
-    let mut network =
-        crate::backend::seeded_init(&device, config.seed, || config.network.init(&device));
-    let mut optim = AdamConfig::new().init();
-    let mut start = 0;
-    if let (Some(dir), true) = (checkpoints, resume)
-        && let Some(latest) = latest_checkpoint(dir)?
-    {
-        let (net, opt, state) = load_checkpoint(&latest, network, optim, &device)?;
-        network = net;
-        optim = opt;
-        start = state.step;
-    } else if let Some(init) = &config.init {
-        let loaded = crate::bundle::load_weights(network, Path::new(&init.path), &init.file)
-            .map_err(|e| TrainError::Checkpoint {
-                path: init.path.clone(),
-                message: format!("the weights to start from: {e}"),
-            })?;
-        // As after a checkpoint: loading runs ops on the parameters, fork gives them a graph.
-        network = loaded.valid().train().fork(&device);
-    }
     let samplers = mode_samplers(config, set)?;
-    if start == 0 && config.init.is_none() && matches!(config.method, Method::Alignist { .. }) {
-        let (sdf, se) = mean_log_targets(config, set, config.batch, &samplers);
-        network.head = network.head.with_output_biases(sdf, se);
-        match config.method {
-            Method::Alignist {
-                experts: ExpertBranches::ShapeOnly,
-                ..
-            } => network.head = network.head.with_silenced_branch(false),
-            Method::Alignist {
-                experts: ExpertBranches::FeatureOnly,
-                ..
-            } => network.head = network.head.with_silenced_branch(true),
-            _ => {}
-        }
-    }
-    let size = config.network.image_size as usize;
+    let (mut network, mut optim, start) =
+        starting_point(config, set, checkpoints, resume, &samplers, &device)?;
     let tail_from = config.steps - config.steps.div_ceil(10);
     let (mut tail_sum, mut tail_n) = (0.0, 0usize);
     let mut steps_run = 0;
-
     let mut profile = StepProfile::default();
     for step in start..config.steps {
         let step_started = Instant::now();
-        let mut rng = ChaCha8Rng::seed_from_u64(
-            config
-                .seed
-                .wrapping_mul(1_000_003)
-                .wrapping_add(step as u64),
-        );
-        let started = Instant::now();
-        let picks = step_images(config, set, &mut rng);
-        let crops: Vec<&[u8]> = picks.iter().map(|im| im.rgb.as_slice()).collect();
-        let images = images_tensor(&crops, size, &device);
-        profile.data += started.elapsed().as_secs_f64();
-        let mut rotations = Vec::with_capacity(picks.len());
-        let mut log_sdf = Vec::with_capacity(picks.len() * config.k);
-        let mut log_se = Vec::with_capacity(picks.len() * config.k);
-        for im in &picks {
-            let (mats, targets) = sample_image(config, set, im, &samplers, &mut rng, &mut profile);
-            if let Some(t) = targets {
-                log_sdf.extend(t.log_a_sdf);
-                log_se.extend(t.log_a_se);
-            }
-            rotations.push(mats);
-        }
-        let started = Instant::now();
-        let features = network.encoder.forward(images);
-        profile.encoder_forward += started.elapsed().as_secs_f64();
-        let started = Instant::now();
-        let scores = network.scores_of_features(features, &rotations, &config.network.encoding);
-        let b = picks.len();
-        let loss = match &config.method {
-            Method::Alignist { loss, experts, .. } => {
-                let target = |v: Vec<f32>| -> Tensor<2> {
-                    Tensor::from_data(TensorData::new(v, [b, config.k]), &device)
-                };
-                let f = match loss {
-                    MeasureLoss::Gkl => gkl_loss,
-                    MeasureLoss::L1 => l1_measure_loss,
-                };
-                match experts {
-                    ExpertBranches::Both => {
-                        f(target(log_sdf), scores.shape) + f(target(log_se), scores.feature)
-                    }
-                    ExpertBranches::ShapeOnly => f(target(log_sdf), scores.shape),
-                    ExpertBranches::FeatureOnly => f(target(log_se), scores.feature),
-                }
-            }
-            Method::Ipdf => ipdf_loss(scores.combined()),
-        };
-        let loss_value = loss.clone().into_scalar::<f32>() as f64;
-        profile.head_forward += started.elapsed().as_secs_f64();
-        if !loss_value.is_finite() {
-            return Err(TrainError::Diverged {
-                step,
-                loss: loss_value,
-            });
-        }
+        let loss_value;
+        let with = (network, &mut optim);
+        (network, loss_value) =
+            train_step(config, set, &samplers, with, step, &mut profile, &device)?;
         if step >= tail_from {
             tail_sum += loss_value;
             tail_n += 1;
         }
-        let started = Instant::now();
-        let grads = GradientsParams::from_grads(loss.backward(), &network);
-        profile.backward += started.elapsed().as_secs_f64();
-        let started = Instant::now();
-        network = optim.step(learning_rate(config, step), network, grads);
-        profile.optimiser += started.elapsed().as_secs_f64();
         let done = step + 1;
         if let Some(dir) = checkpoints
             && (done % config.checkpoint_every.max(1) == 0 || done == config.steps)
         {
             network.encoder.sync_running_stats();
-            save_checkpoint(
-                dir,
-                &network,
-                &optim,
-                &CheckpointState {
-                    step: done,
-                    config: config.clone(),
-                },
-            )?;
+            let state = CheckpointState {
+                step: done,
+                config: config.clone(),
+            };
+            save_checkpoint(dir, &network, &optim, &state)?;
         }
         steps_run += 1;
         profile.steps += 1;

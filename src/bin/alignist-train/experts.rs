@@ -6,8 +6,10 @@ use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::object::ObjectArgs;
+use alignist::experts::energy::{KeyNorm, SdfNorm};
 use alignist::experts::feature::FeatureTrainConfig;
 use alignist::experts::modes::ModeTableConfig;
+use alignist::experts::sdf::SdfTrainConfig;
 use alignist::experts::select::WidthCriterion;
 
 #[derive(clap::Args)]
@@ -19,25 +21,25 @@ pub(crate) struct ExpertsArgs {
     #[arg(long)]
     out: PathBuf,
     /// Adam steps of the SDF expert.
-    #[arg(long, default_value_t = 500)]
+    #[arg(long, default_value_t = SdfTrainConfig::default().steps)]
     steps: usize,
     /// Points per SDF step.
-    #[arg(long, default_value_t = 1024)]
+    #[arg(long, default_value_t = SdfTrainConfig::default().batch)]
     sdf_batch: usize,
     /// Adam steps of the feature expert.
     #[arg(long, default_value_t = FeatureTrainConfig::default().steps)]
     feature_steps: usize,
     /// Renders per feature step.
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, default_value_t = FeatureTrainConfig::default().images)]
     images: usize,
     /// Render side of the feature training (divisible by 4).
-    #[arg(long, default_value_t = 32)]
+    #[arg(long, default_value_t = FeatureTrainConfig::default().image_size)]
     image_size: u32,
     /// Foreground pixels per render (InfoNCE positives).
-    #[arg(long, default_value_t = 128)]
+    #[arg(long, default_value_t = FeatureTrainConfig::default().pixels)]
     pixels: usize,
     /// Surface negatives per feature step.
-    #[arg(long, default_value_t = 512)]
+    #[arg(long, default_value_t = FeatureTrainConfig::default().negatives)]
     negatives: usize,
     /// Learning rate of the key SIREN.
     #[arg(long, default_value_t = FeatureTrainConfig::default().lr_keys)]
@@ -52,12 +54,12 @@ pub(crate) struct ExpertsArgs {
     /// symmetry is needed).
     #[arg(long, default_value_t = WidthCriterion::default().width_deg)]
     width: f64,
-    /// Norm of the SDF energy: l0 (the paper's fraction off the surface), l1, l2 (graded).
-    #[arg(long, default_value = "l2", value_parser = ["l0", "l1", "l2"])]
-    norm: String,
-    /// Key distance of the feature energy: distance (the paper's) or squared (graded).
-    #[arg(long, default_value = "squared", value_parser = ["distance", "squared"])]
-    key_norm: String,
+    /// Norm of the SDF energy.
+    #[arg(long, value_enum, default_value_t = NormArg::L2)]
+    norm: NormArg,
+    /// Key distance of the feature energy.
+    #[arg(long, value_enum, default_value_t = KeyNormArg::Squared)]
+    key_norm: KeyNormArg,
     /// Fraction of the level-4 cells kept in the mode table.
     #[arg(long, default_value_t = ModeTableConfig::default().keep_fraction)]
     table_fraction: f64,
@@ -69,100 +71,142 @@ pub(crate) struct ExpertsArgs {
     seed: u64,
 }
 
+/// `--norm`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub(crate) enum NormArg {
+    /// The paper's: the fraction of points off the surface.
+    L0,
+    /// Mean |f| / ε.
+    L1,
+    /// Mean f² / ε² (graded).
+    L2,
+}
+
+impl From<NormArg> for SdfNorm {
+    fn from(n: NormArg) -> Self {
+        match n {
+            NormArg::L0 => SdfNorm::L0,
+            NormArg::L1 => SdfNorm::L1,
+            NormArg::L2 => SdfNorm::L2,
+        }
+    }
+}
+
+/// `--key-norm`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub(crate) enum KeyNormArg {
+    /// The paper's: the distance between keys.
+    Distance,
+    /// The squared distance (graded).
+    Squared,
+}
+
+impl From<KeyNormArg> for KeyNorm {
+    fn from(n: KeyNormArg) -> Self {
+        match n {
+            KeyNormArg::Distance => KeyNorm::Distance,
+            KeyNormArg::Squared => KeyNorm::Squared,
+        }
+    }
+}
+
+impl ExpertsArgs {
+    /// Checks what clap cannot: ranges and counts.
+    fn check(&self) -> Result<()> {
+        if !(self.width > 0.0 && self.width <= 45.0) {
+            bail!("--width must be in (0, 45] degrees, got {}", self.width);
+        }
+        if !(self.table_fraction > 0.0 && self.table_fraction <= 0.25) {
+            bail!(
+                "--table-fraction must be in (0, 0.25], got {}",
+                self.table_fraction
+            );
+        }
+        for (flag, v) in [("--lr-keys", self.lr_keys), ("--lr-query", self.lr_query)] {
+            if !(v > 0.0 && v < 1.0) {
+                bail!("{flag} must be in (0, 1), got {v}");
+            }
+        }
+        if self.image_size < 8 || !self.image_size.is_multiple_of(4) {
+            bail!(
+                "--image-size must be a multiple of 4 and at least 8, got {}",
+                self.image_size
+            );
+        }
+        if !(8..=256).contains(&self.bake_resolution) {
+            bail!(
+                "--bake-resolution must be in 8 ..= 256, got {}",
+                self.bake_resolution
+            );
+        }
+        for (flag, v) in [
+            ("--steps", self.steps),
+            ("--sdf-batch", self.sdf_batch),
+            ("--feature-steps", self.feature_steps),
+            ("--images", self.images),
+            ("--pixels", self.pixels),
+            ("--negatives", self.negatives),
+        ] {
+            if v == 0 {
+                bail!("{flag} must be at least 1");
+            }
+        }
+        Ok(())
+    }
+
+    /// The job the flags describe, for the resolved object (its mesh must be closed).
+    fn job(&self) -> Result<alignist::bundle::experts::ExpertsJob> {
+        use alignist::experts::energy::EnergyParams;
+        let (name, mesh, normalisation, symmetries) = self.object.resolve()?;
+        alignist::cad::SignedDistance::new(&mesh).context("the SDF expert needs a closed mesh")?;
+        Ok(alignist::bundle::experts::ExpertsJob {
+            name,
+            mesh,
+            normalisation,
+            symmetries,
+            sdf: SdfTrainConfig {
+                steps: self.steps,
+                batch: self.sdf_batch,
+                seed: self.seed,
+                ..Default::default()
+            },
+            features: FeatureTrainConfig {
+                steps: self.feature_steps,
+                images: self.images,
+                image_size: self.image_size,
+                pixels: self.pixels,
+                negatives: self.negatives,
+                lr_keys: self.lr_keys,
+                lr_query: self.lr_query,
+                seed: self.seed,
+                ..Default::default()
+            },
+            bake_resolution: self.bake_resolution,
+            energy: EnergyParams {
+                norm: self.norm.into(),
+                key_norm: self.key_norm.into(),
+                ..EnergyParams::default()
+            },
+            width: WidthCriterion {
+                width_deg: self.width,
+                seed: self.seed,
+                ..WidthCriterion::default()
+            },
+            modes: ModeTableConfig {
+                views: self.table_views.max(1),
+                keep_fraction: self.table_fraction,
+                seed: self.seed,
+                ..ModeTableConfig::default()
+            },
+            command: std::env::args().collect::<Vec<_>>().join(" "),
+        })
+    }
+}
+
 pub(crate) fn experts_cmd(args: &ExpertsArgs) -> Result<()> {
-    use alignist::bundle::experts::{ExpertsJob, train_expert_set};
-    use alignist::experts::energy::{EnergyParams, KeyNorm, SdfNorm};
-    use alignist::experts::sdf::SdfTrainConfig;
-
-    if !(args.width > 0.0 && args.width <= 45.0) {
-        bail!("--width must be in (0, 45] degrees, got {}", args.width);
-    }
-    if !(args.table_fraction > 0.0 && args.table_fraction <= 0.25) {
-        bail!(
-            "--table-fraction must be in (0, 0.25], got {}",
-            args.table_fraction
-        );
-    }
-    for (flag, v) in [("--lr-keys", args.lr_keys), ("--lr-query", args.lr_query)] {
-        if !(v > 0.0 && v < 1.0) {
-            bail!("{flag} must be in (0, 1), got {v}");
-        }
-    }
-
-    if args.image_size < 8 || !args.image_size.is_multiple_of(4) {
-        bail!(
-            "--image-size must be a multiple of 4 and at least 8, got {}",
-            args.image_size
-        );
-    }
-    if !(8..=256).contains(&args.bake_resolution) {
-        bail!(
-            "--bake-resolution must be in 8 ..= 256, got {}",
-            args.bake_resolution
-        );
-    }
-    for (flag, v) in [
-        ("--steps", args.steps),
-        ("--sdf-batch", args.sdf_batch),
-        ("--feature-steps", args.feature_steps),
-        ("--images", args.images),
-        ("--pixels", args.pixels),
-        ("--negatives", args.negatives),
-    ] {
-        if v == 0 {
-            bail!("{flag} must be at least 1");
-        }
-    }
-    let (name, mesh, normalisation, symmetries) = args.object.resolve()?;
-    alignist::cad::SignedDistance::new(&mesh).context("the SDF expert needs a closed mesh")?;
-    let job = ExpertsJob {
-        name,
-        mesh,
-        normalisation,
-        symmetries,
-        sdf: SdfTrainConfig {
-            steps: args.steps,
-            batch: args.sdf_batch,
-            seed: args.seed,
-            ..Default::default()
-        },
-        features: FeatureTrainConfig {
-            steps: args.feature_steps,
-            images: args.images,
-            image_size: args.image_size,
-            pixels: args.pixels,
-            negatives: args.negatives,
-            lr_keys: args.lr_keys,
-            lr_query: args.lr_query,
-            seed: args.seed,
-            ..Default::default()
-        },
-        bake_resolution: args.bake_resolution,
-        energy: EnergyParams {
-            norm: match args.norm.as_str() {
-                "l0" => SdfNorm::L0,
-                "l1" => SdfNorm::L1,
-                _ => SdfNorm::L2,
-            },
-            key_norm: match args.key_norm.as_str() {
-                "distance" => KeyNorm::Distance,
-                _ => KeyNorm::Squared,
-            },
-            ..EnergyParams::default()
-        },
-        width: WidthCriterion {
-            width_deg: args.width,
-            seed: args.seed,
-            ..WidthCriterion::default()
-        },
-        modes: ModeTableConfig {
-            views: args.table_views.max(1),
-            keep_fraction: args.table_fraction,
-            seed: args.seed,
-            ..ModeTableConfig::default()
-        },
-        command: std::env::args().collect::<Vec<_>>().join(" "),
-    };
+    use alignist::bundle::experts::train_expert_set;
+    args.check()?;
+    let job = args.job()?;
     let style = ProgressStyle::with_template("{prefix:>9} {bar:40} {pos}/{len}  {msg}  eta {eta}")
         .expect("static progress template");
     let mut bar: Option<(String, ProgressBar)> = None;
@@ -189,13 +233,19 @@ pub(crate) fn experts_cmd(args: &ExpertsArgs) -> Result<()> {
     }
     set.save(&args.out)
         .with_context(|| format!("writing the expert set to {}", args.out.display()))?;
-    let m = &set.manifest;
     eprintln!(
         "expert set for {} written to {} in {:.0} s",
-        m.object.name,
+        set.manifest.object.name,
         args.out.display(),
         started.elapsed().as_secs_f64()
     );
+    print_fit(&set, args.width);
+    Ok(())
+}
+
+/// How well each expert fits, the bake, the selected energies and the mode table.
+fn print_fit(set: &alignist::bundle::experts::ExpertSet, width: f64) {
+    let m = &set.manifest;
     eprintln!(
         "  SDF: MAE near surface {:.4} (radius units), sign accuracy {:.4}, {:.0} s",
         m.sdf.fit.mae_near_surface, m.sdf.fit.sign_accuracy_off_surface, m.sdf.fit.train_seconds
@@ -219,7 +269,7 @@ pub(crate) fn experts_cmd(args: &ExpertsArgs) -> Result<()> {
         m.energy.epsilon,
         m.energy.lambda_sdf,
         m.energy.lambda_se,
-        args.width,
+        width,
         m.energy_selection
             .profile
             .iter()
@@ -234,5 +284,4 @@ pub(crate) fn experts_cmd(args: &ExpertsArgs) -> Result<()> {
             t.config.views
         );
     }
-    Ok(())
 }
