@@ -206,15 +206,46 @@ fn numpy_ratio(bundle: &Path, ours_ms: &[(u8, f64)]) {
 }
 
 /// Predict throughput at concurrency 8: in-process engine calls against gRPC calls to a server on
-/// loopback with the same bundle and request (search to level 3, top-5).
+/// loopback with the same bundle and request (search to level 3, top-5); between them, the
+/// single-call latency and a streamed level-4 distribution over gRPC.
 fn grpc_vs_in_process(
     model: Arc<Model>,
     bundle: &Path,
     png: &[u8],
     in_process_p50: f64,
 ) -> anyhow::Result<()> {
-    let concurrency = 8;
-    let requests = 96;
+    let (concurrency, requests) = (8, 96);
+    let in_process = in_process_throughput(&model, png, concurrency, requests)?;
+    drop(model);
+    // The same bundle served over gRPC on an ephemeral loopback port.
+    let dir = tempfile_dir()?;
+    let link = dir.join(bundle.file_name().unwrap_or_default());
+    crate::bundle::model::copy_dir(bundle, &link)?;
+    let runtime = tokio::runtime::Runtime::new()?;
+    let grpc = runtime.block_on(async {
+        let (channel, stop, server) = serve_for_bench(&dir).await?;
+        let figures = grpc_figures(channel, png, concurrency, requests, in_process_p50).await;
+        let _ = stop.send(());
+        let _ = server.await;
+        figures
+    })?;
+    let _ = std::fs::remove_dir_all(&dir);
+    println!(
+        "Predict (level 3, top-5) at concurrency {concurrency}: in-process {in_process:.1} \
+         calls/s, gRPC {grpc:.1} calls/s, ratio {:.2}",
+        grpc / in_process
+    );
+    Ok(())
+}
+
+/// Calls per second of `requests` in-process predictions (prepare, encode, search to level 3,
+/// top-5) from `concurrency` threads.
+fn in_process_throughput(
+    model: &Model,
+    png: &[u8],
+    concurrency: usize,
+    requests: usize,
+) -> anyhow::Result<f64> {
     let options = PredictOptions {
         top_k: 5,
         level: Some(3),
@@ -224,7 +255,7 @@ fn grpc_vs_in_process(
     std::thread::scope(|scope| {
         let workers: Vec<_> = (0..concurrency)
             .map(|w| {
-                let (model, options) = (&model, &options);
+                let options = &options;
                 scope.spawn(move || -> Result<(), crate::engine::EngineError> {
                     for _ in (w..requests).step_by(concurrency) {
                         let crop = model.prepare(&ImageRequest {
@@ -245,115 +276,119 @@ fn grpc_vs_in_process(
                 .map_err(anyhow::Error::from)
         })
     })?;
-    let in_process = requests as f64 / t.elapsed().as_secs_f64();
-    drop(model);
+    Ok(requests as f64 / t.elapsed().as_secs_f64())
+}
 
-    // The same bundle served over gRPC on an ephemeral loopback port.
-    let dir = tempfile_dir()?;
-    let link = dir.join(bundle.file_name().unwrap_or_default());
-    crate::bundle::model::copy_dir(bundle, &link)?;
-    let runtime = tokio::runtime::Runtime::new()?;
-    let grpc = runtime.block_on(async {
-        let port = std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port();
-        let listen: std::net::SocketAddr = format!("127.0.0.1:{port}").parse()?;
-        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-        let config = ServerConfig {
-            models: dir.clone(),
-            listen,
-            metrics_listen: None,
-            engine: EngineConfig::default(),
-            batch: BatchConfig::default(),
-            drain_timeout: Duration::from_secs(5),
-            max_concurrent_streams: 1024,
-            reload_interval: None,
-            max_connection_age: None,
-            admission: Default::default(),
-        };
-        let server = tokio::spawn(run(config, async {
-            let _ = stopped.await;
-        }));
-        let url = format!("http://{listen}");
-        let mut channel = None;
-        for _ in 0..600 {
-            if let Ok(c) = crate::client::connect(&url, Duration::from_secs(120)).await
-                && crate::client::health(c.clone(), "alignist.v1.Alignist").await.ok().as_deref() == Some("Serving")
-            {
-                channel = Some(c);
-                break;
+/// A server over the bundles in `models` on an ephemeral loopback port, once it serves: a channel
+/// to it, its stop signal and its task.
+async fn serve_for_bench(
+    models: &Path,
+) -> anyhow::Result<(
+    tonic::transport::Channel,
+    tokio::sync::oneshot::Sender<()>,
+    tokio::task::JoinHandle<Result<(), crate::serve::server::ServeError>>,
+)> {
+    let port = std::net::TcpListener::bind("127.0.0.1:0")?
+        .local_addr()?
+        .port();
+    let listen: std::net::SocketAddr = format!("127.0.0.1:{port}").parse()?;
+    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    let config = ServerConfig {
+        models: models.to_path_buf(),
+        listen,
+        metrics_listen: None,
+        engine: EngineConfig::default(),
+        batch: BatchConfig::default(),
+        drain_timeout: Duration::from_secs(5),
+        max_concurrent_streams: 1024,
+        reload_interval: None,
+        max_connection_age: None,
+        admission: Default::default(),
+    };
+    let server = tokio::spawn(run(config, async {
+        let _ = stopped.await;
+    }));
+    let url = format!("http://{listen}");
+    for _ in 0..600 {
+        if let Ok(c) = crate::client::connect(&url, Duration::from_secs(120)).await {
+            let health = crate::client::health(c.clone(), "alignist.v1.Alignist").await;
+            if health.ok().as_deref() == Some("Serving") {
+                return Ok((c, stop, server));
             }
-            tokio::time::sleep(Duration::from_millis(100)).await;
         }
-        let channel = channel.ok_or_else(|| anyhow::anyhow!("bench server never served"))?;
-        let request = PredictRequest {
-            image: Some(ImageInput {
-                data: png.to_vec(),
-                ..Default::default()
-            }),
-            top_k: 5,
-            level: 3,
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    anyhow::bail!("bench server never served")
+}
+
+/// Over `channel`: prints the single-call p50 beside the in-process one and the streamed level-4
+/// distribution's latency; returns the calls per second of `requests` Predicts (level 3, top-5)
+/// at `concurrency`.
+async fn grpc_figures(
+    channel: tonic::transport::Channel,
+    png: &[u8],
+    concurrency: usize,
+    requests: usize,
+    in_process_p50: f64,
+) -> anyhow::Result<f64> {
+    use crate::client::load::run_load;
+    let request = PredictRequest {
+        image: Some(ImageInput {
+            data: png.to_vec(),
+            ..Default::default()
+        }),
+        top_k: 5,
+        level: 3,
+        ..Default::default()
+    };
+    let minute = Duration::from_secs(60);
+    // Warm-up, then the measured run.
+    run_load(vec![channel.clone()], request.clone(), 16, 8, minute).await?;
+    let report = run_load(
+        vec![channel.clone()],
+        request.clone(),
+        requests,
+        concurrency,
+        2 * minute,
+    )
+    .await?;
+    // Latency of single calls (nothing else in flight) on the served model.
+    let default_predict = PredictRequest {
+        top_k: 10,
+        level: 0,
+        ..request.clone()
+    };
+    let single = run_load(vec![channel.clone()], default_predict, 30, 1, 2 * minute).await?;
+    println!(
+        "single call p50: gRPC {:.1} ms, in-process {in_process_p50:.1} ms (top-10 to level 5, \
+         one call at a time; gRPC p99 {:.1} ms)",
+        single.p50_ms, single.p99_ms
+    );
+    let mut dist_ms = Vec::new();
+    for _ in 0..8 {
+        let t = Instant::now();
+        let distribution = crate::serve::proto::DistributionRequest {
+            image: request.image.clone(),
+            level: 4,
             ..Default::default()
         };
-        // Warm-up, then the measured run.
-        crate::client::load::run_load(vec![channel.clone()], request.clone(), 16, 8, Duration::from_secs(60)).await?;
-        let report = crate::client::load::run_load(
-            vec![channel.clone()],
-            request.clone(),
-            requests,
-            concurrency,
-            Duration::from_secs(120),
-        )
-        .await?;
-        // Latency of single calls (nothing else in flight) on the served model.
-        let default_predict = PredictRequest {
-            top_k: 10,
-            level: 0,
-            ..request.clone()
-        };
-        let single = crate::client::load::run_load(
-            vec![channel.clone()],
-            default_predict,
-            30,
-            1,
-            Duration::from_secs(120),
-        )
-        .await?;
-        println!(
-            "single call p50: gRPC {:.1} ms, in-process {in_process_p50:.1} ms (top-10 to level 5, one call at a time; gRPC p99 {:.1} ms)",
-            single.p50_ms, single.p99_ms
+        let (_, probs, _) = crate::client::distribution(channel.clone(), distribution).await?;
+        anyhow::ensure!(
+            probs.len() == 294_912,
+            "level-4 distribution has {} cells",
+            probs.len()
         );
-        let mut dist_ms = Vec::new();
-        for _ in 0..8 {
-            let t = Instant::now();
-            let (_, probs, _) = crate::client::distribution(
-                channel.clone(),
-                crate::serve::proto::DistributionRequest {
-                    image: request.image.clone(),
-                    level: 4,
-                    ..Default::default()
-                },
-            )
-            .await?;
-            anyhow::ensure!(probs.len() == 294_912, "level-4 distribution has {} cells", probs.len());
-            dist_ms.push(t.elapsed().as_secs_f64() * 1e3);
-        }
-        println!(
-            "gRPC PredictDistribution level 4 (294912 cells, streamed): p50 {:.0} ms, p99 {:.0} ms",
-            quantile(&dist_ms, 0.5),
-            quantile(&dist_ms, 0.99)
-        );
-        let _ = stop.send(());
-        let _ = server.await;
-        if report.failures() + single.failures() > 0 {
-            anyhow::bail!("gRPC bench calls failed: {report}");
-        }
-        anyhow::Ok(report.requests_per_second)
-    })?;
-    let _ = std::fs::remove_dir_all(&dir);
+        dist_ms.push(t.elapsed().as_secs_f64() * 1e3);
+    }
     println!(
-        "Predict (level 3, top-5) at concurrency {concurrency}: in-process {in_process:.1} calls/s, gRPC {grpc:.1} calls/s, ratio {:.2}",
-        grpc / in_process
+        "gRPC PredictDistribution level 4 (294912 cells, streamed): p50 {:.0} ms, p99 {:.0} ms",
+        quantile(&dist_ms, 0.5),
+        quantile(&dist_ms, 0.99)
     );
-    Ok(())
+    if report.failures() + single.failures() > 0 {
+        anyhow::bail!("gRPC bench calls failed: {report}");
+    }
+    Ok(report.requests_per_second)
 }
 
 fn tempfile_dir() -> std::io::Result<std::path::PathBuf> {

@@ -333,6 +333,36 @@ pub struct ExpertsJob {
 /// Progress of [`train_expert_set`]: `(phase, step, steps, loss)`.
 pub type ExpertsProgress<'a> = dyn FnMut(&str, usize, usize, f64) + 'a;
 
+/// The bake's error against the networks: the SDF's mean absolute error on 5 000 points near the
+/// surface, and the keys' mean distance on 5 000 surface points relative to the mean distance
+/// between the keys of two unrelated points.
+fn bake_errors(
+    mesh: &Mesh,
+    sdf: &crate::experts::Siren,
+    keys: &crate::experts::Siren,
+    baked: &BakedExperts,
+    seed: u64,
+    device: &burn::tensor::Device,
+) -> (f64, f64) {
+    use crate::experts::sdf::{eval_sdf, sample_near_surface};
+    use rand::SeedableRng;
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0xba4e);
+    let near = sample_near_surface(mesh, 5000, &mut rng);
+    let sdf_mean_error = crate::experts::mean_abs_difference(
+        &eval_sdf(sdf, &near, device),
+        &baked.sdf.sample(&near),
+    );
+    let surface = mesh.sample_surface_points(5000, &mut rng);
+    let others = mesh.sample_surface_points(5000, &mut rng);
+    let key_net = run_batched(keys, &surface, FEATURE_DIM, device);
+    let key_other = run_batched(keys, &others, FEATURE_DIM, device);
+    let key_baked = baked.keys.sample(&surface);
+    let mean_dist =
+        |a: &[f32], b: &[f32]| crate::experts::energy::mean_key_distance(a, b, FEATURE_DIM);
+    let key_scale = mean_dist(&key_net, &key_other).max(1e-9);
+    (sdf_mean_error, mean_dist(&key_net, &key_baked) / key_scale)
+}
+
 /// Trains both experts, bakes them, measures the bakes' error, selects λ_SDF and λ_SE by the
 /// width criterion and builds the mode table. `job.symmetries` are only written to the manifest
 /// and used for the feature expert's reported symmetry ratio.
@@ -341,9 +371,8 @@ pub fn train_expert_set(
     progress: &mut ExpertsProgress<'_>,
 ) -> Result<ExpertSet, crate::experts::ExpertError> {
     use crate::experts::feature::train_features;
-    use crate::experts::sdf::{eval_sdf, sample_near_surface, train_sdf};
+    use crate::experts::sdf::train_sdf;
     use crate::experts::select::select_by_width;
-    use rand::SeedableRng;
 
     let device = crate::backend::device();
     let sdf_steps = job.sdf.steps;
@@ -363,23 +392,14 @@ pub fn train_expert_set(
         job.energy,
         &device,
     );
-    // Bake error against the networks.
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(job.sdf.seed ^ 0xba4e);
-    let near = sample_near_surface(&job.mesh, 5000, &mut rng);
-    let sdf_mean_error = crate::experts::mean_abs_difference(
-        &eval_sdf(&sdf, &near, &device),
-        &baked.sdf.sample(&near),
+    let (sdf_mean_error, keys_relative_error) = bake_errors(
+        &job.mesh,
+        &sdf,
+        &features.keys,
+        &baked,
+        job.sdf.seed,
+        &device,
     );
-    let surface = job.mesh.sample_surface_points(5000, &mut rng);
-    let others = job.mesh.sample_surface_points(5000, &mut rng);
-    let key_net = run_batched(&features.keys, &surface, FEATURE_DIM, &device);
-    let key_other = run_batched(&features.keys, &others, FEATURE_DIM, &device);
-    let key_baked = baked.keys.sample(&surface);
-    let mean_dist =
-        |a: &[f32], b: &[f32]| crate::experts::energy::mean_key_distance(a, b, FEATURE_DIM);
-    let key_scale = mean_dist(&key_net, &key_other).max(1e-9);
-    let keys_relative_error = mean_dist(&key_net, &key_baked) / key_scale;
-
     progress("select", 0, 1, 0.0);
     let baked = BakedExperts {
         params: job.energy,

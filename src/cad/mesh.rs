@@ -377,34 +377,84 @@ fn load_obj(path: &Path) -> Result<Mesh, CadError> {
     })
 }
 
+/// A numeric PLY property as `f64` (`None` when absent or a list).
+fn ply_scalar(p: Option<&ply_rs_bw::ply::Property>) -> Option<f64> {
+    use ply_rs_bw::ply::Property;
+    Some(match p? {
+        Property::Float(v) => *v as f64,
+        Property::Double(v) => *v,
+        Property::Char(v) => *v as f64,
+        Property::UChar(v) => *v as f64,
+        Property::Short(v) => *v as f64,
+        Property::UShort(v) => *v as f64,
+        Property::Int(v) => *v as f64,
+        Property::UInt(v) => *v as f64,
+        _ => return None,
+    })
+}
+
+/// An element's `red`, `green`, `blue`, when it has all three.
+fn ply_rgb(e: &ply_rs_bw::ply::DefaultElement) -> Option<[u8; 3]> {
+    let c = |name: &str| ply_scalar(e.get(name)).map(|v| v as u8);
+    Some([c("red")?, c("green")?, c("blue")?])
+}
+
+/// The corners of PLY face `face` (`f`): a triangle of valid vertex indices.
+fn ply_triangle(
+    path: &Path,
+    face: usize,
+    f: &ply_rs_bw::ply::DefaultElement,
+) -> Result<[u32; 3], CadError> {
+    use ply_rs_bw::ply::Property;
+    let list = f
+        .get("vertex_indices")
+        .or_else(|| f.get("vertex_index"))
+        .ok_or_else(|| parse_err(path, format!("face {face} has no 'vertex_indices' list")))?;
+    let idx: Vec<i64> = match list {
+        Property::ListInt(v) => v.iter().map(|&x| x as i64).collect(),
+        Property::ListUInt(v) => v.iter().map(|&x| x as i64).collect(),
+        Property::ListShort(v) => v.iter().map(|&x| x as i64).collect(),
+        Property::ListUShort(v) => v.iter().map(|&x| x as i64).collect(),
+        Property::ListChar(v) => v.iter().map(|&x| x as i64).collect(),
+        Property::ListUChar(v) => v.iter().map(|&x| x as i64).collect(),
+        _ => {
+            return Err(parse_err(
+                path,
+                format!("face {face}: 'vertex_indices' is not an integer list"),
+            ));
+        }
+    };
+    if idx.len() != 3 {
+        return Err(CadError::NotTriangular {
+            mesh: path.display().to_string(),
+            face,
+            corners: idx.len(),
+        });
+    }
+    if let Some(&bad) = idx.iter().find(|&&i| i < 0 || i > u32::MAX as i64) {
+        return Err(parse_err(
+            path,
+            format!("face {face} has vertex index {bad}"),
+        ));
+    }
+    Ok([idx[0] as u32, idx[1] as u32, idx[2] as u32])
+}
+
 fn load_ply(path: &Path) -> Result<Mesh, CadError> {
     use ply_rs_bw::parser::Parser;
-    use ply_rs_bw::ply::{DefaultElement, Property};
+    use ply_rs_bw::ply::DefaultElement;
 
     let mut reader = open(path)?;
     let ply = Parser::<DefaultElement>::new()
         .read_ply(&mut reader)
         .map_err(|e| parse_err(path, e.to_string()))?;
-    let scalar = |p: Option<&Property>| -> Option<f64> {
-        Some(match p? {
-            Property::Float(v) => *v as f64,
-            Property::Double(v) => *v,
-            Property::Char(v) => *v as f64,
-            Property::UChar(v) => *v as f64,
-            Property::Short(v) => *v as f64,
-            Property::UShort(v) => *v as f64,
-            Property::Int(v) => *v as f64,
-            Property::UInt(v) => *v as f64,
-            _ => return None,
-        })
-    };
     let empty = Vec::new();
     let vertex_elems = ply.payload.get("vertex").unwrap_or(&empty);
     let mut vertices = Vec::with_capacity(vertex_elems.len());
     let mut colors = Vec::new();
     for (i, v) in vertex_elems.iter().enumerate() {
         let coord = |name: &str| {
-            scalar(v.get(name))
+            ply_scalar(v.get(name))
                 .ok_or_else(|| parse_err(path, format!("vertex {i} has no numeric '{name}'")))
         };
         vertices.push(Vector3::new(
@@ -412,57 +462,14 @@ fn load_ply(path: &Path) -> Result<Mesh, CadError> {
             coord("y")? as f32,
             coord("z")? as f32,
         ));
-        if let (Some(r), Some(g), Some(b)) = (
-            scalar(v.get("red")),
-            scalar(v.get("green")),
-            scalar(v.get("blue")),
-        ) {
-            colors.push([r as u8, g as u8, b as u8]);
-        }
+        colors.extend(ply_rgb(v));
     }
     let face_elems = ply.payload.get("face").unwrap_or(&empty);
     let mut triangles = Vec::with_capacity(face_elems.len());
     let mut face_colors = Vec::new();
     for (face, f) in face_elems.iter().enumerate() {
-        let list = f
-            .get("vertex_indices")
-            .or_else(|| f.get("vertex_index"))
-            .ok_or_else(|| parse_err(path, format!("face {face} has no 'vertex_indices' list")))?;
-        let idx: Vec<i64> = match list {
-            Property::ListInt(v) => v.iter().map(|&x| x as i64).collect(),
-            Property::ListUInt(v) => v.iter().map(|&x| x as i64).collect(),
-            Property::ListShort(v) => v.iter().map(|&x| x as i64).collect(),
-            Property::ListUShort(v) => v.iter().map(|&x| x as i64).collect(),
-            Property::ListChar(v) => v.iter().map(|&x| x as i64).collect(),
-            Property::ListUChar(v) => v.iter().map(|&x| x as i64).collect(),
-            _ => {
-                return Err(parse_err(
-                    path,
-                    format!("face {face}: 'vertex_indices' is not an integer list"),
-                ));
-            }
-        };
-        if idx.len() != 3 {
-            return Err(CadError::NotTriangular {
-                mesh: path.display().to_string(),
-                face,
-                corners: idx.len(),
-            });
-        }
-        if let Some(&bad) = idx.iter().find(|&&i| i < 0 || i > u32::MAX as i64) {
-            return Err(parse_err(
-                path,
-                format!("face {face} has vertex index {bad}"),
-            ));
-        }
-        triangles.push([idx[0] as u32, idx[1] as u32, idx[2] as u32]);
-        if let (Some(r), Some(g), Some(b)) = (
-            scalar(f.get("red")),
-            scalar(f.get("green")),
-            scalar(f.get("blue")),
-        ) {
-            face_colors.push([r as u8, g as u8, b as u8]);
-        }
+        triangles.push(ply_triangle(path, face, f)?);
+        face_colors.extend(ply_rgb(f));
     }
     let colors = if !face_colors.is_empty() && face_colors.len() == triangles.len() {
         Some(MeshColors::PerFace(face_colors))

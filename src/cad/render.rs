@@ -121,21 +121,80 @@ pub fn render(mesh: &Mesh, camera: &Camera, pose: &Pose, options: &RenderOptions
         .map(|v| rot * v.cast::<f64>() + pose.translation)
         .collect();
     let screen: Vec<(f64, f64)> = cam.iter().map(|p| camera.project(p)).collect();
+    let mut raster = Raster {
+        width: w,
+        height: h,
+        zbuf: vec![f64::INFINITY; w * h],
+        face_at: vec![u32::MAX; w * h],
+        nocs: vec![[f32::NAN; 3]; w * h],
+    };
+    for f in 0..mesh.triangles.len() {
+        raster.draw_triangle(mesh, f, &cam, &screen);
+    }
+    let face_rgb: Vec<[u8; 3]> = (0..mesh.triangles.len())
+        .map(|f| {
+            let centroid = mesh.triangles[f]
+                .iter()
+                .map(|&i| cam[i as usize])
+                .sum::<Vector3<f64>>()
+                / 3.0;
+            shade(mesh, f, &rot, &centroid, options)
+        })
+        .collect();
+    let mut rgb = Vec::with_capacity(w * h * 3);
+    let mut mask = Vec::with_capacity(w * h);
+    let mut depth = Vec::with_capacity(w * h);
+    for idx in 0..w * h {
+        let f = raster.face_at[idx];
+        if f == u32::MAX {
+            rgb.extend_from_slice(&options.background);
+            mask.push(false);
+            depth.push(0.0);
+        } else {
+            rgb.extend_from_slice(&face_rgb[f as usize]);
+            mask.push(true);
+            depth.push(raster.zbuf[idx] as f32);
+        }
+    }
+    Render {
+        width: camera.width,
+        height: camera.height,
+        rgb,
+        mask,
+        depth,
+        nocs: raster.nocs,
+    }
+}
 
-    let mut zbuf = vec![f64::INFINITY; w * h];
-    let mut face_at = vec![u32::MAX; w * h];
-    let mut nocs = vec![[f32::NAN; 3]; w * h];
+/// The z-buffer of a render: per pixel the nearest depth, its face and its object coordinates.
+struct Raster {
+    width: usize,
+    height: usize,
+    zbuf: Vec<f64>,
+    face_at: Vec<u32>,
+    nocs: Vec<[f32; 3]>,
+}
 
-    for (f, tri) in mesh.triangles.iter().enumerate() {
-        let [i0, i1, i2] = tri.map(|i| i as usize);
+impl Raster {
+    /// Draws face `f` of `mesh` (vertices `cam` in the camera frame, `screen` projected) into the
+    /// buffer: every pixel centre inside it that is nearer than what the buffer holds.
+    fn draw_triangle(
+        &mut self,
+        mesh: &Mesh,
+        f: usize,
+        cam: &[Vector3<f64>],
+        screen: &[(f64, f64)],
+    ) {
+        let (w, h) = (self.width, self.height);
+        let [i0, i1, i2] = mesh.triangles[f].map(|i| i as usize);
         let (z0, z1, z2) = (cam[i0].z, cam[i1].z, cam[i2].z);
         if z0 <= 1e-6 || z1 <= 1e-6 || z2 <= 1e-6 {
-            continue;
+            return;
         }
         let (p0, p1, p2) = (screen[i0], screen[i1], screen[i2]);
         let area = edge(p0, p1, p2);
         if area.abs() < 1e-12 {
-            continue;
+            return;
         }
         let min_y = p0.1.min(p1.1).min(p2.1).floor().max(0.0) as usize;
         let max_y = (p0.1.max(p1.1).max(p2.1).ceil() as i64).clamp(0, h as i64) as usize;
@@ -172,48 +231,14 @@ pub fn render(mesh: &Mesh, camera: &Camera, pose: &Pose, options: &RenderOptions
                 let inv_z = b0 / z0 + b1 / z1 + b2 / z2;
                 let z = 1.0 / inv_z;
                 let idx = y * w + x;
-                if z < zbuf[idx] {
-                    zbuf[idx] = z;
-                    face_at[idx] = f as u32;
+                if z < self.zbuf[idx] {
+                    self.zbuf[idx] = z;
+                    self.face_at[idx] = f as u32;
                     let obj = (o0 * (b0 / z0) + o1 * (b1 / z1) + o2 * (b2 / z2)) * z;
-                    nocs[idx] = [obj.x as f32, obj.y as f32, obj.z as f32];
+                    self.nocs[idx] = [obj.x as f32, obj.y as f32, obj.z as f32];
                 }
             }
         }
-    }
-
-    let face_rgb: Vec<[u8; 3]> = (0..mesh.triangles.len())
-        .map(|f| {
-            let centroid = mesh.triangles[f]
-                .iter()
-                .map(|&i| cam[i as usize])
-                .sum::<Vector3<f64>>()
-                / 3.0;
-            shade(mesh, f, &rot, &centroid, options)
-        })
-        .collect();
-    let mut rgb = Vec::with_capacity(w * h * 3);
-    let mut mask = Vec::with_capacity(w * h);
-    let mut depth = Vec::with_capacity(w * h);
-    for idx in 0..w * h {
-        let f = face_at[idx];
-        if f == u32::MAX {
-            rgb.extend_from_slice(&options.background);
-            mask.push(false);
-            depth.push(0.0);
-        } else {
-            rgb.extend_from_slice(&face_rgb[f as usize]);
-            mask.push(true);
-            depth.push(zbuf[idx] as f32);
-        }
-    }
-    Render {
-        width: camera.width,
-        height: camera.height,
-        rgb,
-        mask,
-        depth,
-        nocs,
     }
 }
 

@@ -421,80 +421,7 @@ impl BopDataset {
         }
         let mut samples = Vec::new();
         for (scene, dir) in scenes {
-            let gt_file = dir.join("scene_gt.json");
-            let gts: BTreeMap<u32, Vec<SceneGt>> = read_json(&gt_file)?;
-            let cam_file = dir.join("scene_camera.json");
-            let cams: BTreeMap<u32, SceneCamera> = read_json(&cam_file)?;
-            let info_file = dir.join("scene_gt_info.json");
-            let infos: Option<BTreeMap<u32, Vec<SceneGtInfo>>> = if info_file.exists() {
-                Some(read_json(&info_file)?)
-            } else {
-                None
-            };
-            let eq_file = dir.join("scene_gt_equivalents.json");
-            let eqs: Option<BTreeMap<u32, Vec<Vec<[f64; 9]>>>> = if eq_file.exists() {
-                Some(read_json(&eq_file)?)
-            } else {
-                None
-            };
-            for (im_id, list) in gts {
-                let cam = cams.get(&im_id).ok_or_else(|| DataError::Invalid {
-                    file: cam_file.display().to_string(),
-                    message: format!("no camera for image {im_id}"),
-                })?;
-                for (gt_index, gt) in list.into_iter().enumerate() {
-                    let field = |what: &str| DataError::Invalid {
-                        file: gt_file.display().to_string(),
-                        message: format!("image {im_id}, gt {gt_index}: {what}"),
-                    };
-                    let rotation = from_row_major(gt.cam_r_m2c)
-                        .map_err(|e| field(&format!("cam_R_m2c: {e}")))?;
-                    let info = models.get(&gt.obj_id).ok_or_else(|| {
-                        field(&format!("obj_id {} has no models_info entry", gt.obj_id))
-                    })?;
-                    let equivalents = match eqs.as_ref().and_then(|e| e.get(&im_id)) {
-                        Some(per_gt) => per_gt
-                            .get(gt_index)
-                            .ok_or_else(|| DataError::Invalid {
-                                file: eq_file.display().to_string(),
-                                message: format!("image {im_id} has no entry for gt {gt_index}"),
-                            })?
-                            .iter()
-                            .map(|m| {
-                                from_row_major(*m).map_err(|e| DataError::Invalid {
-                                    file: eq_file.display().to_string(),
-                                    message: format!("image {im_id}: {e}"),
-                                })
-                            })
-                            .collect::<Result<Vec<_>, _>>()?,
-                        None => info
-                            .symmetry_rotations()
-                            .map_err(|e| DataError::Invalid {
-                                file: root.join("models/models_info.json").display().to_string(),
-                                message: format!("obj {}: symmetries_discrete: {e}", gt.obj_id),
-                            })?
-                            .iter()
-                            .map(|s| rotation * s)
-                            .collect(),
-                    };
-                    samples.push(BopSample {
-                        scene,
-                        im_id,
-                        gt_index,
-                        obj_id: gt.obj_id,
-                        rgb_path: dir.join("rgb").join(format!("{im_id:06}.png")),
-                        cam_k: cam.cam_k,
-                        rotation,
-                        translation: Vector3::from(gt.cam_t_m2c),
-                        equivalents,
-                        bbox_obj: infos
-                            .as_ref()
-                            .and_then(|i| i.get(&im_id))
-                            .and_then(|list| list.get(gt_index))
-                            .map(|i| i.bbox_obj),
-                    });
-                }
-            }
+            samples.extend(scene_samples(root, &models, scene, &dir)?);
         }
         Ok(Self {
             root: root.to_path_buf(),
@@ -548,4 +475,90 @@ fn sphere_box(k: &[f64; 9], t: &Vector3<f64>, radius: f64) -> [f64; 4] {
     let r = radius.min(z * 0.999);
     let half = fx * r / (z * z - r * r).sqrt();
     [u - half, v - half, 2.0 * half, 2.0 * half]
+}
+
+/// Every object instance of one scene folder of a split (`scene_gt.json`, `scene_camera.json`,
+/// and, when present, `scene_gt_info.json` and `scene_gt_equivalents.json`).
+fn scene_samples(
+    root: &Path,
+    models: &BTreeMap<u32, ModelInfo>,
+    scene: u32,
+    dir: &Path,
+) -> Result<Vec<BopSample>, DataError> {
+    let mut samples = Vec::new();
+    let gt_file = dir.join("scene_gt.json");
+    let gts: BTreeMap<u32, Vec<SceneGt>> = read_json(&gt_file)?;
+    let cam_file = dir.join("scene_camera.json");
+    let cams: BTreeMap<u32, SceneCamera> = read_json(&cam_file)?;
+    let info_file = dir.join("scene_gt_info.json");
+    let infos: Option<BTreeMap<u32, Vec<SceneGtInfo>>> = read_optional_json(&info_file)?;
+    let eq_file = dir.join("scene_gt_equivalents.json");
+    let eqs: Option<BTreeMap<u32, Vec<Vec<[f64; 9]>>>> = read_optional_json(&eq_file)?;
+    for (im_id, list) in gts {
+        let cam = cams.get(&im_id).ok_or_else(|| DataError::Invalid {
+            file: cam_file.display().to_string(),
+            message: format!("no camera for image {im_id}"),
+        })?;
+        for (gt_index, gt) in list.into_iter().enumerate() {
+            let field = |what: &str| DataError::Invalid {
+                file: gt_file.display().to_string(),
+                message: format!("image {im_id}, gt {gt_index}: {what}"),
+            };
+            let rotation =
+                from_row_major(gt.cam_r_m2c).map_err(|e| field(&format!("cam_R_m2c: {e}")))?;
+            let info = models
+                .get(&gt.obj_id)
+                .ok_or_else(|| field(&format!("obj_id {} has no models_info entry", gt.obj_id)))?;
+            let equivalents = match eqs.as_ref().and_then(|e| e.get(&im_id)) {
+                Some(per_gt) => per_gt
+                    .get(gt_index)
+                    .ok_or_else(|| DataError::Invalid {
+                        file: eq_file.display().to_string(),
+                        message: format!("image {im_id} has no entry for gt {gt_index}"),
+                    })?
+                    .iter()
+                    .map(|m| {
+                        from_row_major(*m).map_err(|e| DataError::Invalid {
+                            file: eq_file.display().to_string(),
+                            message: format!("image {im_id}: {e}"),
+                        })
+                    })
+                    .collect::<Result<Vec<_>, _>>()?,
+                None => info
+                    .symmetry_rotations()
+                    .map_err(|e| DataError::Invalid {
+                        file: root.join("models/models_info.json").display().to_string(),
+                        message: format!("obj {}: symmetries_discrete: {e}", gt.obj_id),
+                    })?
+                    .iter()
+                    .map(|s| rotation * s)
+                    .collect(),
+            };
+            samples.push(BopSample {
+                scene,
+                im_id,
+                gt_index,
+                obj_id: gt.obj_id,
+                rgb_path: dir.join("rgb").join(format!("{im_id:06}.png")),
+                cam_k: cam.cam_k,
+                rotation,
+                translation: Vector3::from(gt.cam_t_m2c),
+                equivalents,
+                bbox_obj: infos
+                    .as_ref()
+                    .and_then(|i| i.get(&im_id))
+                    .and_then(|list| list.get(gt_index))
+                    .map(|i| i.bbox_obj),
+            });
+        }
+    }
+    Ok(samples)
+}
+
+/// `file` parsed, or `None` when it does not exist.
+fn read_optional_json<T: serde::de::DeserializeOwned>(file: &Path) -> Result<Option<T>, DataError> {
+    match file.exists() {
+        true => read_json(file).map(Some),
+        false => Ok(None),
+    }
 }

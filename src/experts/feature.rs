@@ -201,6 +201,67 @@ fn bce_with_logits(logits: Tensor<4>, targets: Tensor<4>) -> Tensor<1> {
     (logits.clone().clamp_min(0.0) - logits * targets + softplus).mean()
 }
 
+/// One step's renders: CHW images, masks, and `pixels` foreground pixels per render (their flat
+/// index in the batch and their NOCS point, the InfoNCE positives).
+struct RenderBatch {
+    images: Vec<f32>,
+    masks: Vec<f32>,
+    pixel_index: Vec<i64>,
+    positives: Vec<Vector3<f32>>,
+}
+
+/// Renders `config.images` Haar-random poses of `mesh` and picks their positives.
+fn render_batch(
+    mesh: &Mesh,
+    camera: &Camera,
+    options: &RenderOptions,
+    config: &FeatureTrainConfig,
+    rng: &mut ChaCha8Rng,
+) -> Result<RenderBatch, ExpertError> {
+    let (size, p, b) = (config.image_size as usize, config.pixels, config.images);
+    let mut batch = RenderBatch {
+        images: Vec::with_capacity(b * 3 * size * size),
+        masks: Vec::with_capacity(b * size * size),
+        pixel_index: Vec::with_capacity(b * p),
+        positives: Vec::with_capacity(b * p),
+    };
+    for i in 0..b {
+        let pose = symsol_pose(haar_rotation(rng));
+        let r = render(mesh, camera, &pose, options);
+        push_chw(&r.rgb, &mut batch.images);
+        batch.masks.extend(r.mask.iter().map(|&m| m as u8 as f32));
+        let fg: Vec<usize> = (0..r.mask.len()).filter(|&k| r.mask[k]).collect();
+        if fg.is_empty() {
+            return Err(ExpertError::EmptyRender(mesh.source.clone()));
+        }
+        for _ in 0..p {
+            let k = fg[rng.random_range(0..fg.len())];
+            batch.pixel_index.push((i * size * size + k) as i64);
+            batch.positives.push(Vector3::from(r.nocs[k]));
+        }
+    }
+    Ok(batch)
+}
+
+/// InfoNCE of `queries` `[N, D]` against `keys` `[M, D]` (M ≥ N) whose first N rows are the
+/// queries' positives (row i's is key i) and the rest negatives.
+fn info_nce_loss(queries: Tensor<2>, keys: Tensor<2>) -> Tensor<1> {
+    let [n, _] = queries.dims();
+    let [m, _] = keys.dims();
+    let device = queries.device();
+    let log_p = log_softmax(queries.matmul(keys.transpose()), 1);
+    let eye: Tensor<2> = Tensor::from_data(
+        TensorData::new(
+            (0..n)
+                .flat_map(|i| (0..m).map(move |j| (i == j) as u8 as f32))
+                .collect::<Vec<f32>>(),
+            [n, m],
+        ),
+        &device,
+    );
+    (log_p * eye).sum().neg().div_scalar(n as f64)
+}
+
 /// Trains the feature expert on renders of `mesh` (in NOCS, with its colours).
 /// `symmetries` (identity first) are used only to report [`FeatureFit::symmetry_ratio`].
 pub fn train_features(
@@ -226,32 +287,15 @@ pub fn train_features(
     let mut tail = (0.0, 0.0, 0usize);
 
     for step in 0..config.steps {
-        let mut images = Vec::with_capacity(b * 3 * size * size);
-        let mut masks = Vec::with_capacity(b * size * size);
-        let mut pixel_index = Vec::with_capacity(b * p);
-        let mut positives = Vec::with_capacity(b * p);
-        for i in 0..b {
-            let pose = symsol_pose(haar_rotation(&mut rng));
-            let r = render(mesh, &camera, &pose, &options);
-            push_chw(&r.rgb, &mut images);
-            masks.extend(r.mask.iter().map(|&m| m as u8 as f32));
-            let fg: Vec<usize> = (0..r.mask.len()).filter(|&k| r.mask[k]).collect();
-            if fg.is_empty() {
-                return Err(ExpertError::EmptyRender(mesh.source.clone()));
-            }
-            for _ in 0..p {
-                let k = fg[rng.random_range(0..fg.len())];
-                pixel_index.push((i * size * size + k) as i64);
-                positives.push(Vector3::from(r.nocs[k]));
-            }
-        }
+        let batch = render_batch(mesh, &camera, &options, config, &mut rng)?;
         let negatives = mesh.sample_surface_points(config.negatives, &mut rng);
 
-        let x: Tensor<4> = Tensor::from_data(TensorData::new(images, [b, 3, size, size]), &device);
+        let x: Tensor<4> =
+            Tensor::from_data(TensorData::new(batch.images, [b, 3, size, size]), &device);
         let out = query.forward(x);
         let mask_logits = out.clone().narrow(1, 0, 1);
         let mask_t: Tensor<4> =
-            Tensor::from_data(TensorData::new(masks, [b, 1, size, size]), &device);
+            Tensor::from_data(TensorData::new(batch.masks, [b, 1, size, size]), &device);
         let bce = bce_with_logits(mask_logits, mask_t);
 
         // Queries at the sampled pixels: [B·P, 12].
@@ -259,24 +303,13 @@ pub fn train_features(
             .narrow(1, 1, FEATURE_DIM)
             .permute([0, 2, 3, 1])
             .reshape([b * size * size, FEATURE_DIM]);
-        let idx: Tensor<1, Int> = Tensor::from_data(TensorData::new(pixel_index, [b * p]), &device);
+        let idx: Tensor<1, Int> =
+            Tensor::from_data(TensorData::new(batch.pixel_index, [b * p]), &device);
         let queries = q_map.select(0, idx);
-        let mut all_points = positives;
+        let mut all_points = batch.positives;
         all_points.extend(negatives);
         let all_keys = keys.forward(points_tensor(&all_points, &device));
-        let logits = queries.matmul(all_keys.transpose());
-        let log_p = log_softmax(logits, 1);
-        // The positive of row i is column i.
-        let eye: Tensor<2> = Tensor::from_data(
-            TensorData::new(
-                (0..b * p)
-                    .flat_map(|i| (0..all_points.len()).map(move |j| (i == j) as u8 as f32))
-                    .collect::<Vec<f32>>(),
-                [b * p, all_points.len()],
-            ),
-            &device,
-        );
-        let info_nce = (log_p * eye).sum().neg().div_scalar((b * p) as f64);
+        let info_nce = info_nce_loss(queries, all_keys);
         let loss = info_nce.clone() + bce.clone();
         let (nce_v, bce_v) = (
             info_nce.into_scalar::<f32>() as f64,

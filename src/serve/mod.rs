@@ -483,43 +483,8 @@ impl AlignistService {
         let _admitted = self.admission.admit(
             admission::image_cost(&image.data, raw_size(&image)?).saturating_add(depth_bytes),
         )?;
-        let intrinsics = req
-            .intrinsics
-            .ok_or_else(|| invalid_field("intrinsics", "is required"))?;
-        let intrinsics = crate::engine::Intrinsics {
-            fx: intrinsics.fx,
-            fy: intrinsics.fy,
-            cx: intrinsics.cx,
-            cy: intrinsics.cy,
-        };
-        intrinsics.validate().map_err(status_of)?;
-        if req.detections.is_empty() || req.detections.len() > MAX_DETECTIONS {
-            return Err(invalid_field(
-                "detections",
-                format!(
-                    "give 1 ..= {MAX_DETECTIONS} boxes, got {}",
-                    req.detections.len()
-                ),
-            ));
-        }
-        let mut boxes = Vec::with_capacity(req.detections.len());
-        let mut objects = Vec::with_capacity(req.detections.len());
-        for (i, d) in req.detections.iter().enumerate() {
-            let b = d
-                .r#box
-                .ok_or_else(|| invalid_field(&format!("detections[{i}].box"), "is required"))?;
-            boxes.push(CropBox {
-                x: b.x,
-                y: b.y,
-                width: b.width,
-                height: b.height,
-            });
-            objects.push(if d.object.is_empty() {
-                None
-            } else {
-                Some(model.object_index(&d.object).map_err(status_of)?)
-            });
-        }
+        let intrinsics = frame_intrinsics(req.intrinsics)?;
+        let (boxes, objects) = frame_detections(&model, &req.detections)?;
         let options = predict_options(req.top_k, req.level, req.mode_angle_deg)?;
         let level = model.check_predict(&options).map_err(status_of)?;
         let batcher = batcher_of(&served, &model)?;
@@ -571,53 +536,17 @@ impl AlignistService {
         }
         let queued = encoded.iter().map(|e| e.queued).max().unwrap_or_default();
         let compute = Instant::now();
-        // Every box's head work is queued at once: they share the stage's batches.
         let head = head_of(&served, &model)?;
-        let calls: Vec<_> = encoded
-            .into_iter()
-            .zip(depth.clone())
-            .map(|(e, depth)| {
-                let (head, options) = (head.clone(), options.clone());
-                tokio::spawn(async move { head.predict(e.features, options, depth).await })
-            })
-            .collect();
-        let mut predictions = Vec::with_capacity(calls.len());
-        for (call, ray) in calls.into_iter().zip(&rays) {
-            let p = call.await.map_err(|e| {
-                status::refused(
-                    tonic::Code::Internal,
-                    status::Reason::ModelFailed,
-                    format!("computation failed: {e}"),
-                    None,
-                )
-            })??;
-            predictions.push(p.in_camera_frame(ray));
-        }
+        let predictions = predict_boxes(&head, encoded, &depth, &options, &rays).await?;
         metrics::histogram!("alignist_compute_seconds", "method" => "PredictFrame")
             .record(compute.elapsed().as_secs_f64());
-        let detections = predictions
-            .iter()
-            .zip(&boxes)
-            .zip(rays.iter().zip(&objects).zip(&depth))
-            .map(|((p, b), ((ray, object), depth))| DetectionPrediction {
-                r#box: Some(proto::CropBox {
-                    x: b.x,
-                    y: b.y,
-                    width: b.width,
-                    height: b.height,
-                }),
-                prediction: Some(predict_response(
-                    &model,
-                    depth.as_ref().map(|(i, _)| *i).or(*object),
-                    level,
-                    p,
-                    depth.is_some(),
-                    started,
-                    queued,
-                )),
-                ray: Some(rotation_message(crate::so3::to_quaternion(ray))),
-            })
-            .collect();
+        let answered = FrameAnswers {
+            boxes: &boxes,
+            rays: &rays,
+            objects: &objects,
+            depth: &depth,
+        };
+        let detections = answered.detections(&model, level, predictions, started, queued);
         Ok(FrameResponse {
             model: model.name.clone(),
             model_version: model.version().to_string(),
@@ -625,6 +554,135 @@ impl AlignistService {
             compute_ms: started.elapsed().as_secs_f64() * 1e3,
         })
     }
+}
+
+/// What a frame's boxes were answered with, box by box.
+struct FrameAnswers<'a> {
+    boxes: &'a [CropBox],
+    rays: &'a [nalgebra::Rotation3<f64>],
+    objects: &'a [Option<usize>],
+    depth: &'a [Option<(usize, SeenPoints)>],
+}
+
+impl FrameAnswers<'_> {
+    /// Each box's answer: its box, its prediction (with the object depth fused, or the one
+    /// named) and its ray.
+    fn detections(
+        &self,
+        model: &Model,
+        level: u8,
+        predictions: Vec<crate::engine::Prediction>,
+        started: Instant,
+        queued: std::time::Duration,
+    ) -> Vec<DetectionPrediction> {
+        predictions
+            .into_iter()
+            .enumerate()
+            .map(|(i, p)| {
+                let (b, depth) = (&self.boxes[i], &self.depth[i]);
+                DetectionPrediction {
+                    r#box: Some(proto::CropBox {
+                        x: b.x,
+                        y: b.y,
+                        width: b.width,
+                        height: b.height,
+                    }),
+                    prediction: Some(predict_response(
+                        model,
+                        depth.as_ref().map(|(i, _)| *i).or(self.objects[i]),
+                        level,
+                        &p,
+                        depth.is_some(),
+                        started,
+                        queued,
+                    )),
+                    ray: Some(rotation_message(crate::so3::to_quaternion(&self.rays[i]))),
+                }
+            })
+            .collect()
+    }
+}
+
+/// The frame's intrinsics, required and valid.
+fn frame_intrinsics(
+    intrinsics: Option<proto::Intrinsics>,
+) -> Result<crate::engine::Intrinsics, Status> {
+    let i = intrinsics.ok_or_else(|| invalid_field("intrinsics", "is required"))?;
+    let intrinsics = crate::engine::Intrinsics {
+        fx: i.fx,
+        fy: i.fy,
+        cx: i.cx,
+        cy: i.cy,
+    };
+    intrinsics.validate().map_err(status_of)?;
+    Ok(intrinsics)
+}
+
+/// The box of each detection (1 ..= [`MAX_DETECTIONS`] of them, each with a box) and its object,
+/// when named.
+fn frame_detections(
+    model: &Model,
+    detections: &[proto::Detection],
+) -> Result<(Vec<CropBox>, Vec<Option<usize>>), Status> {
+    if detections.is_empty() || detections.len() > MAX_DETECTIONS {
+        return Err(invalid_field(
+            "detections",
+            format!(
+                "give 1 ..= {MAX_DETECTIONS} boxes, got {}",
+                detections.len()
+            ),
+        ));
+    }
+    let mut boxes = Vec::with_capacity(detections.len());
+    let mut objects = Vec::with_capacity(detections.len());
+    for (i, d) in detections.iter().enumerate() {
+        let b = d
+            .r#box
+            .ok_or_else(|| invalid_field(&format!("detections[{i}].box"), "is required"))?;
+        boxes.push(CropBox {
+            x: b.x,
+            y: b.y,
+            width: b.width,
+            height: b.height,
+        });
+        objects.push(match d.object.is_empty() {
+            true => None,
+            false => Some(model.object_index(&d.object).map_err(status_of)?),
+        });
+    }
+    Ok((boxes, objects))
+}
+
+/// Every box's prediction, in the real camera's frame: their head work is queued at once, so
+/// that the boxes share the head stage's batches.
+async fn predict_boxes(
+    head: &heads::HeadStage,
+    encoded: Vec<batcher::Encoded>,
+    depth: &[Option<(usize, SeenPoints)>],
+    options: &PredictOptions,
+    rays: &[nalgebra::Rotation3<f64>],
+) -> Result<Vec<crate::engine::Prediction>, Status> {
+    let calls: Vec<_> = encoded
+        .into_iter()
+        .zip(depth.iter().cloned())
+        .map(|(e, depth)| {
+            let (head, options) = (head.clone(), options.clone());
+            tokio::spawn(async move { head.predict(e.features, options, depth).await })
+        })
+        .collect();
+    let mut predictions = Vec::with_capacity(calls.len());
+    for (call, ray) in calls.into_iter().zip(rays) {
+        let p = call.await.map_err(|e| {
+            status::refused(
+                tonic::Code::Internal,
+                status::Reason::ModelFailed,
+                format!("computation failed: {e}"),
+                None,
+            )
+        })??;
+        predictions.push(p.in_camera_frame(ray));
+    }
+    Ok(predictions)
 }
 
 /// Each detection's object for depth fusion: named, or the model's only one.

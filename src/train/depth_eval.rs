@@ -13,8 +13,8 @@ use crate::bundle::model::BundleRenders;
 use crate::engine::{
     DepthInput, DepthMap, EngineError, Intrinsics, Model, PredictOptions, SeenPoints, back_project,
 };
-use crate::so3::equivalents;
 use crate::so3::metrics::{error_to_nearest_deg, image_metrics, ll_ceiling};
+use crate::so3::{GridLevel, equivalents};
 
 /// How the depth of a test image is spoiled before fusion.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -149,104 +149,122 @@ pub fn evaluate_depth(
     // Per image: (LL, argmax error, served error, translation error %) for the three conditions.
     let mut rows: Vec<(usize, [[f64; 4]; 3])> = Vec::with_capacity(images.len());
     let mut ceiling = 0.0;
-    let options = PredictOptions {
-        top_k: 1,
-        ..Default::default()
+    let clean = DepthNoise {
+        sigma: 0.0,
+        missing: 0.0,
     };
     for (n, im) in images.iter().enumerate() {
-        let features = model.features(&[&im.rgb]);
-        let object = &model.objects[im.object];
-        let radius = object.normalisation.scale;
         let mut figures = [[f64::NAN; 4]; 3];
-        for (k, depth) in [None, Some(0.0), Some(noise.sigma)].into_iter().enumerate() {
-            let seen = match depth {
-                None => None,
-                Some(sigma) => {
-                    let map = if k == 2 {
-                        spoil(&im.depth, sigma * radius, noise.missing, &mut rng)
-                    } else {
-                        im.depth.clone()
-                    };
-                    let whole = crate::engine::CropBox {
-                        x: 0,
-                        y: 0,
-                        width: map.width,
-                        height: map.height,
-                    };
-                    let points = back_project(
-                        &map,
-                        &im.intrinsics,
-                        &whole,
-                        None,
-                        model.config().depth_image_points,
-                        "depth",
-                    )?;
-                    Some(SeenPoints::Camera(
-                        object.fusion.camera_points(&points, "depth")?,
-                    ))
-                }
-            };
-            let input = seen.as_ref().map(|points| DepthInput { object, points });
-            let distribution = model.distribution(&features, level, input)?;
-            let logits: Vec<f32> = distribution.log_density.clone();
-            let m = image_metrics(&grid, &centres, &logits, &im.equivalents)?;
-            let served = model.predict(&features, &options, input)?;
-            let top = crate::so3::from_quaternion(served.rotations[0])?;
-            let t_error = served.translations.first().map_or(f64::NAN, |t| {
-                (Vector3::from(*t) - im.translation).norm() / radius * 100.0
-            });
-            figures[k] = [
-                m.log_likelihood,
-                m.argmax_error_deg,
-                error_to_nearest_deg(&top, &im.equivalents),
-                t_error,
-            ];
+        let image = (im, model.features(&[&im.rgb]));
+        for (k, condition) in [None, Some(clean), Some(noise)].into_iter().enumerate() {
+            figures[k] = score_image(model, &image, &grid, &centres, condition, &mut rng)?;
         }
         ceiling += ll_ceiling(&grid, &im.equivalents);
         rows.push((im.object, figures));
         progress(n + 1);
     }
-    let summarise = |filter: &dyn Fn(usize) -> bool| -> [DepthFigures; 3] {
-        std::array::from_fn(|k| {
-            let picked: Vec<[f64; 4]> = rows
-                .iter()
-                .filter(|(o, _)| filter(*o))
-                .map(|(_, f)| f[k])
-                .collect();
-            let n = picked.len().max(1) as f64;
-            let within = |i: usize| picked.iter().filter(|f| f[i] <= 30.0).count() as f64 / n;
-            let mut t: Vec<f64> = picked
-                .iter()
-                .map(|f| f[3])
-                .filter(|v| v.is_finite())
-                .collect();
-            t.sort_by(f64::total_cmp);
-            DepthFigures {
-                images: picked.len(),
-                log_likelihood: picked.iter().map(|f| f[0]).sum::<f64>() / n,
-                ar30: within(1),
-                served_ar30: within(2),
-                translation_error_mean_pct: if t.is_empty() {
-                    f64::NAN
-                } else {
-                    t.iter().sum::<f64>() / t.len() as f64
-                },
-                translation_error_median_pct: t.get(t.len() / 2).copied().unwrap_or(f64::NAN),
-            }
-        })
-    };
     let mut out: Vec<(String, [DepthFigures; 3])> = model
         .objects
         .iter()
         .enumerate()
         .filter(|(i, _)| rows.iter().any(|(o, _)| o == i))
-        .map(|(i, o)| (o.name.clone(), summarise(&|x| x == i)))
+        .map(|(i, o)| (o.name.clone(), summarise(&rows, &|x| x == i)))
         .collect();
-    out.push(("all".into(), summarise(&|_| true)));
+    out.push(("all".into(), summarise(&rows, &|_| true)));
     Ok(DepthReport {
         level,
         ll_ceiling: ceiling / images.len().max(1) as f64,
         noise,
         rows: out,
+    })
+}
+
+/// One image's figures (the image and its features) in one condition (image only, or fused with
+/// its depth spoiled by `noise`): LL and argmax error of the full distribution at `grid`'s level, the served top-1's
+/// error, and its translation error in % of the radius (NaN for image only).
+fn score_image(
+    model: &Model,
+    (im, features): &(&DepthEvalImage, burn::tensor::Tensor<2>),
+    grid: &GridLevel,
+    centres: &[[f64; 4]],
+    noise: Option<DepthNoise>,
+    rng: &mut ChaCha8Rng,
+) -> Result<[f64; 4], EngineError> {
+    let object = &model.objects[im.object];
+    let radius = object.normalisation.scale;
+    let seen = match noise {
+        None => None,
+        Some(noise) => {
+            let map = match noise.sigma > 0.0 || noise.missing > 0.0 {
+                true => spoil(&im.depth, noise.sigma * radius, noise.missing, rng),
+                false => im.depth.clone(),
+            };
+            let whole = crate::engine::CropBox {
+                x: 0,
+                y: 0,
+                width: map.width,
+                height: map.height,
+            };
+            let points = back_project(
+                &map,
+                &im.intrinsics,
+                &whole,
+                None,
+                model.config().depth_image_points,
+                "depth",
+            )?;
+            Some(SeenPoints::Camera(
+                object.fusion.camera_points(&points, "depth")?,
+            ))
+        }
+    };
+    let input = seen.as_ref().map(|points| DepthInput { object, points });
+    let distribution = model.distribution(features, grid.level(), input)?;
+    let m = image_metrics(grid, centres, &distribution.log_density, &im.equivalents)?;
+    let options = PredictOptions {
+        top_k: 1,
+        ..Default::default()
+    };
+    let served = model.predict(features, &options, input)?;
+    let top = crate::so3::from_quaternion(served.rotations[0])?;
+    let t_error = served.translations.first().map_or(f64::NAN, |t| {
+        (Vector3::from(*t) - im.translation).norm() / radius * 100.0
+    });
+    Ok([
+        m.log_likelihood,
+        m.argmax_error_deg,
+        error_to_nearest_deg(&top, &im.equivalents),
+        t_error,
+    ])
+}
+
+/// The figures of the `rows` whose object passes `filter`, per condition.
+fn summarise(rows: &[(usize, [[f64; 4]; 3])], filter: &dyn Fn(usize) -> bool) -> [DepthFigures; 3] {
+    std::array::from_fn(|k| {
+        let picked: Vec<[f64; 4]> = rows
+            .iter()
+            .filter(|(o, _)| filter(*o))
+            .map(|(_, f)| f[k])
+            .collect();
+        let n = picked.len().max(1) as f64;
+        let within = |i: usize| picked.iter().filter(|f| f[i] <= 30.0).count() as f64 / n;
+        let mut t: Vec<f64> = picked
+            .iter()
+            .map(|f| f[3])
+            .filter(|v| v.is_finite())
+            .collect();
+        t.sort_by(f64::total_cmp);
+        DepthFigures {
+            images: picked.len(),
+            log_likelihood: picked.iter().map(|f| f[0]).sum::<f64>() / n,
+            ar30: within(1),
+            served_ar30: within(2),
+            translation_error_mean_pct: if t.is_empty() {
+                f64::NAN
+            } else {
+                t.iter().sum::<f64>() / t.len() as f64
+            },
+            translation_error_median_pct: t.get(t.len() / 2).copied().unwrap_or(f64::NAN),
+        }
     })
 }

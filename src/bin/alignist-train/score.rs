@@ -148,35 +148,46 @@ pub(crate) fn score_cmd(args: &ScoreArgs) -> Result<()> {
         }
     }
     if let Some(group) = group {
-        println!(
-            "balance against {group} ({} equivalents), level {}, radius {}°, {} ground truth(s):",
-            group.order(),
-            args.level,
-            args.radius,
-            reports.len()
-        );
-        println!("| targets | mass inside | mass outside | min/max | min | max |");
-        println!("|---|---|---|---|---|---|");
-        for (j, name) in ["both experts", "SDF expert", "feature expert"]
-            .iter()
-            .enumerate()
-        {
-            let n = reports.len() as f64;
-            let mean = |f: &dyn Fn(&MassNearEquivalents) -> f64| {
-                reports.iter().map(|r| f(&r[j])).sum::<f64>() / n
-            };
-            let fold = |init: f64, pick: fn(f64, f64) -> f64| {
-                move |m: &MassNearEquivalents| m.per_equivalent.iter().cloned().fold(init, pick)
-            };
-            println!(
-                "| {name} | {:.3} | {:.3} | {:.3} | {:.4} | {:.4} |",
-                mean(&|m| m.inside),
-                mean(&|m| m.outside),
-                mean(&|m| m.balance),
-                mean(&fold(f64::INFINITY, f64::min)),
-                mean(&fold(0.0, f64::max)),
-            );
-        }
+        print_balance(group, args, &reports);
     }
     Ok(())
+}
+
+/// The balance table: the mass inside and outside `--radius` of the equivalents, and how evenly
+/// it is shared among them, per expert, averaged over the ground truths.
+fn print_balance(
+    group: alignist::so3::SymmetryGroup,
+    args: &ScoreArgs,
+    reports: &[[alignist::so3::metrics::MassNearEquivalents; 3]],
+) {
+    use alignist::so3::metrics::MassNearEquivalents;
+    println!(
+        "balance against {group} ({} equivalents), level {}, radius {}°, {} ground truth(s):",
+        group.order(),
+        args.level,
+        args.radius,
+        reports.len()
+    );
+    println!("| targets | mass inside | mass outside | min/max | min | max |");
+    println!("|---|---|---|---|---|---|");
+    for (j, name) in ["both experts", "SDF expert", "feature expert"]
+        .iter()
+        .enumerate()
+    {
+        let n = reports.len() as f64;
+        let mean = |f: &dyn Fn(&MassNearEquivalents) -> f64| {
+            reports.iter().map(|r| f(&r[j])).sum::<f64>() / n
+        };
+        let fold = |init: f64, pick: fn(f64, f64) -> f64| {
+            move |m: &MassNearEquivalents| m.per_equivalent.iter().cloned().fold(init, pick)
+        };
+        println!(
+            "| {name} | {:.3} | {:.3} | {:.3} | {:.4} | {:.4} |",
+            mean(&|m| m.inside),
+            mean(&|m| m.outside),
+            mean(&|m| m.balance),
+            mean(&fold(f64::INFINITY, f64::min)),
+            mean(&fold(0.0, f64::max)),
+        );
+    }
 }
