@@ -304,6 +304,9 @@ pub fn symmetries_row_major(symmetries: &[Rotation3<f64>]) -> Vec<[f64; 9]> {
     symmetries.iter().map(to_row_major).collect()
 }
 
+/// The voxel bake resolution per axis of `alignist-train experts` (64³ cells over ±1.05).
+pub const DEFAULT_BAKE_RESOLUTION: usize = 64;
+
 /// What [`train_expert_set`] needs besides the mesh.
 pub struct ExpertsJob {
     /// Object name.

@@ -74,6 +74,39 @@ pub struct TrainConfig {
     pub init: Option<InitWeights>,
 }
 
+impl Default for TrainConfig {
+    /// The defaults of `alignist-train fit`: the tiny encoder and the cube encoding on 64 px
+    /// crops, Alignist (GKL, mode-focused, both experts), 1 000 steps of 8 images × 256
+    /// rotations, peak learning rate 1e-3 after a 5 % warm-up, a checkpoint every 100 steps.
+    fn default() -> Self {
+        let (steps, k) = (1000, 256);
+        TrainConfig {
+            network: NetworkConfig::new(
+                crate::net::ResNetLayout::Tiny,
+                crate::encoding::RotationEncoding::Cube,
+            ),
+            method: Method::Alignist {
+                loss: MeasureLoss::Gkl,
+                sampling: SamplingStrategy::mode_focused(k),
+                experts: ExpertBranches::Both,
+            },
+            steps,
+            batch: 8,
+            k,
+            lr: 1e-3,
+            warmup: warmup_steps(steps),
+            seed: 0,
+            checkpoint_every: 100,
+            init: None,
+        }
+    }
+}
+
+/// The linear warm-up of a run of `steps`: 5 % of it (at least one step).
+pub fn warmup_steps(steps: usize) -> usize {
+    (steps / 20).max(1)
+}
+
 /// A trained network's weights file, named with its checksum so that a run records exactly what
 /// it started from.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -48,7 +48,7 @@ pub(crate) struct ExpertsArgs {
     #[arg(long, default_value_t = FeatureTrainConfig::default().lr_query)]
     lr_query: f64,
     /// Voxel bake resolution per axis.
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = alignist::bundle::experts::DEFAULT_BAKE_RESOLUTION)]
     bake_resolution: usize,
     /// Width σ in degrees of the combined target around each mode (chooses λ_SDF and λ_SE; no
     /// symmetry is needed).

@@ -6,6 +6,7 @@ use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::eval::print_eval;
+use alignist::train::TrainConfig;
 
 #[derive(clap::Args)]
 pub(crate) struct FitArgs {
@@ -51,19 +52,19 @@ pub(crate) struct FitArgs {
     #[arg(long, value_enum, default_value_t = EncodingArg::Cube)]
     encoding: EncodingArg,
     /// Crop side in pixels.
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = TrainConfig::default().network.image_size)]
     image_size: u32,
     /// Adam steps.
-    #[arg(long, default_value_t = 1000)]
+    #[arg(long, default_value_t = TrainConfig::default().steps)]
     steps: usize,
     /// Images per step.
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, default_value_t = TrainConfig::default().batch)]
     batch: usize,
     /// Rotations per image (the paper: 4096).
-    #[arg(long, default_value_t = 256)]
+    #[arg(long, default_value_t = TrainConfig::default().k)]
     k: usize,
     /// Peak learning rate.
-    #[arg(long, default_value_t = 1e-3)]
+    #[arg(long, default_value_t = TrainConfig::default().lr)]
     lr: f64,
     /// Fraction of each training split used (the paper's low-data regime: 0.1). With --fresh: a
     /// fixed pool of fraction × steps × batch images (the same for every run) instead of a new
@@ -71,13 +72,13 @@ pub(crate) struct FitArgs {
     #[arg(long, default_value_t = 1.0)]
     fraction: f64,
     /// Seed.
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = TrainConfig::default().seed)]
     seed: u64,
     /// Checkpoint folder (default: <out>.checkpoints).
     #[arg(long)]
     checkpoints: Option<PathBuf>,
     /// Steps between checkpoints.
-    #[arg(long, default_value_t = 100)]
+    #[arg(long, default_value_t = TrainConfig::default().checkpoint_every)]
     checkpoint_every: usize,
     /// Continue from the last checkpoint.
     #[arg(long)]
@@ -191,7 +192,7 @@ impl FitArgs {
             batch: self.batch,
             k: self.k,
             lr: self.lr,
-            warmup: (self.steps / 20).max(1),
+            warmup: alignist::train::config::warmup_steps(self.steps),
             seed: self.seed,
             checkpoint_every: self.checkpoint_every,
             init: self
