@@ -25,7 +25,17 @@ pub enum BundleError {
         /// The I/O error.
         source: std::io::Error,
     },
-    /// A manifest that does not parse or misses a field.
+    /// A manifest that is not the JSON it should be (the error names the line, column and
+    /// field).
+    #[error("{path}: {source}")]
+    Json {
+        /// The manifest.
+        path: String,
+        /// The parser's error.
+        #[source]
+        source: serde_json::Error,
+    },
+    /// A manifest whose values are wrong (a version, a field out of range).
     #[error("{path}: {message}")]
     Manifest {
         /// The manifest.
@@ -164,9 +174,9 @@ pub fn load_weights<M: Module>(
 /// Reads and parses a JSON manifest; a parse error names the file, line and field.
 pub fn read_manifest<T: for<'de> Deserialize<'de>>(path: &Path) -> Result<T, BundleError> {
     let text = fs::read_to_string(path).map_err(|e| io_err(path, e))?;
-    serde_json::from_str(&text).map_err(|e| BundleError::Manifest {
+    serde_json::from_str(&text).map_err(|source| BundleError::Json {
         path: path.display().to_string(),
-        message: e.to_string(),
+        source,
     })
 }
 
@@ -189,9 +199,9 @@ pub fn read_versioned_manifest<T: for<'de> Deserialize<'de>>(
 
 /// Writes a JSON manifest atomically.
 pub fn write_manifest<T: Serialize>(path: &Path, manifest: &T) -> Result<(), BundleError> {
-    let text = serde_json::to_string_pretty(manifest).map_err(|e| BundleError::Manifest {
+    let text = serde_json::to_string_pretty(manifest).map_err(|source| BundleError::Json {
         path: path.display().to_string(),
-        message: e.to_string(),
+        source,
     })?;
     write_atomic(path, text.as_bytes())
 }

@@ -262,6 +262,37 @@ fn info_nce_loss(queries: Tensor<2>, keys: Tensor<2>) -> Tensor<1> {
     (log_p * eye).sum().neg().div_scalar(n as f64)
 }
 
+/// One step's losses: InfoNCE of the query maps at the batch's pixels against the keys of their
+/// points (and of the `negatives`), and the mask's binary cross-entropy.
+fn step_losses(
+    keys: &Siren,
+    query: &QueryNet,
+    batch: RenderBatch,
+    negatives: Vec<Vector3<f32>>,
+    config: &FeatureTrainConfig,
+    device: &Device,
+) -> (Tensor<1>, Tensor<1>) {
+    let (size, p, b) = (config.image_size as usize, config.pixels, config.images);
+    let x: Tensor<4> = Tensor::from_data(TensorData::new(batch.images, [b, 3, size, size]), device);
+    let out = query.forward(x);
+    let mask_logits = out.clone().narrow(1, 0, 1);
+    let mask_t: Tensor<4> =
+        Tensor::from_data(TensorData::new(batch.masks, [b, 1, size, size]), device);
+    let bce = bce_with_logits(mask_logits, mask_t);
+    // Queries at the sampled pixels: [B·P, 12].
+    let q_map = out
+        .narrow(1, 1, FEATURE_DIM)
+        .permute([0, 2, 3, 1])
+        .reshape([b * size * size, FEATURE_DIM]);
+    let idx: Tensor<1, Int> =
+        Tensor::from_data(TensorData::new(batch.pixel_index, [b * p]), device);
+    let queries = q_map.select(0, idx);
+    let mut all_points = batch.positives;
+    all_points.extend(negatives);
+    let all_keys = keys.forward(points_tensor(&all_points, device));
+    (info_nce_loss(queries, all_keys), bce)
+}
+
 /// Trains the feature expert on renders of `mesh` (in NOCS, with its colours).
 /// `symmetries` (identity first) are used only to report [`FeatureFit::symmetry_ratio`].
 pub fn train_features(
@@ -271,7 +302,6 @@ pub fn train_features(
     mut progress: impl FnMut(usize, f64),
 ) -> Result<(FeatureExpert, FeatureFit), ExpertError> {
     let started = Instant::now();
-    let size = config.image_size as usize;
     let device = crate::backend::device_for(crate::backend::Workload::Conv).autodiff();
     let (mut keys, mut query) = crate::backend::seeded_init(&device, config.seed, || FeatureNets {
         keys: SirenConfig::new(3, 256, 2, FEATURE_DIM).init(&device),
@@ -283,33 +313,13 @@ pub fn train_features(
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
     let camera = Camera::square(config.image_size);
     let options = RenderOptions::default();
-    let (p, b) = (config.pixels, config.images);
     let mut tail = (0.0, 0.0, 0usize);
 
     for step in 0..config.steps {
         let batch = render_batch(mesh, &camera, &options, config, &mut rng)?;
         let negatives = mesh.sample_surface_points(config.negatives, &mut rng);
 
-        let x: Tensor<4> =
-            Tensor::from_data(TensorData::new(batch.images, [b, 3, size, size]), &device);
-        let out = query.forward(x);
-        let mask_logits = out.clone().narrow(1, 0, 1);
-        let mask_t: Tensor<4> =
-            Tensor::from_data(TensorData::new(batch.masks, [b, 1, size, size]), &device);
-        let bce = bce_with_logits(mask_logits, mask_t);
-
-        // Queries at the sampled pixels: [B·P, 12].
-        let q_map = out
-            .narrow(1, 1, FEATURE_DIM)
-            .permute([0, 2, 3, 1])
-            .reshape([b * size * size, FEATURE_DIM]);
-        let idx: Tensor<1, Int> =
-            Tensor::from_data(TensorData::new(batch.pixel_index, [b * p]), &device);
-        let queries = q_map.select(0, idx);
-        let mut all_points = batch.positives;
-        all_points.extend(negatives);
-        let all_keys = keys.forward(points_tensor(&all_points, &device));
-        let info_nce = info_nce_loss(queries, all_keys);
+        let (info_nce, bce) = step_losses(&keys, &query, batch, negatives, config, &device);
         let loss = info_nce.clone() + bce.clone();
         let (nce_v, bce_v) = (
             info_nce.into_scalar::<f32>() as f64,

@@ -17,14 +17,14 @@ use tonic::{Code, Status};
 
 use super::BatchConfig;
 use super::status::{Reason, refused, status_of};
-use crate::engine::{DepthInput, Model, PredictOptions, Prediction, SeenPoints};
+use crate::engine::{Model, PredictOptions, Prediction};
 
 /// One call's head work.
 struct HeadJob {
     features: Vec<f32>,
     options: PredictOptions,
-    /// The object's index and its depth points, when depth was given.
-    depth: Option<(usize, SeenPoints)>,
+    /// The depth points, when depth was given.
+    depth: Option<super::CropDepth>,
     reply: oneshot::Sender<Result<Prediction, Status>>,
 }
 
@@ -67,7 +67,7 @@ impl HeadStage {
         &self,
         features: Vec<f32>,
         options: PredictOptions,
-        depth: Option<(usize, SeenPoints)>,
+        depth: Option<super::CropDepth>,
     ) -> Result<Prediction, Status> {
         let (reply, answer) = oneshot::channel();
         let job = HeadJob {
@@ -123,10 +123,7 @@ fn answer(model: &Model, job: HeadJob) {
     let started = Instant::now();
     let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
         let features = model.features_tensor(&job.features);
-        let depth = job.depth.as_ref().map(|(i, points)| DepthInput {
-            object: &model.objects[*i],
-            points,
-        });
+        let depth = job.depth.as_ref().map(|d| d.input(model));
         model.predict(&features, &job.options, depth)
     }));
     metrics::histogram!("alignist_head_seconds").record(started.elapsed().as_secs_f64());

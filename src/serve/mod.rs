@@ -197,12 +197,32 @@ async fn blocking<T: Send + 'static>(
     result
 }
 
+/// The depth of one crop: the object its points belong to (its index in the model) and the
+/// points, in the crop camera's frame.
+#[derive(Debug, Clone)]
+pub struct CropDepth {
+    /// The object's index in the model.
+    pub object: usize,
+    /// The points.
+    pub points: SeenPoints,
+}
+
+impl CropDepth {
+    /// The engine's depth input for this crop, of `model`.
+    pub fn input<'a>(&'a self, model: &'a Model) -> DepthInput<'a> {
+        DepthInput {
+            object: &model.objects[self.object],
+            points: &self.points,
+        }
+    }
+}
+
 /// The validated parts common to Predict and PredictDistribution.
 struct Prepared {
     model: Arc<Model>,
     object: Option<usize>,
-    /// The object's index and its depth points, when depth was given.
-    depth: Option<(usize, SeenPoints)>,
+    /// The depth points, when depth was given.
+    depth: Option<CropDepth>,
     batcher: Batcher,
     head: heads::HeadStage,
     image: ImageInput,
@@ -253,15 +273,15 @@ fn prepare(
         _ => Some(model.object_index(object).map_err(status_of)?),
     };
     let depth = match (depth, object) {
-        (Some(d), Some(i)) => Some((
-            i,
-            SeenPoints::Centred(
+        (Some(d), Some(i)) => Some(CropDepth {
+            object: i,
+            points: SeenPoints::Centred(
                 model.objects[i]
                     .fusion
                     .parse_points(&d.xyz, model.config().max_depth_points)
                     .map_err(status_of)?,
             ),
-        )),
+        }),
         _ => None,
     };
     let batcher = batcher_of(served, &model)?;
@@ -561,7 +581,7 @@ struct FrameAnswers<'a> {
     boxes: &'a [CropBox],
     rays: &'a [nalgebra::Rotation3<f64>],
     objects: &'a [Option<usize>],
-    depth: &'a [Option<(usize, SeenPoints)>],
+    depth: &'a [Option<CropDepth>],
 }
 
 impl FrameAnswers<'_> {
@@ -589,7 +609,7 @@ impl FrameAnswers<'_> {
                     }),
                     prediction: Some(predict_response(
                         model,
-                        depth.as_ref().map(|(i, _)| *i).or(self.objects[i]),
+                        depth.as_ref().map(|d| d.object).or(self.objects[i]),
                         level,
                         &p,
                         depth.is_some(),
@@ -658,7 +678,7 @@ fn frame_detections(
 async fn predict_boxes(
     head: &heads::HeadStage,
     encoded: Vec<batcher::Encoded>,
-    depth: &[Option<(usize, SeenPoints)>],
+    depth: &[Option<CropDepth>],
     options: &PredictOptions,
     rays: &[nalgebra::Rotation3<f64>],
 ) -> Result<Vec<crate::engine::Prediction>, Status> {
@@ -715,7 +735,7 @@ fn frame_depth(
     boxes: &[CropBox],
     objects: &[usize],
     rays: &[nalgebra::Rotation3<f64>],
-) -> Result<Vec<Option<(usize, SeenPoints)>>, Status> {
+) -> Result<Vec<Option<CropDepth>>, Status> {
     use crate::engine::{DepthRequest, back_project, decode_depth, decode_mask};
     let raw_size = match (depth.width, depth.height) {
         (0, 0) => None,
@@ -777,10 +797,10 @@ fn frame_depth(
                 .camera_points(&points, "depth.scale")
                 .map_err(status_of)?;
             let to_virtual = rays[i].inverse().cast::<f32>();
-            Ok(Some((
-                objects[i],
-                SeenPoints::Camera(seen.turned(&to_virtual)),
-            )))
+            Ok(Some(CropDepth {
+                object: objects[i],
+                points: SeenPoints::Camera(seen.turned(&to_virtual)),
+            }))
         })
         .collect()
 }
@@ -887,10 +907,7 @@ impl AlignistService {
         let compute = Instant::now();
         let distribution = blocking(move || {
             let f = model.features_tensor(&features);
-            let fusion = depth.as_ref().map(|(i, points)| DepthInput {
-                object: &model.objects[*i],
-                points,
-            });
+            let fusion = depth.as_ref().map(|d| d.input(&model));
             model.distribution(&f, level, fusion).map_err(status_of)
         })
         .await?;
