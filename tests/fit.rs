@@ -173,8 +173,9 @@ fn render_experts_fit_eval_and_load_a_bundle() {
     };
     assert_eq!(eval_overall("2")["images"], 2);
 
-    // Fresh renders instead of --data, with the L1 loss: the results table names each bundle's
-    // method as it was trained (it once printed "alignist (GKL)" for every alignist bundle).
+    // Fresh renders instead of --data, with the L1 loss and half of K from the mode table: the
+    // results table names each bundle's method as it was trained (it once printed
+    // "alignist (GKL)" for every alignist bundle).
     let fresh = dir.path().join("fresh-l1");
     let out = run(&[
         "fit",
@@ -183,6 +184,8 @@ fn render_experts_fit_eval_and_load_a_bundle() {
         s(&experts),
         "--loss",
         "l1",
+        "--focused-fraction",
+        "0.5",
         "--out",
         s(&fresh),
         "--steps",
@@ -200,11 +203,15 @@ fn render_experts_fit_eval_and_load_a_bundle() {
         "--profile",
     ]);
     assert!(String::from_utf8_lossy(&out.stdout).contains("step profile"));
-    let fresh_eval = ModelBundle::load(&fresh)
-        .unwrap()
-        .manifest
-        .evaluation
-        .unwrap();
+    let fresh_manifest = ModelBundle::load(&fresh).unwrap().manifest;
+    match fresh_manifest.provenance.train.method {
+        alignist::train::Method::Alignist {
+            sampling: alignist::train::SamplingStrategy::ModeFocused { focused, .. },
+            ..
+        } => assert_eq!(focused, 8, "half of K = 16"),
+        other => panic!("{other:?}"),
+    }
+    let fresh_eval = fresh_manifest.evaluation.unwrap();
     assert_eq!(fresh_eval.overall.images, 4);
     assert_eq!(fresh_eval.chance_ar30.len(), 1);
     let table = run(&["results", s(&bundle), s(&fresh)]);
@@ -214,7 +221,7 @@ fn render_experts_fit_eval_and_load_a_bundle() {
         "{table}"
     );
     assert!(
-        table.contains("alignist (L1, mode-focused, cube PE)"),
+        table.contains("alignist (L1, mode-focused 8 of 16, cube PE)"),
         "{table}"
     );
     assert!(table.contains("fresh renders"), "{table}");
@@ -261,6 +268,22 @@ fn render_experts_fit_eval_and_load_a_bundle() {
         .unwrap();
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("no object 'tet'"));
+    let bad = Command::new(env!("CARGO_BIN_EXE_alignist-train"))
+        .args(["fit", "--fresh", "--experts", s(&experts)])
+        .args([
+            "--out",
+            s(&dir.path().join("never")),
+            "--focused-fraction",
+            "1.5",
+        ])
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    assert!(
+        String::from_utf8_lossy(&bad.stderr).contains("--focused-fraction must be in [0, 1]"),
+        "{}",
+        String::from_utf8_lossy(&bad.stderr)
+    );
 
     // A corrupt network file is refused, naming it.
     let weights = bundle.join("network.safetensors");

@@ -84,7 +84,7 @@ fn runs_table(rows: &[(String, ModelManifest)]) -> String {
     for (name, m) in rows {
         let Some(e) = &m.evaluation else { continue };
         let t = &m.provenance.train;
-        let method = describe_method(&t.method, &t.network.encoding);
+        let method = describe_method(&t.method, &t.network.encoding, t.k);
         let images: usize = m.objects.iter().map(|o| o.train_images).sum();
         let images = match images {
             0 => "fresh renders".to_string(),
@@ -99,10 +99,12 @@ fn runs_table(rows: &[(String, ModelManifest)]) -> String {
     out
 }
 
-/// The method as the results table names it, from what the bundle was trained with.
+/// The method as the results table names it: mode-focused sampling with its share of the `k`
+/// rotations when it is not the paper's 3/4.
 pub fn describe_method(
     method: &crate::train::Method,
     encoding: &crate::encoding::RotationEncoding,
+    k: usize,
 ) -> String {
     use crate::encoding::RotationEncoding;
     use crate::train::{ExpertBranches, MeasureLoss, Method, SamplingStrategy};
@@ -127,8 +129,13 @@ pub fn describe_method(
                 MeasureLoss::L1 => "L1",
             },
             match sampling {
-                SamplingStrategy::ModeFocused { .. } => "mode-focused",
-                SamplingStrategy::Uniform => "random sampling",
+                SamplingStrategy::ModeFocused { focused, .. } if *focused == k * 3 / 4 => {
+                    "mode-focused".to_string()
+                }
+                SamplingStrategy::ModeFocused { focused, .. } => {
+                    format!("mode-focused {focused} of {k}")
+                }
+                SamplingStrategy::Uniform => "random sampling".to_string(),
             }
         ),
         Method::Ipdf => format!("ipdf ({encoding})"),

@@ -42,6 +42,10 @@ pub(crate) struct FitArgs {
     /// Sampling of the alignist method.
     #[arg(long, value_enum, default_value_t = SamplingArg::Modes)]
     sampling: SamplingArg,
+    /// With mode-focused sampling: the fraction of the K rotations drawn from the mode table
+    /// (the rest uniformly; the paper's mix is 3/4).
+    #[arg(long, default_value_t = 0.75)]
+    focused_fraction: f64,
     /// Experts fitted by the alignist method; a single-expert run silences the other branch.
     #[arg(long, value_enum, default_value_t = FitExpertsArg::Both)]
     fit_experts: FitExpertsArg,
@@ -168,7 +172,13 @@ impl FitArgs {
                     LossArg::L1 => MeasureLoss::L1,
                 },
                 sampling: match self.sampling {
-                    SamplingArg::Modes => SamplingStrategy::mode_focused(self.k),
+                    SamplingArg::Modes if self.focused_fraction == 0.75 => {
+                        SamplingStrategy::mode_focused(self.k)
+                    }
+                    SamplingArg::Modes => SamplingStrategy::ModeFocused {
+                        focused: (self.k as f64 * self.focused_fraction).round() as usize,
+                        temperature: 0.0,
+                    },
                     SamplingArg::Random => SamplingStrategy::Uniform,
                 },
                 experts: match self.fit_experts {
@@ -214,6 +224,12 @@ impl FitArgs {
         }
         if !(self.fraction > 0.0 && self.fraction <= 1.0) {
             bail!("--fraction must be in (0, 1], got {}", self.fraction);
+        }
+        if !(0.0..=1.0).contains(&self.focused_fraction) {
+            bail!(
+                "--focused-fraction must be in [0, 1], got {}",
+                self.focused_fraction
+            );
         }
         if self.image_size < 16 || !self.image_size.is_multiple_of(8) {
             bail!(
