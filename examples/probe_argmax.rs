@@ -29,16 +29,15 @@ fn main() {
         let ta = im.equivalents[0] * nalgebra::Vector3::z();
         let axis = pa.dot(&ta).abs().min(1.0).acos().to_degrees();
         // Mass within 15° of the true set vs the argmax's neighbourhood.
-        let centres = grid.quaternions();
         let mut near_true = 0.0;
         let mut near_max = 0.0;
-        for (i, q) in centres.iter().enumerate() {
-            let ri = alignist::so3::from_quaternion(*q).unwrap();
+        for (i, &pi) in p.iter().enumerate() {
+            let ri = grid.rotation(i as u64);
             if error_to_nearest_deg(&ri, &im.equivalents) < 15.0 {
-                near_true += p[i] as f64;
+                near_true += pi as f64;
             }
             if alignist::so3::geodesic_angle(&ri, &r).to_degrees() < 15.0 {
-                near_max += p[i] as f64;
+                near_max += pi as f64;
             }
         }
         let view = ta.z.abs().acos().to_degrees(); // angle between the axis and the optical axis

@@ -81,14 +81,7 @@ fn the_view_table_places_a_close_cylinder_from_its_depth_alone() {
     let (mut layered, mut far) = (Vec::new(), Vec::new());
     for distance in [2.7, 8.0] {
         let focal = 0.45 * 160.0 * f64::sqrt(distance * distance - 1.0);
-        let camera = Camera {
-            fx: focal,
-            fy: focal,
-            cx: 80.0,
-            cy: 80.0,
-            width: 160,
-            height: 160,
-        };
+        let camera = Camera::square_with_focal(160, focal);
         for _ in 0..8 {
             let pose = Pose {
                 rotation: haar_rotation(&mut rng),

@@ -304,19 +304,19 @@ async fn serves_predict_distribution_models_health_and_reflection() {
     let dir = tempfile::tempdir().unwrap();
     let png = dir.path().join("cube.png");
     std::fs::write(&png, cube_png(3)).unwrap();
-    let out = Command::new(env!("CARGO_BIN_EXE_alignist"))
-        .args(["--server", &server.grpc, "predict", "--image"])
-        .arg(&png)
-        .args(["--top-k", "3", "--json", "--plot"])
-        .arg(dir.path().join("plot.png"))
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let plot = dir.path().join("plot.png");
+    let json = cli_json(&[
+        "--server",
+        &server.grpc,
+        "predict",
+        "--image",
+        png.to_str().unwrap(),
+        "--top-k",
+        "3",
+        "--json",
+        "--plot",
+        plot.to_str().unwrap(),
+    ]);
     assert_eq!(json["top"].as_array().unwrap().len(), 3);
     assert!(image::open(dir.path().join("plot.png")).is_ok());
     let out = Command::new(env!("CARGO_BIN_EXE_alignist"))
@@ -1062,41 +1062,30 @@ async fn frame_requests_fuse_a_depth_image_and_answer_the_translation() {
     let (rgb_path, depth_path) = (dir.path().join("rgb.png"), dir.path().join("depth.png"));
     std::fs::write(&rgb_path, &frame.png).unwrap();
     std::fs::write(&depth_path, &depth.data).unwrap();
-    let out = Command::new(env!("CARGO_BIN_EXE_alignist"))
-        .args([
-            "--server",
-            &server.grpc,
-            "predict",
-            "--model",
-            "tiny",
-            "--object",
-            "cube",
-        ])
-        .arg("--image")
-        .arg(&rgb_path)
-        .arg("--depth")
-        .arg(&depth_path)
-        .args([
-            "--depth-scale",
-            &depth.scale.to_string(),
-            "--intrinsics",
-            &format!("{},{},{},{}", k[0], k[4], k[2], k[5]),
-            "--box",
-            &format!("{x},{y},{width},{height}"),
-            "--top-k",
-            "3",
-            "--level",
-            "4",
-            "--json",
-        ])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let json = cli_json(&[
+        "--server",
+        &server.grpc,
+        "predict",
+        "--model",
+        "tiny",
+        "--object",
+        "cube",
+        "--image",
+        rgb_path.to_str().unwrap(),
+        "--depth",
+        depth_path.to_str().unwrap(),
+        "--depth-scale",
+        &depth.scale.to_string(),
+        "--intrinsics",
+        &format!("{},{},{},{}", k[0], k[4], k[2], k[5]),
+        "--box",
+        &format!("{x},{y},{width},{height}"),
+        "--top-k",
+        "3",
+        "--level",
+        "4",
+        "--json",
+    ]);
     let cli = &json["detections"][0]["prediction"];
     assert_eq!(cli["depth_fused"], true);
     let t_cli: Vec<f64> = serde_json::from_value(cli["top"][0]["translation"].clone()).unwrap();
@@ -1382,28 +1371,22 @@ async fn frame_requests_answer_every_box_in_the_camera_frame() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("frame.png");
     std::fs::write(&path, &png).unwrap();
-    let out = Command::new(env!("CARGO_BIN_EXE_alignist"))
-        .args(["--server", &server.grpc, "predict", "--image"])
-        .arg(&path)
-        .args([
-            "--intrinsics",
-            &format!("{},{},{},{}", k[0], k[4], k[2], k[5]),
-            "--box",
-            &format!("{},{},{},{}", bbox[0], bbox[1], bbox[2], bbox[3]),
-            "--box",
-            "20,300,90,120",
-            "--top-k",
-            "3",
-            "--json",
-        ])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let json = cli_json(&[
+        "--server",
+        &server.grpc,
+        "predict",
+        "--image",
+        path.to_str().unwrap(),
+        "--intrinsics",
+        &format!("{},{},{},{}", k[0], k[4], k[2], k[5]),
+        "--box",
+        &format!("{},{},{},{}", bbox[0], bbox[1], bbox[2], bbox[3]),
+        "--box",
+        "20,300,90,120",
+        "--top-k",
+        "3",
+        "--json",
+    ]);
     let detections = json["detections"].as_array().unwrap();
     assert_eq!(detections.len(), 2);
     assert_eq!(

@@ -32,9 +32,15 @@ impl Camera {
     /// A square `size × size` camera with focal length `size` pixels (a 53° field of view) and
     /// the principal point at the image centre.
     pub fn square(size: u32) -> Camera {
+        Camera::square_with_focal(size, size as f64)
+    }
+
+    /// A square `size × size` camera with focal length `focal` pixels and the principal point at
+    /// the image centre.
+    pub fn square_with_focal(size: u32, focal: f64) -> Camera {
         Camera {
-            fx: size as f64,
-            fy: size as f64,
+            fx: focal,
+            fy: focal,
             cx: size as f64 / 2.0,
             cy: size as f64 / 2.0,
             width: size,

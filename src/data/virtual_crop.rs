@@ -93,14 +93,7 @@ impl VirtualCamera {
         let f = size as f64 / extent;
         Some(VirtualCamera {
             r_ray,
-            camera: Camera {
-                fx: f,
-                fy: f,
-                cx: size as f64 / 2.0,
-                cy: size as f64 / 2.0,
-                width: size,
-                height: size,
-            },
+            camera: Camera::square_with_focal(size, f),
         })
     }
 

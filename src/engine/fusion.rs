@@ -67,14 +67,7 @@ impl ViewTable {
                 let distance = 1.0 / u;
                 // The bounding sphere's silhouette fills 0.9 of the image.
                 let focal = 0.45 * size as f64 * (distance * distance - 1.0).sqrt();
-                let camera = Camera {
-                    fx: focal,
-                    fy: focal,
-                    cx: size as f64 / 2.0,
-                    cy: size as f64 / 2.0,
-                    width: size,
-                    height: size,
-                };
+                let camera = Camera::square_with_focal(size, focal);
                 (0..n)
                     .into_par_iter()
                     .map(|h| {
@@ -174,25 +167,12 @@ pub fn cell_tempering(width_deg: f64, cell_volume: f64) -> f32 {
 pub struct CameraPoints {
     /// The points.
     pub points: Vec<Vector3<f32>>,
-    /// Their centroid, each weighed by `z²`.
+    /// The centroid of all the object's valid depth pixels (not only of `points`), each weighed
+    /// by `z²` ([`super::BackProjected::centroid`]).
     pub centroid: Vector3<f32>,
 }
 
 impl CameraPoints {
-    /// Wraps points (normalised units, camera frame).
-    pub fn new(points: Vec<Vector3<f32>>) -> CameraPoints {
-        let (mut sum, mut weight) = (Vector3::zeros(), 0f32);
-        for p in &points {
-            let w = p.z * p.z;
-            sum += p * w;
-            weight += w;
-        }
-        CameraPoints {
-            centroid: sum / weight.max(f32::MIN_POSITIVE),
-            points,
-        }
-    }
-
     /// At most `n` of the points, evenly spaced, with the same centroid (so the same `τ₀`).
     pub fn subsample(&self, n: usize) -> CameraPoints {
         let total = self.points.len();

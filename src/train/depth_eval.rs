@@ -155,9 +155,9 @@ pub fn evaluate_depth(
     };
     for (n, im) in images.iter().enumerate() {
         let mut figures = [[f64::NAN; 4]; 3];
-        let image = (im, model.features(&[&im.rgb]));
+        let features = model.features(&[&im.rgb]);
         for (k, condition) in [None, Some(clean), Some(noise)].into_iter().enumerate() {
-            figures[k] = score_image(model, &image, &grid, &centres, condition, &mut rng)?;
+            figures[k] = score_image(model, im, &features, &grid, &centres, condition, &mut rng)?;
         }
         ceiling += ll_ceiling(&grid, &im.equivalents);
         rows.push((im.object, figures));
@@ -179,12 +179,13 @@ pub fn evaluate_depth(
     })
 }
 
-/// One image's figures (the image and its features) in one condition (image only, or fused with
-/// its depth spoiled by `noise`): LL and argmax error of the full distribution at `grid`'s level, the served top-1's
+/// One image's figures (from its `features`) in one condition (image only, or fused with its
+/// depth spoiled by `noise`): LL and argmax error of the full distribution at `grid`'s level, the served top-1's
 /// error, and its translation error in % of the radius (NaN for image only).
 fn score_image(
     model: &Model,
-    (im, features): &(&DepthEvalImage, burn::tensor::Tensor<2>),
+    im: &DepthEvalImage,
+    features: &burn::tensor::Tensor<2>,
     grid: &GridLevel,
     centres: &[[f64; 4]],
     noise: Option<DepthNoise>,

@@ -32,11 +32,20 @@ pub enum SamplingStrategy {
     Uniform,
 }
 
+/// The paper's share of the K rotations drawn from the mode table.
+pub const PAPER_FOCUSED_SHARE: f64 = 0.75;
+
 impl SamplingStrategy {
     /// The paper's mix at a given K: three quarters from the mode table, drawn uniformly.
     pub fn mode_focused(k: usize) -> Self {
+        Self::mode_focused_share(k, PAPER_FOCUSED_SHARE)
+    }
+
+    /// `⌊share·K⌋` of the K rotations from the mode table (drawn uniformly over it), the rest
+    /// uniform over SO(3).
+    pub fn mode_focused_share(k: usize, share: f64) -> Self {
         SamplingStrategy::ModeFocused {
-            focused: k * 3 / 4,
+            focused: (k as f64 * share).floor() as usize,
             temperature: 0.0,
         }
     }

@@ -319,58 +319,72 @@ fn method_loss(
     }
 }
 
-/// One optimiser step at `step` (its images, rotations and targets drawn from the step's own
-/// seed, so that a resumed run continues exactly): the network after it, and the loss.
-fn train_step(
-    config: &TrainConfig,
-    set: &TrainingSet,
-    samplers: &[ModeSampler],
-    (network, optim): (Network, &mut ModuleOptimizer),
-    step: usize,
-    profile: &mut StepProfile,
-    device: &Device,
-) -> Result<(Network, f64), TrainError> {
-    let seed = config
-        .seed
-        .wrapping_mul(1_000_003)
-        .wrapping_add(step as u64);
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let started = Instant::now();
-    let picks = step_images(config, set, &mut rng);
-    let crops: Vec<&[u8]> = picks.iter().map(|im| im.rgb.as_slice()).collect();
-    let images = images_tensor(&crops, config.network.image_size as usize, device);
-    profile.data += started.elapsed().as_secs_f64();
-    let mut rotations = Vec::with_capacity(picks.len());
-    let mut log_sdf = Vec::with_capacity(picks.len() * config.k);
-    let mut log_se = Vec::with_capacity(picks.len() * config.k);
-    for im in &picks {
-        let (mats, targets) = sample_image(config, set, im, samplers, &mut rng, profile);
-        if let Some(t) = targets {
-            log_sdf.extend(t.log_a_sdf);
-            log_se.extend(t.log_a_se);
+/// What every step of a run reads: its configuration, data, mode samplers and device.
+struct Run<'a> {
+    config: &'a TrainConfig,
+    set: &'a TrainingSet,
+    samplers: &'a [ModeSampler],
+    device: &'a Device,
+}
+
+impl Run<'_> {
+    /// One optimiser step at `step` (its images, rotations and targets drawn from the step's own
+    /// seed, so that a resumed run continues exactly): the network after it, and the loss.
+    fn step(
+        &self,
+        network: Network,
+        optim: &mut ModuleOptimizer,
+        step: usize,
+        profile: &mut StepProfile,
+    ) -> Result<(Network, f64), TrainError> {
+        let Run {
+            config,
+            set,
+            samplers,
+            device,
+        } = *self;
+        let seed = config
+            .seed
+            .wrapping_mul(1_000_003)
+            .wrapping_add(step as u64);
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let started = Instant::now();
+        let picks = step_images(config, set, &mut rng);
+        let crops: Vec<&[u8]> = picks.iter().map(|im| im.rgb.as_slice()).collect();
+        let images = images_tensor(&crops, config.network.image_size as usize, device);
+        profile.data += started.elapsed().as_secs_f64();
+        let mut rotations = Vec::with_capacity(picks.len());
+        let mut log_sdf = Vec::with_capacity(picks.len() * config.k);
+        let mut log_se = Vec::with_capacity(picks.len() * config.k);
+        for im in &picks {
+            let (mats, targets) = sample_image(config, set, im, samplers, &mut rng, profile);
+            if let Some(t) = targets {
+                log_sdf.extend(t.log_a_sdf);
+                log_se.extend(t.log_a_se);
+            }
+            rotations.push(mats);
         }
-        rotations.push(mats);
+        let started = Instant::now();
+        let features = network.encoder.forward(images);
+        profile.encoder_forward += started.elapsed().as_secs_f64();
+        let started = Instant::now();
+        let loss = method_loss(config, &network, features, &rotations, log_sdf, log_se);
+        let loss_value = loss.clone().into_scalar::<f32>() as f64;
+        profile.head_forward += started.elapsed().as_secs_f64();
+        if !loss_value.is_finite() {
+            return Err(TrainError::Diverged {
+                step,
+                loss: loss_value,
+            });
+        }
+        let started = Instant::now();
+        let grads = GradientsParams::from_grads(loss.backward(), &network);
+        profile.backward += started.elapsed().as_secs_f64();
+        let started = Instant::now();
+        let network = optim.step(learning_rate(config, step), network, grads);
+        profile.optimiser += started.elapsed().as_secs_f64();
+        Ok((network, loss_value))
     }
-    let started = Instant::now();
-    let features = network.encoder.forward(images);
-    profile.encoder_forward += started.elapsed().as_secs_f64();
-    let started = Instant::now();
-    let loss = method_loss(config, &network, features, &rotations, log_sdf, log_se);
-    let loss_value = loss.clone().into_scalar::<f32>() as f64;
-    profile.head_forward += started.elapsed().as_secs_f64();
-    if !loss_value.is_finite() {
-        return Err(TrainError::Diverged {
-            step,
-            loss: loss_value,
-        });
-    }
-    let started = Instant::now();
-    let grads = GradientsParams::from_grads(loss.backward(), &network);
-    profile.backward += started.elapsed().as_secs_f64();
-    let started = Instant::now();
-    let network = optim.step(learning_rate(config, step), network, grads);
-    profile.optimiser += started.elapsed().as_secs_f64();
-    Ok((network, loss_value))
 }
 
 /// Trains (or resumes, when `checkpoints` holds one and `resume` is set) and returns the network
@@ -389,6 +403,12 @@ pub fn train(
     let samplers = mode_samplers(config, set)?;
     let (mut network, mut optim, start) =
         starting_point(config, set, checkpoints, resume, &samplers, &device)?;
+    let run = Run {
+        config,
+        set,
+        samplers: &samplers,
+        device: &device,
+    };
     let tail_from = config.steps - config.steps.div_ceil(10);
     let (mut tail_sum, mut tail_n) = (0.0, 0usize);
     let mut steps_run = 0;
@@ -396,9 +416,7 @@ pub fn train(
     for step in start..config.steps {
         let step_started = Instant::now();
         let loss_value;
-        let with = (network, &mut optim);
-        (network, loss_value) =
-            train_step(config, set, &samplers, with, step, &mut profile, &device)?;
+        (network, loss_value) = run.step(network, &mut optim, step, &mut profile)?;
         if step >= tail_from {
             tail_sum += loss_value;
             tail_n += 1;

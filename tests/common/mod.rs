@@ -29,6 +29,20 @@ pub fn train(args: &[&str]) {
     );
 }
 
+/// Runs the `alignist` CLI, which must succeed, and parses what it prints as JSON.
+pub fn cli_json(args: &[&str]) -> serde_json::Value {
+    let out = Command::new(env!("CARGO_BIN_EXE_alignist"))
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
 /// A models directory with one tiny trained bundle, `tiny`, made once per test binary.
 pub fn models_dir() -> &'static Path {
     static DIR: OnceLock<PathBuf> = OnceLock::new();

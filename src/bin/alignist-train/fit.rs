@@ -44,7 +44,7 @@ pub(crate) struct FitArgs {
     sampling: SamplingArg,
     /// With mode-focused sampling: the fraction of the K rotations drawn from the mode table
     /// (the rest uniformly; the paper's mix is 3/4).
-    #[arg(long, default_value_t = 0.75)]
+    #[arg(long, default_value_t = alignist::train::sampling::PAPER_FOCUSED_SHARE)]
     focused_fraction: f64,
     /// Experts fitted by the alignist method; a single-expert run silences the other branch.
     #[arg(long, value_enum, default_value_t = FitExpertsArg::Both)]
@@ -172,13 +172,9 @@ impl FitArgs {
                     LossArg::L1 => MeasureLoss::L1,
                 },
                 sampling: match self.sampling {
-                    SamplingArg::Modes if self.focused_fraction == 0.75 => {
-                        SamplingStrategy::mode_focused(self.k)
+                    SamplingArg::Modes => {
+                        SamplingStrategy::mode_focused_share(self.k, self.focused_fraction)
                     }
-                    SamplingArg::Modes => SamplingStrategy::ModeFocused {
-                        focused: (self.k as f64 * self.focused_fraction).round() as usize,
-                        temperature: 0.0,
-                    },
                     SamplingArg::Random => SamplingStrategy::Uniform,
                 },
                 experts: match self.fit_experts {
