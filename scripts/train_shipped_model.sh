@@ -12,7 +12,10 @@
 #   5. a third warm restart (data seed 3): 10 000 steps, peak lr 3e-4 (~35 min);
 #   6. a fourth warm restart (data seed 4): 10 000 steps, peak lr 2e-4 (~35 min alone; 68 min
 #      beside other work);
-#   7. the bundle is evaluated on 250 fresh renders at level 3, then copied to models/symsol1.
+#   7. four more warm restarts that draw fewer of the K rotations from the experts' mode table
+#      (--focused-fraction; the paper's 3/4 until here), 5 000 steps each at peak lr 1e-4
+#      (~19 min each): 1/2 (data seed 5), then 1/4 (seed 6), 1/10 (seed 7) and 1/20 (seed 8);
+#   8. the bundle is evaluated on 250 fresh renders at level 3, then copied to models/symsol1.
 # Usage: scripts/train_shipped_model.sh [WORK_DIR]   (default: target/symsol)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -48,5 +51,14 @@ FIT_WARM=("$BIN" fit --fresh
   --init "$WORK/models/alignist-warm2" --out "$WORK/models/alignist-warm3"
 "${FIT_WARM[@]}" --steps 10000 --lr 2e-4 --seed 4 \
   --init "$WORK/models/alignist-warm3" --out "$WORK/models/alignist-warm4"
+FOCUSED=("${FIT_WARM[@]}" --steps 5000 --lr 1e-4)
+"${FOCUSED[@]}" --seed 5 --focused-fraction 0.5 \
+  --init "$WORK/models/alignist-warm4" --out "$WORK/models/alignist-ff50"
+"${FOCUSED[@]}" --seed 6 --focused-fraction 0.25 \
+  --init "$WORK/models/alignist-ff50" --out "$WORK/models/alignist-ff50-25"
+"${FOCUSED[@]}" --seed 7 --focused-fraction 0.1 \
+  --init "$WORK/models/alignist-ff50-25" --out "$WORK/models/alignist-ff10"
+"${FOCUSED[@]}" --seed 8 --focused-fraction 0.05 \
+  --init "$WORK/models/alignist-ff10" --out "$WORK/models/alignist-ff05"
 rm -rf models/symsol1
-cp -r "$WORK/models/alignist-warm4" models/symsol1
+cp -r "$WORK/models/alignist-ff05" models/symsol1
