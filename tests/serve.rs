@@ -735,10 +735,12 @@ async fn server_levels_are_checked_at_start_up_and_level_0_is_the_default_everyw
     let first = stream.message().await.unwrap().unwrap();
     assert_eq!((first.level, first.total_cells), (3, 36_864));
     // Settings that cannot work stop the server at start-up with a message naming them.
-    for args in [
-        ["--max-level", "7"],
-        ["--max-search-level", "1"],
-        ["--max-level", "1"],
+    for (args, named) in [
+        (["--max-level", "7"], "level"),
+        (["--max-search-level", "1"], "level"),
+        (["--max-level", "1"], "level"),
+        (["--search-keep-taper", "0"], "keep_taper"),
+        (["--search-keep-taper", "NaN"], "keep_taper"),
     ] {
         let out = Command::new(env!("CARGO_BIN_EXE_alignist-server"))
             .args([
@@ -753,7 +755,7 @@ async fn server_levels_are_checked_at_start_up_and_level_0_is_the_default_everyw
             .unwrap();
         assert!(!out.status.success(), "{args:?}");
         let err = String::from_utf8_lossy(&out.stderr);
-        assert!(err.contains("level"), "{args:?}: {err}");
+        assert!(err.contains(named), "{args:?}: {err}");
     }
 }
 

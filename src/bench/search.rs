@@ -30,24 +30,35 @@ pub struct SearchFigures {
     pub p50_ms: f64,
 }
 
-/// The searches the study compares: start level 1 or 2, keep 32–512, and keeps chosen by mass.
+/// The searches the study compares: start level 1 or 2, keep 32–512, keeps chosen by mass, and
+/// keeps that halve (wide where a wrong region is chosen, narrow inside the chosen ones) or
+/// double at each finer level.
 pub fn candidates() -> Vec<SearchParams> {
+    let flat = |start_level, keep, keep_mass| SearchParams {
+        start_level,
+        keep,
+        keep_mass,
+        keep_taper: 1.0,
+    };
     let mut out = Vec::new();
     for start_level in [1u8, 2] {
         for keep in [32usize, 64, 128, 256, 512] {
-            out.push(SearchParams {
-                start_level,
-                keep,
-                keep_mass: None,
-            });
+            out.push(flat(start_level, keep, None));
         }
         for mass in [0.99, 0.999] {
-            out.push(SearchParams {
-                start_level,
-                keep: 512,
-                keep_mass: Some(mass),
-            });
+            out.push(flat(start_level, 512, Some(mass)));
         }
+    }
+    let tapered = |start_level, keep, keep_taper| SearchParams {
+        keep_taper,
+        ..flat(start_level, keep, None)
+    };
+    out.push(tapered(1, 512, 0.5));
+    for keep in [256, 384, 512] {
+        out.push(tapered(2, keep, 0.5));
+    }
+    for keep in [64, 128] {
+        out.push(tapered(2, keep, 2.0));
     }
     out
 }
@@ -134,10 +145,7 @@ pub fn print(figures: &[SearchFigures], default: &SearchParams) {
         "  start  keep             agreement  found max  mean gap  covered mass  p50 (encoder incl.)"
     );
     for f in figures {
-        let keep = match f.params.keep_mass {
-            Some(m) => format!("{m} mass ≤{}", f.params.keep),
-            None => f.params.keep.to_string(),
-        };
+        let keep = describe_keep(&f.params);
         println!(
             "  {:>5}  {keep:<16} {:>8.1} % {:>8.1} % {:>9.3} {:>12.4}  {:>8.1} ms",
             f.params.start_level,
@@ -150,16 +158,25 @@ pub fn print(figures: &[SearchFigures], default: &SearchParams) {
     }
     if let Some(f) = figures.iter().find(|f| f.params == *default) {
         println!(
-            "default search (start {}, keep {}{}): agreement: {:.1} %, found max {:.1} %, mean gap {:.3}, covered mass {:.4}",
+            "default search (start {}, keep {}): agreement: {:.1} %, found max {:.1} %, mean gap {:.3}, covered mass {:.4}",
             default.start_level,
-            default.keep,
-            default
-                .keep_mass
-                .map_or(String::new(), |m| format!(", mass {m}")),
+            describe_keep(default),
             100.0 * f.agreement,
             100.0 * f.found_maximum,
             f.mean_gap,
             f.covered_mass
         );
     }
+}
+
+/// The keep of a search as the table shows it: `128`, `0.99 mass ≤512`, `512 ×0.5/level`.
+fn describe_keep(search: &SearchParams) -> String {
+    let mut keep = match search.keep_mass {
+        Some(m) => format!("{m} mass ≤{}", search.keep),
+        None => search.keep.to_string(),
+    };
+    if search.keep_taper != 1.0 {
+        keep += &format!(" ×{}/level", search.keep_taper);
+    }
+    keep
 }

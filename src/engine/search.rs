@@ -62,13 +62,23 @@ pub struct Keep {
     /// With `Some(f)`, only the most probable cells that hold the fraction `f` of the level's
     /// estimated mass (between `min` and `max` of them); with `None`, always `max`.
     pub mass: Option<f64>,
+    /// Each refinement keeps `taper` times as many cells as the one before (1: `max` at every
+    /// level; 0.5: `max`, then `max/2`, …, never fewer than `min`).
+    pub taper: f64,
 }
 
 impl Keep {
-    /// Indices of the cells to refine, most probable first, of a level whose cells hold
-    /// `probs` (summing to `covered`).
-    pub fn cells(&self, probs: &[f64], covered: f64) -> Vec<usize> {
-        let mut kept = top_indices(probs, self.max);
+    /// The most cells kept at the `refinement`-th refinement (0: the start level's):
+    /// `max · taper^refinement`, rounded, at least `min`.
+    pub fn max_at(&self, refinement: usize) -> usize {
+        let scaled = self.max as f64 * self.taper.powi(refinement.min(64) as i32);
+        (scaled.round() as usize).max(self.min)
+    }
+
+    /// Indices of the cells to refine at the `refinement`-th refinement, most probable first, of
+    /// a level whose cells hold `probs` (summing to `covered`).
+    pub fn cells(&self, probs: &[f64], covered: f64, refinement: usize) -> Vec<usize> {
+        let mut kept = top_indices(probs, self.max_at(refinement));
         if let Some(fraction) = self.mass {
             let goal = fraction * covered;
             let mut sum = 0.0;
@@ -103,7 +113,7 @@ pub fn coarse_to_fine_many(
         if i > 0 {
             let parent = grids[i - 1];
             for s in 0..n {
-                let kept = keep.cells(&probs[s], covered[s]);
+                let kept = keep.cells(&probs[s], covered[s], i - 1);
                 // `probs` already carry the mass kept so far: the kept ones' sum is the new cover.
                 covered[s] = kept.iter().map(|&j| probs[s][j]).sum::<f64>();
                 cells[s] = kept
@@ -227,5 +237,46 @@ fn mode_of(seed: &[f64; 4], cells: &[([f64; 4], f64)]) -> Mode {
         probability: mass,
         spread_deg: spread.to_degrees(),
         cells: cells.len(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A halving keep refines `keep`, `keep/2`, … cells (never fewer than `min`), a flat one
+    /// `keep` at every level: counted from the cells the search asks to score.
+    #[test]
+    fn a_tapered_keep_refines_fewer_cells_at_each_finer_level() {
+        let grids: Vec<GridLevel> = (1..=4).map(|l| GridLevel::new(l).unwrap()).collect();
+        let grids: Vec<&GridLevel> = grids.iter().collect();
+        let scored = |taper: f64, min: usize| {
+            let keep = Keep {
+                max: 64,
+                min,
+                mass: None,
+                taper,
+            };
+            let mut counts = Vec::new();
+            let results = coarse_to_fine_many(&grids, keep, 2, |grid, cells| {
+                counts.push(cells[0].len());
+                // A smooth, image-free score: the cosine of the rotation angle.
+                cells
+                    .iter()
+                    .map(|cells| {
+                        cells
+                            .iter()
+                            .map(|&c| grid.rotation(c).angle().cos() as f32)
+                            .collect()
+                    })
+                    .collect()
+            });
+            assert_eq!(results.len(), 2);
+            counts
+        };
+        assert_eq!(scored(1.0, 1), vec![576, 8 * 64, 8 * 64, 8 * 64]);
+        assert_eq!(scored(0.5, 1), vec![576, 8 * 64, 8 * 32, 8 * 16]);
+        assert_eq!(scored(0.5, 24), vec![576, 8 * 64, 8 * 32, 8 * 24]);
+        assert_eq!(scored(2.0, 1), vec![576, 8 * 64, 8 * 128, 8 * 256]);
     }
 }
