@@ -65,6 +65,48 @@ fn coarse_to_fine_top1_is_the_exhaustive_argmax_at_level_4() {
     }
 }
 
+/// The bench's search study counts a search that scores every cell of the level as agreeing on
+/// every image, and lists each image a one-cell search from level 0 disagrees on.
+#[test]
+fn the_search_study_counts_agreements_and_lists_disagreements() {
+    use alignist::bench::search::study;
+    use alignist::engine::SearchParams;
+    let engine = Engine::load_dir(models_dir(), EngineConfig::default()).unwrap();
+    let model = engine.model("tiny").unwrap();
+    let crops: Vec<Vec<u8>> = (0..4)
+        .map(|seed| {
+            model
+                .prepare(&ImageRequest {
+                    data: &cube_png(300 + seed),
+                    raw_size: None,
+                    crop: None,
+                })
+                .unwrap()
+        })
+        .collect();
+    let search = |start_level, keep| SearchParams {
+        start_level,
+        keep,
+        keep_mass: None,
+        keep_taper: 1.0,
+    };
+    // From level 2 keeping all 4 608 cells, level 3 is scored in full: the exhaustive argmax.
+    let figures = study(&model, &crops, &[search(2, 4608), search(0, 1)], 3, 5).unwrap();
+    assert_eq!(figures[0].agreement, 1.0);
+    assert!(figures[0].disagreements.is_empty());
+    assert_eq!(figures[0].mean_gap, 0.0);
+    let narrow = &figures[1];
+    let agreed = (narrow.agreement * crops.len() as f64).round() as usize;
+    assert_eq!(agreed + narrow.disagreements.len(), crops.len());
+    for &(i, tied) in &narrow.disagreements {
+        assert!(i < crops.len());
+        // A disagreement "within 0.01 of the maximum" counts as a found maximum.
+        if tied {
+            assert!(narrow.found_maximum > 0.0);
+        }
+    }
+}
+
 #[test]
 fn a_batched_search_answers_each_image_as_its_own_search_does() {
     let engine = Engine::load_dir(models_dir(), EngineConfig::default()).unwrap();

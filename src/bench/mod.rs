@@ -81,9 +81,16 @@ pub fn matmul_peak_gflops(tile: usize) -> f64 {
 }
 
 /// Runs every measurement on the bundle at `bundle` with rendered RGB8 crops of its input size
-/// (several objects, for the search study) and prints the figures.
-pub fn bench(bundle: &Path, crops: &[Vec<u8>]) -> anyhow::Result<()> {
+/// (several objects, for the search study; `objects[i]` names crop `i`'s) and prints the
+/// figures.
+pub fn bench(bundle: &Path, crops: &[Vec<u8>], objects: &[String]) -> anyhow::Result<()> {
     anyhow::ensure!(!crops.is_empty(), "the bench needs at least one image");
+    anyhow::ensure!(
+        objects.len() == crops.len(),
+        "{} object names for {} crops",
+        objects.len(),
+        crops.len()
+    );
     let engine_config = EngineConfig::default();
     let model = Arc::new(Engine::load_model(bundle, engine_config)?);
     let size = model.input_size();
@@ -121,7 +128,7 @@ pub fn bench(bundle: &Path, crops: &[Vec<u8>]) -> anyhow::Result<()> {
     numpy_ratio(bundle, &ours_ms);
     // The coarse-to-fine search against the exhaustive level-5 argmax.
     let figures = search::study(&model, crops, &search::candidates(), 5, 10)?;
-    search::print(&figures, &engine_config.search());
+    search::print(&figures, &engine_config.search(), objects);
     let options = PredictOptions {
         top_k: 10,
         level: Some(5),

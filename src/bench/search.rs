@@ -28,6 +28,10 @@ pub struct SearchFigures {
     pub covered_mass: f64,
     /// Median time of one call, encoder included, in milliseconds.
     pub p50_ms: f64,
+    /// The images whose top-1 is not the argmax's cell or a neighbour, each with whether it
+    /// still scores within 0.01 of the maximum (a near-tie, e.g. another cell of a ring of
+    /// equivalents).
+    pub disagreements: Vec<(usize, bool)>,
 }
 
 /// The searches the study compares: start level 1 or 2, keep 32–512, keeps chosen by mass, and
@@ -90,6 +94,7 @@ pub fn study(
     let mut mass = vec![0.0f64; searches.len()];
     let mut gap = vec![0.0f64; searches.len()];
     let mut times: Vec<Vec<f64>> = vec![Vec::new(); searches.len()];
+    let mut disagreements: Vec<Vec<(usize, bool)>> = vec![Vec::new(); searches.len()];
     for (n, crop) in crops.iter().enumerate() {
         let features = model.features(&[crop]);
         let logits = model.logits_at(&features, level)?;
@@ -106,10 +111,13 @@ pub fn study(
                 .swap_remove(0);
             times[s].push(t.elapsed().as_secs_f64() * 1e3);
             let top = p.top[0].cell;
+            let tied = logits[top as usize] >= best_logit - 0.01;
             if geodesic_angle(&grid.rotation(top), &best_rotation) <= neighbour {
                 agree[s] += 1;
+            } else {
+                disagreements[s].push((n, tied));
             }
-            if logits[top as usize] >= best_logit - 0.01 {
+            if tied {
                 found[s] += 1;
             }
             mass[s] += p.covered_mass;
@@ -134,12 +142,14 @@ pub fn study(
             mean_gap: gap[s] / n,
             covered_mass: mass[s] / n,
             p50_ms: quantile(&times[s], 0.5),
+            disagreements: std::mem::take(&mut disagreements[s]),
         })
         .collect())
 }
 
-/// Prints the study as a table, then the default search's figures.
-pub fn print(figures: &[SearchFigures], default: &SearchParams) {
+/// Prints the study as a table, then the default search's figures and its disagreements by
+/// object (`objects[i]` names image `i`).
+pub fn print(figures: &[SearchFigures], default: &SearchParams, objects: &[String]) {
     println!("search to level 5, top-10, against the exhaustive level-5 argmax:");
     println!(
         "  start  keep             agreement  found max  mean gap  covered mass  p50 (encoder incl.)"
@@ -165,6 +175,25 @@ pub fn print(figures: &[SearchFigures], default: &SearchParams) {
             100.0 * f.found_maximum,
             f.mean_gap,
             f.covered_mass
+        );
+        let mut by_object: std::collections::BTreeMap<&str, (usize, usize)> = Default::default();
+        for &(i, tied) in &f.disagreements {
+            let name = objects.get(i).map_or("?", String::as_str);
+            let entry = by_object.entry(name).or_default();
+            entry.0 += 1;
+            entry.1 += usize::from(tied);
+        }
+        let listed: Vec<String> = by_object
+            .iter()
+            .map(|(name, (n, tied))| format!("{name} {n} ({tied} within 0.01 of the maximum)"))
+            .collect();
+        println!(
+            "default search's disagreements by object: {}",
+            if listed.is_empty() {
+                "none".to_string()
+            } else {
+                listed.join(", ")
+            }
         );
     }
 }

@@ -60,13 +60,13 @@ pub(crate) fn bench_cmd(args: &BenchArgs) -> Result<()> {
     }
     let per_object = args.images.max(1).div_ceil(renders.names.len().max(1));
     // A seed no training run uses (training draws from its own seeds, evaluation from 2^40).
-    let crops: Vec<Vec<u8>> = renders
+    let (objects, crops): (Vec<String>, Vec<Vec<u8>>) = renders
         .eval_images(size, per_object, 99)
         .into_iter()
-        .map(|im| im.rgb)
-        .collect();
+        .map(|im| (im.object, im.rgb))
+        .unzip();
     drop(loaded);
-    alignist::bench::bench(&args.model, &crops)
+    alignist::bench::bench(&args.model, &crops, &objects)
 }
 
 fn bench_training(args: &BenchArgs) -> Result<()> {
