@@ -1,22 +1,15 @@
 //! The whole offline pipeline through the CLI, at tiny sizes: render → experts → fit (train,
 //! checkpoint, evaluate, bundle) → eval → load, and a corrupt bundle refused.
 
+mod common;
+
 use std::path::Path;
 use std::process::{Command, Output};
 
 use alignist::bundle::model::ModelBundle;
 
 fn run(args: &[&str]) -> Output {
-    let out = Command::new(env!("CARGO_BIN_EXE_alignist-train"))
-        .args(args)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{args:?}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    out
+    common::run_ok(env!("CARGO_BIN_EXE_alignist-train"), args)
 }
 
 fn s(p: &Path) -> &str {

@@ -22,16 +22,20 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use tonic::Code;
 
-/// Image features of a PNG through the model's own preparation and encoder.
-fn features_of(model: &alignist::engine::Model, png: &[u8]) -> burn::tensor::Tensor<2> {
-    let crop = model
+/// A PNG through the model's own preparation: the crop its encoder takes.
+fn prepared(model: &alignist::engine::Model, png: &[u8]) -> Vec<u8> {
+    model
         .prepare(&ImageRequest {
             data: png,
             raw_size: None,
             crop: None,
         })
-        .unwrap();
-    model.features(&[&crop])
+        .unwrap()
+}
+
+/// Image features of a PNG through the model's own preparation and encoder.
+fn features_of(model: &alignist::engine::Model, png: &[u8]) -> burn::tensor::Tensor<2> {
+    model.features(&[&prepared(model, png)])
 }
 
 #[test]
@@ -74,15 +78,7 @@ fn the_search_study_counts_agreements_and_lists_disagreements() {
     let engine = Engine::load_dir(models_dir(), EngineConfig::default()).unwrap();
     let model = engine.model("tiny").unwrap();
     let crops: Vec<Vec<u8>> = (0..4)
-        .map(|seed| {
-            model
-                .prepare(&ImageRequest {
-                    data: &cube_png(300 + seed),
-                    raw_size: None,
-                    crop: None,
-                })
-                .unwrap()
-        })
+        .map(|seed| prepared(&model, &cube_png(300 + seed)))
         .collect();
     let search = |start_level, keep| SearchParams {
         start_level,
@@ -112,15 +108,7 @@ fn a_batched_search_answers_each_image_as_its_own_search_does() {
     let engine = Engine::load_dir(models_dir(), EngineConfig::default()).unwrap();
     let model = engine.model("tiny").unwrap();
     let crops: Vec<Vec<u8>> = (0..3)
-        .map(|seed| {
-            model
-                .prepare(&ImageRequest {
-                    data: &cube_png(200 + seed),
-                    raw_size: None,
-                    crop: None,
-                })
-                .unwrap()
-        })
+        .map(|seed| prepared(&model, &cube_png(200 + seed)))
         .collect();
     let refs: Vec<&[u8]> = crops.iter().map(|c| c.as_slice()).collect();
     let features = model.features(&refs);

@@ -80,6 +80,10 @@ fn invalid(field: &str, message: impl Into<String>) -> EngineError {
 /// also bounds its work).
 pub const MAX_TOP_K: usize = 16_384;
 
+/// The keep tapers a search accepts ([`SearchParams::keep_taper`]): from an eighth to eight times
+/// as many cells per finer level.
+pub const KEEP_TAPER: std::ops::RangeInclusive<f64> = 0.125..=8.0;
+
 /// How the engine serves.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct EngineConfig {
@@ -192,10 +196,10 @@ impl EngineConfig {
         {
             return bad("keep_mass", format!("{f} must be in (0, 1]"));
         }
-        if !(self.keep_taper >= 0.125 && self.keep_taper <= 8.0) {
+        if !KEEP_TAPER.contains(&self.keep_taper) {
             return bad(
                 "keep_taper",
-                format!("{} must be in [0.125, 8]", self.keep_taper),
+                format!("{} must be in {KEEP_TAPER:?}", self.keep_taper),
             );
         }
         if self.keep == 0 || self.image_limits.max_bytes == 0 || self.image_limits.max_pixels == 0 {
@@ -723,12 +727,12 @@ impl Model {
         let level = self.check_predict(options)?;
         if search.start_level > self.config.max_full_level
             || search.keep == 0
-            || !(search.keep_taper >= 0.125 && search.keep_taper <= 8.0)
+            || !KEEP_TAPER.contains(&search.keep_taper)
         {
             return Err(invalid(
                 "search",
                 format!(
-                    "start level {} above the full levels ({}), keep 0, or keep taper {} outside [0.125, 8]",
+                    "start level {} above the full levels ({}), keep 0, or keep taper {} outside {KEEP_TAPER:?}",
                     search.start_level, self.config.max_full_level, search.keep_taper
                 ),
             ));

@@ -17,30 +17,25 @@ use tonic::transport::Channel;
 
 pub const SIZE: u32 = 32;
 
-pub fn train(args: &[&str]) {
-    let out = Command::new(env!("CARGO_BIN_EXE_alignist-train"))
-        .args(args)
-        .output()
-        .unwrap();
+/// Runs the binary `exe` with `args`, which must succeed, and returns what it wrote.
+pub fn run_ok(exe: &str, args: &[&str]) -> std::process::Output {
+    let out = Command::new(exe).args(args).output().unwrap();
     assert!(
         out.status.success(),
         "{args:?}: {}",
         String::from_utf8_lossy(&out.stderr)
     );
+    out
+}
+
+/// Runs `alignist-train`, which must succeed.
+pub fn train(args: &[&str]) {
+    run_ok(env!("CARGO_BIN_EXE_alignist-train"), args);
 }
 
 /// Runs the `alignist` CLI, which must succeed, and parses what it prints as JSON.
 pub fn cli_json(args: &[&str]) -> serde_json::Value {
-    let out = Command::new(env!("CARGO_BIN_EXE_alignist"))
-        .args(args)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{args:?}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    serde_json::from_slice(&out.stdout).unwrap()
+    serde_json::from_slice(&run_ok(env!("CARGO_BIN_EXE_alignist"), args).stdout).unwrap()
 }
 
 /// A models directory with one tiny trained bundle, `tiny`, made once per test binary.
