@@ -291,3 +291,112 @@ fn the_manifests_levels_cap_what_the_engine_serves() {
         Err(EngineError::InvalidArgument { .. })
     ));
 }
+
+#[test]
+fn bf16_rounding_is_to_the_nearest_even() {
+    use alignist::net::bf16::{from_bf16, round_bf16, to_bf16};
+    assert_eq!(to_bf16(1.0), 0x3f80);
+    assert_eq!(to_bf16(-2.0), 0xc000);
+    assert_eq!(from_bf16(0x3f80), 1.0);
+    // 1 + 2⁻⁸ lies halfway between 1 and 1 + 2⁻⁷: ties go to the even one (1); just above, up.
+    assert_eq!(round_bf16(1.0 + 1.0 / 256.0), 1.0);
+    assert_eq!(
+        round_bf16(1.0 + 1.0 / 256.0 + 1.0 / 65536.0),
+        1.0 + 1.0 / 128.0
+    );
+    // 1 + 3·2⁻⁸ is halfway between 1 + 2⁻⁷ (odd) and 1 + 2⁻⁶ (even): up.
+    assert_eq!(round_bf16(1.0 + 3.0 / 256.0), 1.0 + 1.0 / 64.0);
+    assert!(round_bf16(f32::NAN).is_nan());
+    assert_eq!(round_bf16(f32::INFINITY), f32::INFINITY);
+    for x in [0.1f32, 3.3, -7.77, 1e-3, 12345.0] {
+        assert!((round_bf16(x) - x).abs() <= x.abs() / 256.0, "{x}");
+    }
+}
+
+/// The bfloat16 head (native `VDPBF16PS` where the core has it) against its emulation on the f32
+/// GEMM, which rounds the same values, and against the f32 head: row counts around the kernel's
+/// 6-row block and the tile, a width that pads to the 64-column panel, and the shipped head.
+fn assert_bf16_close(fused: &alignist::net::FusedHead, encoding: &RotationEncoding, what: &str) {
+    use alignist::net::Precision;
+    use alignist::net::bf16::Bf16Head;
+    let emulated = Bf16Head::emulated(fused);
+    let tile = alignist::net::fused::TILE_ROWS;
+    for rows in [1, 5, 6, 7, tile - 1, tile, tile + 1, 2 * tile + 3] {
+        let rotations: Vec<[f32; 9]> = (0..rows)
+            .map(|i| {
+                let m = nalgebra::UnitQuaternion::from_euler_angles(
+                    0.37 * i as f64,
+                    1.3 * (i as f64 * 0.11).sin(),
+                    -0.7 * i as f64,
+                )
+                .to_rotation_matrix();
+                std::array::from_fn(|j| m.matrix()[(j / 3, j % 3)] as f32)
+            })
+            .collect();
+        let features: Vec<f32> = (0..fused.image_dim())
+            .map(|i| ((i * 37 + rows) % 17) as f32 / 17.0)
+            .collect();
+        let image = fused.image_term(&features);
+        let projected = fused.project_rotations(&encoding.encode(&rotations));
+        let f32_scores = fused.branch_scores(&image, &projected);
+        let bf16 = fused.branch_scores_in(Precision::Bf16, &image, &projected);
+        let emulation = emulated.branch_scores(&image, &projected);
+        for (branch, exact, got, emulated) in [
+            ("shape", &f32_scores.0, &bf16.0, &emulation.0),
+            ("feature", &f32_scores.1, &bf16.1, &emulation.1),
+        ] {
+            assert_eq!(got.len(), rows);
+            let scale = exact.iter().map(|v| v.abs()).sum::<f32>() / rows as f32;
+            let (mut worst, mut mean) = (0.0f32, 0.0f32);
+            for i in 0..rows {
+                let (g, e, x) = (got[i], emulated[i], exact[i]);
+                // The same rounded products, summed in another order: a rounding to bfloat16
+                // may flip between layers, so they agree to a few bfloat16 steps, not exactly.
+                assert!(
+                    (g - e).abs() <= 4e-3 * x.abs().max(scale),
+                    "{what} {branch}, {rows} rows, row {i}: bf16 {g} against its emulation {e}"
+                );
+                worst = worst.max((g - x).abs() / x.abs().max(scale));
+                mean += (g - e).abs() / scale / rows as f32;
+            }
+            // Most rows agree far more closely than the worst one.
+            assert!(
+                mean <= 5e-4,
+                "{what} {branch}, {rows} rows: mean gap to the emulation {mean}"
+            );
+            // bfloat16 keeps 8 significant bits: within a few % of the f32 scores.
+            assert!(
+                worst <= 0.03,
+                "{what} {branch}, {rows} rows: {worst} from f32"
+            );
+        }
+    }
+}
+
+#[test]
+fn the_bf16_head_agrees_with_its_emulation_and_stays_near_f32() {
+    use alignist::net::FusedHead;
+    let d = device();
+    let encoding = RotationEncoding::Cube;
+    let head = HeadConfig::new(32, encoding.dim())
+        .with_hidden(40)
+        .with_layers(4)
+        .init(&d)
+        .with_output_biases(-2.5, 1.5);
+    assert_bf16_close(&FusedHead::new(&head), &encoding, "width 40");
+    let bundle = alignist::bundle::model::ModelBundle::load(std::path::Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/models/symsol1"
+    )))
+    .unwrap();
+    let fused = FusedHead::new(&bundle.network.head);
+    eprintln!(
+        "bfloat16 on this core: {}",
+        if fused.bf16_native() {
+            "native (AVX-512 BF16)"
+        } else {
+            "emulated"
+        }
+    );
+    assert_bf16_close(&fused, &bundle.manifest.network.encoding, "shipped");
+}

@@ -85,6 +85,7 @@ fn the_search_study_counts_agreements_and_lists_disagreements() {
         keep,
         keep_mass: None,
         keep_taper: 1.0,
+        coarse_precision: alignist::net::Precision::F32,
     };
     // From level 2 keeping all 4 608 cells, level 3 is scored in full: the exhaustive argmax.
     let figures = study(&model, &crops, &[search(2, 4608), search(0, 1)], 3, 5).unwrap();
@@ -771,6 +772,7 @@ async fn server_levels_are_checked_at_start_up_and_level_0_is_the_default_everyw
         (["--max-level", "1"], "level"),
         (["--search-keep-taper", "0"], "keep_taper"),
         (["--search-keep-taper", "NaN"], "keep_taper"),
+        (["--search-coarse-precision", "fp8"], "precision"),
     ] {
         let out = Command::new(env!("CARGO_BIN_EXE_alignist-server"))
             .args([

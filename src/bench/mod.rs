@@ -15,6 +15,7 @@ use rayon::prelude::*;
 
 use crate::client::load::quantile;
 use crate::engine::{Engine, EngineConfig, ImageRequest, Model, PredictOptions};
+use crate::net::Precision;
 use crate::serve::BatchConfig;
 use crate::serve::proto::{ImageInput, PredictRequest};
 use crate::serve::server::{ServerConfig, run};
@@ -126,6 +127,25 @@ pub fn bench(bundle: &Path, crops: &[Vec<u8>], objects: &[String]) -> anyhow::Re
         );
     }
     numpy_ratio(bundle, &ours_ms);
+    // The same grids in bfloat16 (the coarse levels of the search).
+    for &(level, f32_ms) in &ours_ms {
+        let grid_len = model.grid(level).map_or(0, |g| g.len());
+        let s = best_of(3, || {
+            let _ = model.logits_in(Precision::Bf16, &one, level);
+        });
+        println!(
+            "full grid level {level} in bf16 ({}): {:.1} ms, {:.2} M rotations/s, {:.1} GFLOP/s, {:.2}× the f32 head",
+            if model.bf16_native() {
+                "AVX-512 BF16"
+            } else {
+                "emulated on the f32 GEMM"
+            },
+            s * 1e3,
+            grid_len as f64 / s / 1e6,
+            grid_len as f64 / s * flops / 1e9,
+            f32_ms / (s * 1e3)
+        );
+    }
     // The coarse-to-fine search against the exhaustive level-5 argmax.
     let figures = search::study(&model, crops, &search::candidates(), 5, 10)?;
     search::print(&figures, &engine_config.search(), objects);

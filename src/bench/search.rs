@@ -9,6 +9,7 @@ use std::time::Instant;
 
 use crate::client::load::quantile;
 use crate::engine::{EngineError, Model, PredictOptions, SearchParams};
+use crate::net::Precision;
 use crate::so3::{covering_radius, geodesic_angle};
 
 /// What one candidate search scored.
@@ -36,13 +37,15 @@ pub struct SearchFigures {
 
 /// The searches the study compares: start level 1 or 2, keep 32–512, keeps chosen by mass, and
 /// keeps that halve (wide where a wrong region is chosen, narrow inside the chosen ones) or
-/// double at each finer level.
+/// double at each finer level, all in f32; then the wider ones with the coarse levels in
+/// bfloat16.
 pub fn candidates() -> Vec<SearchParams> {
     let flat = |start_level, keep, keep_mass| SearchParams {
         start_level,
         keep,
         keep_mass,
         keep_taper: 1.0,
+        coarse_precision: Precision::F32,
     };
     let mut out = Vec::new();
     for start_level in [1u8, 2] {
@@ -64,6 +67,16 @@ pub fn candidates() -> Vec<SearchParams> {
     for keep in [64, 128] {
         out.push(tapered(2, keep, 2.0));
     }
+    let bf16 = |search: SearchParams| SearchParams {
+        coarse_precision: Precision::Bf16,
+        ..search
+    };
+    out.push(bf16(flat(1, 512, None)));
+    for keep in [128, 256, 384, 512, 768] {
+        out.push(bf16(flat(2, keep, None)));
+    }
+    out.push(bf16(flat(2, 768, Some(0.999))));
+    out.push(bf16(tapered(2, 768, 0.5)));
     out
 }
 
@@ -152,13 +165,14 @@ pub fn study(
 pub fn print(figures: &[SearchFigures], default: &SearchParams, objects: &[String]) {
     println!("search to level 5, top-10, against the exhaustive level-5 argmax:");
     println!(
-        "  start  keep             agreement  found max  mean gap  covered mass  p50 (encoder incl.)"
+        "  start  keep             coarse  agreement  found max  mean gap  covered mass  p50 (encoder incl.)"
     );
     for f in figures {
         let keep = describe_keep(&f.params);
         println!(
-            "  {:>5}  {keep:<16} {:>8.1} % {:>8.1} % {:>9.3} {:>12.4}  {:>8.1} ms",
+            "  {:>5}  {keep:<16} {:<6} {:>8.1} % {:>8.1} % {:>9.3} {:>12.4}  {:>8.1} ms",
             f.params.start_level,
+            f.params.coarse_precision.name(),
             100.0 * f.agreement,
             100.0 * f.found_maximum,
             f.mean_gap,
@@ -168,9 +182,10 @@ pub fn print(figures: &[SearchFigures], default: &SearchParams, objects: &[Strin
     }
     if let Some(f) = figures.iter().find(|f| f.params == *default) {
         println!(
-            "default search (start {}, keep {}): agreement: {:.1} %, found max {:.1} %, mean gap {:.3}, covered mass {:.4}",
+            "default search (start {}, keep {}, coarse levels {}): agreement: {:.1} %, found max {:.1} %, mean gap {:.3}, covered mass {:.4}",
             default.start_level,
             describe_keep(default),
+            default.coarse_precision,
             100.0 * f.agreement,
             100.0 * f.found_maximum,
             f.mean_gap,

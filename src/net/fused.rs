@@ -11,18 +11,57 @@ use burn::tensor::Tensor;
 use rayon::prelude::*;
 
 use super::DualHead;
+use super::bf16::{Bf16Head, round_bf16};
 
 /// Rows of one tile: measured fastest among 64–512 (`examples/probe_gemm.rs`), and a tile's
 /// activations (2 × 256 rows × 256 × 4 B = 512 KiB) stay in a core's L2.
 pub const TILE_ROWS: usize = 256;
 
+/// The arithmetic a head is scored in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Precision {
+    /// f32 throughout: the burn network's scores within 1e-4.
+    #[default]
+    F32,
+    /// bfloat16 weights and GEMM inputs, f32 sums ([`Bf16Head`]): about twice the rate where the
+    /// core has AVX-512 BF16, scores within about 1 % of the f32 ones.
+    Bf16,
+}
+
+impl Precision {
+    /// The name used by flags and the bench (`f32`, `bf16`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Precision::F32 => "f32",
+            Precision::Bf16 => "bf16",
+        }
+    }
+}
+
+impl std::fmt::Display for Precision {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for Precision {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "f32" => Ok(Precision::F32),
+            "bf16" => Ok(Precision::Bf16),
+            other => Err(format!("unknown precision `{other}` (f32 or bf16)")),
+        }
+    }
+}
+
 /// One linear layer, row-major `[inputs, outputs]` weights.
 #[derive(Debug, Clone)]
-struct Dense {
-    inputs: usize,
-    outputs: usize,
-    weight: Vec<f32>,
-    bias: Vec<f32>,
+pub(super) struct Dense {
+    pub(super) inputs: usize,
+    pub(super) outputs: usize,
+    pub(super) weight: Vec<f32>,
+    pub(super) bias: Vec<f32>,
 }
 
 impl Dense {
@@ -76,6 +115,12 @@ fn read<const D: usize>(t: Tensor<D>) -> Vec<f32> {
         .expect("float weights")
 }
 
+fn round_all(x: &mut [f32]) {
+    for v in x {
+        *v = round_bf16(*v);
+    }
+}
+
 fn relu(x: &mut [f32]) {
     for v in x {
         *v = v.max(0.0);
@@ -97,6 +142,10 @@ pub struct FusedHead {
     image: Dense,
     rotation: Dense,
     branches: [FusedBranch; 2],
+    /// Round every GEMM's input to bfloat16 (the emulation of [`Bf16Head`]).
+    round_inputs: bool,
+    /// The same head in bfloat16 (`None` in the emulation itself).
+    bf16: Option<Box<Bf16Head>>,
 }
 
 /// A tile's scratch: the branch input and two activation buffers.
@@ -120,17 +169,59 @@ impl FusedHead {
         };
         let (image, rotation, shape, feature) = head.parts();
         let rotation = Dense::of(rotation);
-        FusedHead {
+        let mut head = FusedHead {
             width: rotation.outputs,
             image: Dense::of(image),
             rotation,
             branches: [branch(shape), branch(feature)],
+            round_inputs: false,
+            bf16: None,
+        };
+        head.bf16 = Some(Box::new(Bf16Head::new(&head)));
+        head
+    }
+
+    /// This head with the branches' weights rounded to bfloat16 and each GEMM's input rounded
+    /// too: the emulation of [`Bf16Head`] on the f32 GEMM. The first layer (image and rotation
+    /// projections) stays f32, as in the native kernel.
+    pub(super) fn rounded_to_bf16(&self) -> FusedHead {
+        let round = |d: &Dense| Dense {
+            weight: d.weight.iter().copied().map(round_bf16).collect(),
+            ..d.clone()
+        };
+        let branch = |b: &FusedBranch| FusedBranch {
+            hidden: b.hidden.iter().map(round).collect(),
+            ..b.clone()
+        };
+        FusedHead {
+            branches: [branch(&self.branches[0]), branch(&self.branches[1])],
+            round_inputs: true,
+            bf16: None,
+            ..self.clone()
         }
+    }
+
+    /// Each branch's hidden layers, output weights and output bias (for [`Bf16Head`]).
+    pub(super) fn branch_layers(&self) -> [(&[Dense], &[f32], f32); 2] {
+        self.branches
+            .each_ref()
+            .map(|b| (&b.hidden[..], &b.output[..], b.output_bias))
+    }
+
+    /// Whether [`Precision::Bf16`] runs on the core's bfloat16 instructions (else it is emulated
+    /// on the f32 GEMM, at the f32 rate).
+    pub fn bf16_native(&self) -> bool {
+        self.bf16.as_ref().is_some_and(|b| b.is_native())
     }
 
     /// Width of the hidden layers.
     pub fn width(&self) -> usize {
         self.width
+    }
+
+    /// Length of the image features the head takes.
+    pub fn image_dim(&self) -> usize {
+        self.image.inputs
     }
 
     /// Length of the rotation encoding the head takes.
@@ -181,9 +272,32 @@ impl FusedHead {
         (shape, feature)
     }
 
+    /// [`FusedHead::branch_scores`] in `precision`.
+    pub fn branch_scores_in(
+        &self,
+        precision: Precision,
+        image_term: &[f32],
+        projected: &[f32],
+    ) -> (Vec<f32>, Vec<f32>) {
+        match (precision, &self.bf16) {
+            (Precision::Bf16, Some(bf16)) => bf16.branch_scores(image_term, projected),
+            _ => self.branch_scores(image_term, projected),
+        }
+    }
+
     /// `s_θ + s_φ` ([`FusedHead::branch_scores`] summed).
     pub fn scores(&self, image_term: &[f32], projected: &[f32]) -> Vec<f32> {
-        let (mut shape, feature) = self.branch_scores(image_term, projected);
+        self.scores_in(Precision::F32, image_term, projected)
+    }
+
+    /// `s_θ + s_φ` in `precision`.
+    pub fn scores_in(
+        &self,
+        precision: Precision,
+        image_term: &[f32],
+        projected: &[f32],
+    ) -> Vec<f32> {
+        let (mut shape, feature) = self.branch_scores_in(precision, image_term, projected);
         for (s, f) in shape.iter_mut().zip(feature) {
             *s += f;
         }
@@ -206,10 +320,13 @@ impl FusedHead {
                 *xv = (p + i).max(0.0);
             }
         }
+        if self.round_inputs {
+            round_all(&mut x[..rows * w]);
+        }
         for (branch, out) in self.branches.iter().zip(out) {
             // Ping-pong between the two activation buffers; 0 is the shared input.
             let mut current = 0;
-            for layer in &branch.hidden {
+            for (l, layer) in branch.hidden.iter().enumerate() {
                 let (input, output) = match current {
                     0 => (&x[..], &mut a[..]),
                     1 => (&a[..], &mut b[..]),
@@ -217,6 +334,10 @@ impl FusedHead {
                 };
                 layer.apply(input, rows, output);
                 relu(&mut output[..rows * w]);
+                // The last hidden layer feeds the f32 dot product, as in the native kernel.
+                if self.round_inputs && l + 1 < branch.hidden.len() {
+                    round_all(&mut output[..rows * w]);
+                }
                 current = if current == 1 { 2 } else { 1 };
             }
             let last = match current {

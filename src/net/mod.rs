@@ -1,6 +1,7 @@
 //! The distribution network: a ResNet image encoder, the rotation encoding, the dual-branch
 //! head, and the losses that train it.
 
+pub mod bf16;
 pub mod encoder;
 pub mod fused;
 pub mod head;
@@ -8,7 +9,7 @@ pub mod loss;
 pub mod network;
 
 pub use encoder::{Encoder, EncoderConfig, ResNetLayout};
-pub use fused::FusedHead;
+pub use fused::{FusedHead, Precision};
 pub use head::{BranchScores, DualHead, HeadConfig};
 pub use loss::{gkl_loss, ipdf_loss, l1_measure_loss};
 pub use network::{Network, NetworkConfig, ProjectedGrid, images_tensor};

@@ -7,7 +7,9 @@ use std::sync::Arc;
 
 use burn::tensor::{Device, Tensor, TensorData};
 
-use super::{BranchScores, DualHead, Encoder, EncoderConfig, FusedHead, HeadConfig, ResNetLayout};
+use super::{
+    BranchScores, DualHead, Encoder, EncoderConfig, FusedHead, HeadConfig, Precision, ResNetLayout,
+};
 use crate::encoding::RotationEncoding;
 use crate::so3::{GridLevel, So3Error};
 
@@ -136,9 +138,17 @@ impl ProjectedGrid {
     /// Combined log-weights `s_θ + s_φ` of every cell for each image of `features` `[B, D]`
     /// (row per image).
     pub fn log_weights_of_features(&self, features: Tensor<2>) -> Vec<Vec<f32>> {
+        self.log_weights_in(Precision::F32, features)
+    }
+
+    /// [`ProjectedGrid::log_weights_of_features`] in `precision`.
+    pub fn log_weights_in(&self, precision: Precision, features: Tensor<2>) -> Vec<Vec<f32>> {
         feature_rows(features)
             .iter()
-            .map(|f| self.head.scores(&self.head.image_term(f), &self.projected))
+            .map(|f| {
+                self.head
+                    .scores_in(precision, &self.head.image_term(f), &self.projected)
+            })
             .collect()
     }
 
