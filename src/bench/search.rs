@@ -76,7 +76,9 @@ pub fn candidates() -> Vec<SearchParams> {
         out.push(bf16(flat(2, keep, None)));
     }
     out.push(bf16(flat(2, 768, Some(0.999))));
-    out.push(bf16(tapered(2, 768, 0.5)));
+    for keep in [512, 768, 1024] {
+        out.push(bf16(tapered(2, keep, 0.5)));
+    }
     out
 }
 

@@ -234,15 +234,15 @@ impl Default for EngineConfig {
             search_start_level: 2,
             search_default_level: 5,
             search_max_level: 6,
-            // Chosen by the search study of `alignist-train bench` (50 held-out renders, top-10 to
-            // level 5, against the exhaustive level-5 argmax): the most accurate search within
-            // p50 ≤ 25 ms. On the model of the time it agreed as often as keep 512 (94 %, 24.8
-            // against 58.6 ms); on the shipped one, 94 % at 19.5 ms against 100 % at 49 ms. A keep
-            // halving per level (`keep_taper` 0.5) from 256 agreed on 96 % at 20.8 ms: within
-            // noise, and it covers less mass.
-            keep: 128,
+            // Chosen by the search study of `alignist-train bench` (150 held-out renders, top-10
+            // to level 5, against the exhaustive level-5 argmax; README "Benchmarks"): with the
+            // coarse levels in bfloat16, 768 cells halving per level (768, 384, 192) agreed on
+            // 149 of 150 images, as often as 512 at every level, in about two thirds of the time
+            // (p50 ~17 against ~25 ms). The search before, 128 at every level in f32, agreed on
+            // 93 %.
+            keep: 768,
             keep_mass: None,
-            keep_taper: 1.0,
+            keep_taper: 0.5,
             coarse_precision: Precision::Bf16,
             image_limits: ImageLimits::default(),
             max_depth_points: 10_000,
@@ -844,9 +844,11 @@ impl Model {
             .iter()
             .zip(rotations)
             .map(|(f, rotations)| {
-                let projected = self.fused.project_rotations(&encoding.encode(rotations));
-                self.fused
-                    .scores_in(precision, &self.fused.image_term(f), &projected)
+                self.fused.scores_of_encodings(
+                    precision,
+                    &self.fused.image_term(f),
+                    &encoding.encode(rotations),
+                )
             })
             .collect()
     }

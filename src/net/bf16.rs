@@ -68,10 +68,38 @@ impl Bf16Head {
     /// Both branches' log-weights, as [`FusedHead::branch_scores`].
     pub fn branch_scores(&self, image_term: &[f32], projected: &[f32]) -> (Vec<f32>, Vec<f32>) {
         match self {
-            Bf16Head::Native(native) => native.branch_scores(image_term, projected),
+            Bf16Head::Native(native) => {
+                native.branch_scores(image_term, Rows::Projected(projected))
+            }
             Bf16Head::Emulated(head) => head.branch_scores(image_term, projected),
         }
     }
+
+    /// Both branches' log-weights of rotations given by their encodings (row-major
+    /// `[n, rotation_dim]`): the rotation half of the first layer in bfloat16 too, inside the
+    /// tiles (no projection pass).
+    pub fn branch_scores_of_encodings(
+        &self,
+        image_term: &[f32],
+        encodings: &[f32],
+    ) -> (Vec<f32>, Vec<f32>) {
+        match self {
+            Bf16Head::Native(native) => native.branch_scores(image_term, Rows::Encoded(encodings)),
+            Bf16Head::Emulated(head) => {
+                let rounded: Vec<f32> = encodings.iter().copied().map(round_bf16).collect();
+                head.branch_scores(image_term, &head.project_rotations(&rounded))
+            }
+        }
+    }
+}
+
+/// What a tile's rows are given as.
+#[derive(Clone, Copy)]
+enum Rows<'a> {
+    /// The rotation half of the first layer, `[n, width]` f32.
+    Projected(&'a [f32]),
+    /// The rotations' encodings, `[n, rotation_dim]` f32.
+    Encoded(&'a [f32]),
 }
 
 /// One layer's weights as bfloat16 column panels.
@@ -132,7 +160,21 @@ pub struct NativeHead {
     width: usize,
     /// Width rounded up to [`NR`]: the stride of every activation row.
     padded: usize,
+    /// The rotation half of the first layer (its bias included).
+    rotation: Packed,
+    /// Length of a rotation's encoding.
+    encoding: usize,
     branches: [NativeBranch; 2],
+}
+
+/// One task's buffers: encodings, the shared input, two activation buffers (bfloat16), and the
+/// output dot products.
+struct Scratch {
+    e: Vec<u16>,
+    x: Vec<u16>,
+    a: Vec<u16>,
+    b: Vec<u16>,
+    dots: Vec<f32>,
 }
 
 /// What leaves a GEMM's register block.
@@ -172,51 +214,93 @@ impl NativeHead {
             })
         };
         let [shape, feature] = head.branch_layers();
+        let rotation = head.rotation_layer();
         Some(NativeHead {
             width,
             padded,
+            rotation: Packed::of(rotation, rotation.inputs.next_multiple_of(2)),
+            encoding: rotation.inputs,
             branches: [branch(shape)?, branch(feature)?],
         })
     }
 
-    /// Both branches' log-weights of the rotations whose projections are `projected`.
-    fn branch_scores(&self, image_term: &[f32], projected: &[f32]) -> (Vec<f32>, Vec<f32>) {
+    /// Both branches' log-weights of `rows`.
+    fn branch_scores(&self, image_term: &[f32], rows: Rows<'_>) -> (Vec<f32>, Vec<f32>) {
         use rayon::prelude::*;
-        let n = projected.len() / self.width;
+        let (given, per_row) = match rows {
+            Rows::Projected(p) => (p, self.width),
+            Rows::Encoded(e) => (e, self.encoding),
+        };
+        let n = given.len() / per_row;
         let (mut shape, mut feature) = (vec![0.0; n], vec![0.0; n]);
-        let rows = TILE_ROWS.div_ceil(MR) * MR;
+        // The first layer's bias with the image's term in it, for encoded rows.
+        let mut first_bias = self.rotation.bias.clone();
+        for (b, i) in first_bias.iter_mut().zip(image_term) {
+            *b += i;
+        }
+        let blocked = TILE_ROWS.div_ceil(MR) * MR;
         shape
             .par_chunks_mut(TILE_ROWS)
             .zip(feature.par_chunks_mut(TILE_ROWS))
-            .zip(projected.par_chunks(TILE_ROWS * self.width))
+            .zip(given.par_chunks(TILE_ROWS * per_row))
             .for_each_init(
-                || {
-                    let buffer = || vec![0u16; rows * self.padded];
-                    (buffer(), buffer(), buffer(), vec![0.0f32; rows])
+                || Scratch {
+                    e: vec![0; blocked * 2 * self.rotation.pairs],
+                    x: vec![0; blocked * self.padded],
+                    a: vec![0; blocked * self.padded],
+                    b: vec![0; blocked * self.padded],
+                    dots: vec![0.0; blocked],
                 },
-                |(x, a, b, dots), ((shape, feature), projected)| {
-                    self.tile(image_term, projected, [x, a, b], dots, [shape, feature]);
+                |scratch, ((shape, feature), given)| {
+                    let tile = match rows {
+                        Rows::Projected(_) => Rows::Projected(given),
+                        Rows::Encoded(_) => Rows::Encoded(given),
+                    };
+                    self.tile(image_term, &first_bias, tile, scratch, [shape, feature]);
                 },
             );
         (shape, feature)
     }
 
-    /// One tile of rows: the shared input, then each branch.
+    /// One tile of rows: the shared input `relu(P_R + W_I·f + b)`, then each branch.
     fn tile(
         &self,
         image_term: &[f32],
-        projected: &[f32],
-        [x, a, b]: [&mut Vec<u16>; 3],
-        dots: &mut [f32],
+        first_bias: &[f32],
+        given: Rows<'_>,
+        scratch: &mut Scratch,
         out: [&mut [f32]; 2],
     ) {
-        let (w, stride) = (self.width, self.padded);
-        let rows = projected.len() / w;
+        let stride = self.padded;
+        let rows = out[0].len();
         let blocked = rows.div_ceil(MR) * MR;
-        x[..blocked * stride].fill(0);
-        for (xr, pr) in x.chunks_exact_mut(stride).zip(projected.chunks_exact(w)) {
-            for ((xv, &p), &i) in xr.iter_mut().zip(pr).zip(image_term) {
-                *xv = to_bf16((p + i).max(0.0));
+        let Scratch { e, x, a, b, dots } = scratch;
+        match given {
+            Rows::Projected(projected) => {
+                x[..blocked * stride].fill(0);
+                let w = self.width;
+                for (xr, pr) in x.chunks_exact_mut(stride).zip(projected.chunks_exact(w)) {
+                    for ((xv, &p), &i) in xr.iter_mut().zip(pr).zip(image_term) {
+                        *xv = to_bf16((p + i).max(0.0));
+                    }
+                }
+            }
+            Rows::Encoded(encodings) => {
+                let e_stride = 2 * self.rotation.pairs;
+                e[..blocked * e_stride].fill(0);
+                for (er, enc) in e
+                    .chunks_exact_mut(e_stride)
+                    .zip(encodings.chunks_exact(self.encoding))
+                {
+                    for (ev, &v) in er.iter_mut().zip(enc) {
+                        *ev = to_bf16(v);
+                    }
+                }
+                let epilogue = Epilogue::Store { out: x, stride };
+                // SAFETY: `native_available()` held when this head was built; `e` holds
+                // `blocked` rows of `e_stride` = 2 × pairs, `x` `blocked` rows of `stride` ≥ the
+                // layer's panels × NR, and `first_bias` as many values.
+                unsafe { gemm_bf16(&self.rotation, first_bias, e, e_stride, blocked, epilogue) };
             }
         }
         for (branch, out) in self.branches.iter().zip(out) {
@@ -241,10 +325,9 @@ impl NativeHead {
                         stride,
                     }
                 };
-                // SAFETY: `native_available()` held when this head was built; `input` holds
-                // `blocked` rows of `stride` = 2 × `layer.pairs` bfloat16s, and the epilogue's
-                // buffers hold `blocked` rows.
-                unsafe { gemm_bf16(layer, input, stride, blocked, epilogue) };
+                // SAFETY: as above; `input` holds `blocked` rows of `stride` = 2 × the layer's
+                // pairs, and the epilogue's buffers hold `blocked` rows.
+                unsafe { gemm_bf16(layer, &layer.bias, input, stride, blocked, epilogue) };
             }
             out.copy_from_slice(&dots[..rows]);
         }
@@ -264,21 +347,23 @@ pub fn native_available() -> bool {
 }
 
 #[cfg(not(target_arch = "x86_64"))]
-unsafe fn gemm_bf16(_: &Packed, _: &[u16], _: usize, _: usize, _: Epilogue<'_>) {
+unsafe fn gemm_bf16(_: &Packed, _: &[f32], _: &[u16], _: usize, _: usize, _: Epilogue<'_>) {
     unreachable!("the native kernel is only built on x86_64")
 }
 
-/// `relu(input · W + b)` for `rows` (a multiple of [`MR`]) rows of `input` (bfloat16, rows of
+/// `relu(input · W + bias)` for `rows` (a multiple of [`MR`]) rows of `input` (bfloat16, rows of
 /// `stride`), through `epilogue`.
 ///
 /// # Safety
-/// The core has AVX-512F and AVX-512 BF16; `input` holds `rows × stride` values with
-/// `stride ≥ 2 × layer.pairs`; a `Store` output holds `rows × stride` and `stride ≥ layer.panels ×
-/// NR`; a `Dot`'s `dots` hold `rows` and its weights `layer.panels × NR`.
+/// The core has AVX-512F and AVX-512 BF16; `bias` holds `layer.panels × NR` values; `input`
+/// holds `rows × stride` values with `stride ≥ 2 × layer.pairs`; a `Store` output holds `rows`
+/// rows of its stride, which is at least `layer.panels × NR`; a `Dot`'s `dots` hold `rows` and its
+/// weights `layer.panels × NR`.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512bf16")]
 unsafe fn gemm_bf16(
     layer: &Packed,
+    bias: &[f32],
     input: &[u16],
     stride: usize,
     rows: usize,
@@ -286,7 +371,10 @@ unsafe fn gemm_bf16(
 ) {
     use std::arch::x86_64::*;
     debug_assert!(
-        rows.is_multiple_of(MR) && input.len() >= rows * stride && stride >= 2 * layer.pairs
+        rows.is_multiple_of(MR)
+            && input.len() >= rows * stride
+            && stride >= 2 * layer.pairs
+            && bias.len() >= layer.panels * NR
     );
     let pairs = layer.pairs;
     let mut epilogue = epilogue;
@@ -294,9 +382,8 @@ unsafe fn gemm_bf16(
         // SAFETY (all pointer reads and writes below): within the bounds stated above.
         unsafe {
             let weights = layer.weight.as_ptr().add(panel * pairs * NR * 2);
-            let bias: [__m512; 4] = std::array::from_fn(|c| {
-                _mm512_loadu_ps(layer.bias.as_ptr().add(panel * NR + 16 * c))
-            });
+            let bias: [__m512; 4] =
+                std::array::from_fn(|c| _mm512_loadu_ps(bias.as_ptr().add(panel * NR + 16 * c)));
             for r0 in (0..rows).step_by(MR) {
                 let mut acc = [[_mm512_setzero_ps(); 4]; MR];
                 let a = input.as_ptr().add(r0 * stride);

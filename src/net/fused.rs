@@ -181,9 +181,10 @@ impl FusedHead {
         head
     }
 
-    /// This head with the branches' weights rounded to bfloat16 and each GEMM's input rounded
-    /// too: the emulation of [`Bf16Head`] on the f32 GEMM. The first layer (image and rotation
-    /// projections) stays f32, as in the native kernel.
+    /// This head with the branches' and the rotation layer's weights rounded to bfloat16 and each
+    /// branch GEMM's input rounded too: the emulation of [`Bf16Head`] on the f32 GEMM. The image
+    /// half of the first layer stays f32, as in the native kernel, and so do projections made
+    /// beforehand by the f32 head (a search's start level).
     pub(super) fn rounded_to_bf16(&self) -> FusedHead {
         let round = |d: &Dense| Dense {
             weight: d.weight.iter().copied().map(round_bf16).collect(),
@@ -194,6 +195,7 @@ impl FusedHead {
             ..b.clone()
         };
         FusedHead {
+            rotation: round(&self.rotation),
             branches: [branch(&self.branches[0]), branch(&self.branches[1])],
             round_inputs: true,
             bf16: None,
@@ -206,6 +208,11 @@ impl FusedHead {
         self.branches
             .each_ref()
             .map(|b| (&b.hidden[..], &b.output[..], b.output_bias))
+    }
+
+    /// The rotation half of the first layer (for [`Bf16Head`]).
+    pub(super) fn rotation_layer(&self) -> &Dense {
+        &self.rotation
     }
 
     /// Whether [`Precision::Bf16`] runs on the core's bfloat16 instructions (else it is emulated
@@ -288,6 +295,25 @@ impl FusedHead {
     /// `s_θ + s_φ` ([`FusedHead::branch_scores`] summed).
     pub fn scores(&self, image_term: &[f32], projected: &[f32]) -> Vec<f32> {
         self.scores_in(Precision::F32, image_term, projected)
+    }
+
+    /// `s_θ + s_φ` of rotations given by their encodings (row-major `[n, rotation_dim]`) in
+    /// `precision`: in f32 projected first ([`FusedHead::project_rotations`]); in bfloat16 the
+    /// projection runs inside the tiles too.
+    pub fn scores_of_encodings(
+        &self,
+        precision: Precision,
+        image_term: &[f32],
+        encodings: &[f32],
+    ) -> Vec<f32> {
+        let (mut shape, feature) = match (precision, &self.bf16) {
+            (Precision::Bf16, Some(bf16)) => bf16.branch_scores_of_encodings(image_term, encodings),
+            _ => self.branch_scores(image_term, &self.project_rotations(encodings)),
+        };
+        for (s, f) in shape.iter_mut().zip(feature) {
+            *s += f;
+        }
+        shape
     }
 
     /// `s_θ + s_φ` in `precision`.
