@@ -1,11 +1,18 @@
 //! Where a coarse-to-fine search's time goes: runs one search (start level, keep, coarse
-//! precision from the arguments) to level 5 on a few held-out renders of a bundle, repeatedly,
-//! and prints its p50; run it under `perf record -g` for the profile.
+//! precision, keep taper from the arguments) to level 5 on held-out renders of a bundle,
+//! repeatedly, prints its p50, then times its parts alone with the same numbers of rotations: the
+//! encoder, the start level in full, each refined level, and the rest (cell rotations, softmax,
+//! selection, modes) as the difference.
 //! `cargo run --release --example probe_search [BUNDLE] [START] [KEEP] [f32|bf16] [REPEATS] [TAPER]`
 use std::time::Instant;
 
 use alignist::engine::{Engine, EngineConfig, PredictOptions, SearchParams};
 use alignist::net::Precision;
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().collect();
@@ -13,9 +20,9 @@ fn main() -> anyhow::Result<()> {
     let path = std::path::PathBuf::from(arg(1, "models/symsol1"));
     let search = SearchParams {
         start_level: arg(2, "2").parse()?,
-        keep: arg(3, "512").parse()?,
+        keep: arg(3, "768").parse()?,
         keep_mass: None,
-        keep_taper: arg(6, "1").parse()?,
+        keep_taper: arg(6, "0.5").parse()?,
         coarse_precision: arg(4, "bf16")
             .parse::<Precision>()
             .map_err(anyhow::Error::msg)?,
@@ -26,25 +33,85 @@ fn main() -> anyhow::Result<()> {
         .renders(2)
         .eval_images(bundle.manifest.network.image_size, 2, 7);
     let model = Engine::load_model(&path, EngineConfig::default())?;
+    let finest = 5u8;
     let options = PredictOptions {
         top_k: 10,
-        level: Some(5),
+        level: Some(finest),
         mode_angle_deg: None,
     };
-    let mut times = Vec::new();
-    for _ in 0..repeats {
-        for im in &images {
-            let t = Instant::now();
-            let f = model.features(&[&im.rgb]);
-            model.predict_searching(&f, &options, &search, &[None])?;
-            times.push(t.elapsed().as_secs_f64() * 1e3);
-        }
-    }
-    times.sort_by(f64::total_cmp);
+    let timed = |f: &mut dyn FnMut()| {
+        median(
+            (0..repeats * images.len())
+                .map(|_| {
+                    let t = Instant::now();
+                    f();
+                    t.elapsed().as_secs_f64() * 1e3
+                })
+                .collect(),
+        )
+    };
+    let crop = &images[0].rgb;
+    let total = median(
+        (0..repeats)
+            .flat_map(|_| &images)
+            .map(|im| {
+                let t = Instant::now();
+                let f = model.features(&[&im.rgb]);
+                model
+                    .predict_searching(&f, &options, &search, &[None])
+                    .expect("search");
+                t.elapsed().as_secs_f64() * 1e3
+            })
+            .collect(),
+    );
+    println!("{search:?}, top-10 to level {finest}: p50 {total:.1} ms");
+    let features = model.features(&[crop]);
+    let encoder = timed(&mut || {
+        model.features(&[crop]);
+    });
+    println!("  encoder: {encoder:.1} ms");
+    let start_precision = if search.start_level == finest {
+        Precision::F32
+    } else {
+        search.coarse_precision
+    };
+    let start = timed(&mut || {
+        model
+            .logits_in(start_precision, &features, search.start_level)
+            .expect("start level");
+    });
+    let start_len = model.grid(search.start_level).map_or(0, |g| g.len());
     println!(
-        "{search:?}: p50 {:.1} ms over {} calls",
-        times[times.len() / 2],
-        times.len()
+        "  level {} in full ({start_len} rotations, {start_precision}): {start:.1} ms",
+        search.start_level
+    );
+    let mut parts = encoder + start;
+    for (i, level) in (search.start_level + 1..=finest).enumerate() {
+        let keep = (search.keep as f64 * search.keep_taper.powi(i as i32)).round() as usize;
+        let grid = model.grid(level).expect("grid");
+        let rotations: Vec<[f32; 9]> = (0..8 * keep as u64)
+            .map(|c| {
+                let r = grid.rotation(c * 97 % grid.len() as u64);
+                std::array::from_fn(|j| r.matrix()[(j / 3, j % 3)] as f32)
+            })
+            .collect();
+        let precision = if level == finest {
+            Precision::F32
+        } else {
+            search.coarse_precision
+        };
+        let t = timed(&mut || {
+            model.score_rotations_many(&features, std::slice::from_ref(&rotations), precision);
+        });
+        println!(
+            "  level {level} ({} rotations, {precision}, encodings included): {t:.1} ms",
+            rotations.len()
+        );
+        parts += t;
+    }
+    println!(
+        "  the rest (cell rotations, softmax, selection, modes): {:.1} ms",
+        total - parts
     );
     Ok(())
 }

@@ -49,9 +49,9 @@ struct Cli {
     /// Level a Predict search scores in full first (at most --max-level).
     #[arg(long, env = "ALIGNIST_SEARCH_START_LEVEL", default_value_t = EngineConfig::default().search_start_level)]
     search_start_level: u8,
-    /// Cells a Predict search refines per level (512 was the default before the search study of
-    /// `alignist-train bench`; on the shipped model 128 agrees with the exhaustive argmax on 94 %
-    /// of images against 512's 100 %, 2.5× faster).
+    /// Cells a Predict search refines at its first refinement (then times --search-keep-taper at
+    /// each finer level). Chosen with the taper and the coarse precision by the search study of
+    /// `alignist-train bench`; 128 at every level in f32 was the default before, 512 earlier.
     #[arg(long, env = "ALIGNIST_SEARCH_KEEP", default_value_t = EngineConfig::default().keep)]
     search_keep: usize,
     /// Each finer level of a Predict search keeps this many times as many cells as the one
