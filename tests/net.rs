@@ -327,13 +327,44 @@ fn assert_bf16_close(fused: &alignist::net::FusedHead, encoding: &RotationEncodi
             .map(|i| ((i * 37 + rows) % 17) as f32 / 17.0)
             .collect();
         let image = fused.image_term(&features);
-        let projected = fused.project_rotations(&encoding.encode(&rotations));
+        let encodings = encoding.encode(&rotations);
+        let projected = fused.project_rotations(&encodings);
         let f32_scores = fused.branch_scores(&image, &projected);
-        let bf16 = fused.branch_scores_in(Precision::Bf16, &image, &projected);
-        let emulation = emulated.branch_scores(&image, &projected);
+        // The rows as f32 projections (a search's start level) and as encodings (the finer
+        // levels, where the projection runs in bfloat16 inside the tiles).
+        let from_projections = (
+            fused.branch_scores_in(Precision::Bf16, &image, &projected),
+            emulated.branch_scores(&image, &projected),
+        );
+        let from_encodings = (
+            fused.branch_scores_of_encodings(Precision::Bf16, &image, &encodings),
+            emulated.branch_scores_of_encodings(&image, &encodings),
+        );
         for (branch, exact, got, emulated) in [
-            ("shape", &f32_scores.0, &bf16.0, &emulation.0),
-            ("feature", &f32_scores.1, &bf16.1, &emulation.1),
+            (
+                "shape",
+                &f32_scores.0,
+                &from_projections.0.0,
+                &from_projections.1.0,
+            ),
+            (
+                "feature",
+                &f32_scores.1,
+                &from_projections.0.1,
+                &from_projections.1.1,
+            ),
+            (
+                "shape from encodings",
+                &f32_scores.0,
+                &from_encodings.0.0,
+                &from_encodings.1.0,
+            ),
+            (
+                "feature from encodings",
+                &f32_scores.1,
+                &from_encodings.0.1,
+                &from_encodings.1.1,
+            ),
         ] {
             assert_eq!(got.len(), rows);
             let scale = exact.iter().map(|v| v.abs()).sum::<f32>() / rows as f32;

@@ -306,14 +306,26 @@ impl FusedHead {
         image_term: &[f32],
         encodings: &[f32],
     ) -> Vec<f32> {
-        let (mut shape, feature) = match (precision, &self.bf16) {
-            (Precision::Bf16, Some(bf16)) => bf16.branch_scores_of_encodings(image_term, encodings),
-            _ => self.branch_scores(image_term, &self.project_rotations(encodings)),
-        };
+        let (mut shape, feature) =
+            self.branch_scores_of_encodings(precision, image_term, encodings);
         for (s, f) in shape.iter_mut().zip(feature) {
             *s += f;
         }
         shape
+    }
+
+    /// Both branches' log-weights of rotations given by their encodings, in `precision`
+    /// ([`FusedHead::scores_of_encodings`] before the sum).
+    pub fn branch_scores_of_encodings(
+        &self,
+        precision: Precision,
+        image_term: &[f32],
+        encodings: &[f32],
+    ) -> (Vec<f32>, Vec<f32>) {
+        match (precision, &self.bf16) {
+            (Precision::Bf16, Some(bf16)) => bf16.branch_scores_of_encodings(image_term, encodings),
+            _ => self.branch_scores(image_term, &self.project_rotations(encodings)),
+        }
     }
 
     /// `s_θ + s_φ` in `precision`.
