@@ -20,7 +20,7 @@ fn main() -> anyhow::Result<()> {
     let path = std::path::PathBuf::from(arg(1, "models/symsol1"));
     let search = SearchParams {
         start_level: arg(2, "2").parse()?,
-        keep: arg(3, "768").parse()?,
+        keep: arg(3, "1024").parse()?,
         keep_mass: None,
         keep_taper: arg(6, "0.5").parse()?,
         coarse_precision: arg(4, "bf16")

@@ -236,7 +236,7 @@ fn the_default_search_finds_the_exhaustive_maximum_at_level_3() {
         );
         // The search shipped before (128 cells at every level, f32) stopped on another of the
         // icosahedron's 60 equivalent modes on all 4 icosahedra (0.017 to 0.131 nats below);
-        // the default since (768 cells of level 2, coarse levels in bfloat16) finds the best
+        // the default since (1024 cells of level 2, coarse levels in bfloat16) finds the best
         // cell on every image.
         assert!(
             gap <= 1e-3,

@@ -234,13 +234,13 @@ impl Default for EngineConfig {
             search_start_level: 2,
             search_default_level: 5,
             search_max_level: 6,
-            // Chosen by the search study of `alignist-train bench` (150 held-out renders, top-10
-            // to level 5, against the exhaustive level-5 argmax; README "Benchmarks"): with the
-            // coarse levels in bfloat16, 768 cells halving per level (768, 384, 192) agreed on
-            // 149 of 150 images, as often as 512 at every level, in about two thirds of the time
-            // (p50 ~17 against ~25 ms). The search before, 128 at every level in f32, agreed on
-            // 93 %.
-            keep: 768,
+            // Chosen by the search study of `alignist-train bench` (held-out renders, top-10 to
+            // level 5, against the exhaustive level-5 argmax; README "Benchmarks"): with the
+            // coarse levels in bfloat16, 1024 cells halving per level (1024, 512, 256) agreed on
+            // 189 of 190 distinct images over the bench's sets of 150 and 50, at p50 ~22 ms;
+            // 768 halving, ~4 ms faster, on 188 (98.9 %). The search before, 128 at every level in
+            // f32, agreed on 93–94 %.
+            keep: 1024,
             keep_mass: None,
             keep_taper: 0.5,
             coarse_precision: Precision::Bf16,
