@@ -4,7 +4,7 @@
 use std::time::Instant;
 
 use alignist::net::bf16::Bf16Head;
-use alignist::net::{FusedHead, Precision};
+use alignist::net::{FusedHead, Precision, Rows};
 use alignist::so3::GridLevel;
 
 fn main() -> anyhow::Result<()> {
@@ -26,7 +26,7 @@ fn main() -> anyhow::Result<()> {
     for (k, precision) in [Precision::F32, Precision::Bf16].into_iter().enumerate() {
         for _ in 0..5 {
             let t = Instant::now();
-            let s = head.scores_in(precision, &image, &projected);
+            let s = head.scores_in(precision, &image, Rows::Projected(&projected));
             best[k] = best[k].min(t.elapsed().as_secs_f64());
             if scores.len() == k {
                 scores.push(s);
@@ -39,7 +39,7 @@ fn main() -> anyhow::Result<()> {
         );
     }
     println!("bf16/f32 speed: {:.2}", best[0] / best[1]);
-    let emulated = Bf16Head::emulated(&head).branch_scores(&image, &projected);
+    let emulated = Bf16Head::emulated(&head).branch_scores(&image, Rows::Projected(&projected));
     let emulated: Vec<f32> = emulated
         .0
         .iter()

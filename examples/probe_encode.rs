@@ -38,7 +38,11 @@ fn main() -> anyhow::Result<()> {
         alignist::net::Precision::Bf16,
     ] {
         time(&format!("scores {precision}"), &mut || {
-            head.scores_in(precision, &image, &projected);
+            head.scores_in(
+                precision,
+                &image,
+                alignist::net::Rows::Projected(&projected),
+            );
         });
     }
     for precision in [
@@ -46,7 +50,7 @@ fn main() -> anyhow::Result<()> {
         alignist::net::Precision::Bf16,
     ] {
         time(&format!("scores of encodings {precision}"), &mut || {
-            head.scores_of_encodings(precision, &image, &enc);
+            head.scores_in(precision, &image, alignist::net::Rows::Encoded(&enc));
         });
     }
     Ok(())

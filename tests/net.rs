@@ -128,6 +128,21 @@ fn encoder_and_head_give_one_score_per_image_and_rotation() {
     assert_eq!(ResNetLayout::Resnet50.feature_dim(), 2048);
 }
 
+/// `rows` rotations spread over SO(3) (row-major), shifted by `offset` about the first axis.
+fn spread_rotations(rows: usize, offset: f64) -> Vec<[f32; 9]> {
+    (0..rows)
+        .map(|i| {
+            let m = nalgebra::UnitQuaternion::from_euler_angles(
+                0.37 * i as f64 + offset,
+                1.3 * (i as f64 * 0.11).sin(),
+                -0.7 * i as f64,
+            )
+            .to_rotation_matrix();
+            std::array::from_fn(|j| m.matrix()[(j / 3, j % 3)] as f32)
+        })
+        .collect()
+}
+
 /// The fused inference head against the burn head it is read from: both branches, for row counts
 /// around the tile size (odd, one under, at and over a tile boundary, several tiles).
 fn assert_fused_matches(
@@ -143,18 +158,7 @@ fn assert_fused_matches(
         .into_iter()
         .enumerate()
     {
-        let rotations: Vec<[f32; 9]> = (0..rows)
-            .map(|i| {
-                let q = nalgebra::UnitQuaternion::from_euler_angles(
-                    0.37 * i as f64 + case as f64,
-                    1.3 * (i as f64 * 0.11).sin(),
-                    -0.7 * i as f64,
-                );
-                let m = q.to_rotation_matrix();
-                let m = m.matrix();
-                std::array::from_fn(|j| m[(j / 3, j % 3)] as f32)
-            })
-            .collect();
+        let rotations = spread_rotations(rows, case as f64);
         let features: Vec<f32> = (0..image_dim)
             .map(|i| ((i * 37 + case * 11) % 17) as f32 / 17.0)
             .collect();
@@ -307,22 +311,12 @@ fn bf16_rounding_is_to_the_nearest_even() {
 /// GEMM, which rounds the same values, and against the f32 head: row counts around the kernel's
 /// 6-row block and the tile, a width that pads to the 64-column panel, and the shipped head.
 fn assert_bf16_close(fused: &alignist::net::FusedHead, encoding: &RotationEncoding, what: &str) {
-    use alignist::net::Precision;
     use alignist::net::bf16::Bf16Head;
+    use alignist::net::{Precision, Rows};
     let emulated = Bf16Head::emulated(fused);
     let tile = alignist::net::fused::TILE_ROWS;
     for rows in [1, 5, 6, 7, tile - 1, tile, tile + 1, 2 * tile + 3] {
-        let rotations: Vec<[f32; 9]> = (0..rows)
-            .map(|i| {
-                let m = nalgebra::UnitQuaternion::from_euler_angles(
-                    0.37 * i as f64,
-                    1.3 * (i as f64 * 0.11).sin(),
-                    -0.7 * i as f64,
-                )
-                .to_rotation_matrix();
-                std::array::from_fn(|j| m.matrix()[(j / 3, j % 3)] as f32)
-            })
-            .collect();
+        let rotations = spread_rotations(rows, 0.0);
         let features: Vec<f32> = (0..fused.image_dim())
             .map(|i| ((i * 37 + rows) % 17) as f32 / 17.0)
             .collect();
@@ -332,14 +326,14 @@ fn assert_bf16_close(fused: &alignist::net::FusedHead, encoding: &RotationEncodi
         let f32_scores = fused.branch_scores(&image, &projected);
         // The rows as f32 projections (a search's start level) and as encodings (the finer
         // levels, where the projection runs in bfloat16 inside the tiles).
-        let from_projections = (
-            fused.branch_scores_in(Precision::Bf16, &image, &projected),
-            emulated.branch_scores(&image, &projected),
-        );
-        let from_encodings = (
-            fused.branch_scores_of_encodings(Precision::Bf16, &image, &encodings),
-            emulated.branch_scores_of_encodings(&image, &encodings),
-        );
+        let in_bf16 = |rows: Rows<'_>| {
+            (
+                fused.branch_scores_in(Precision::Bf16, &image, rows),
+                emulated.branch_scores(&image, rows),
+            )
+        };
+        let from_projections = in_bf16(Rows::Projected(&projected));
+        let from_encodings = in_bf16(Rows::Encoded(&encodings));
         for (branch, exact, got, emulated) in [
             (
                 "shape",

@@ -59,7 +59,7 @@ struct Cli {
     #[arg(long, env = "ALIGNIST_SEARCH_KEEP_TAPER", default_value_t = EngineConfig::default().keep_taper)]
     search_keep_taper: f64,
     /// Arithmetic of a Predict search's levels before the finest, which is always f32: `bf16`
-    /// ranks the cells to refine at about 2.7 times the f32 rate where the core has AVX-512
+    /// ranks the cells to refine at about 2.6 times the f32 rate where the core has AVX-512
     /// BF16 (emulated at the f32 rate elsewhere); `f32` is the search before bfloat16.
     #[arg(long, env = "ALIGNIST_SEARCH_COARSE_PRECISION", default_value_t = EngineConfig::default().coarse_precision)]
     search_coarse_precision: Precision,

@@ -24,7 +24,9 @@ pub use search::{CellProbability, Mode, SearchResult, coarse_to_fine_many, group
 use crate::bundle::BundleError;
 use crate::bundle::model::ModelBundle;
 use crate::net::network::feature_rows;
-use crate::net::{FusedHead, Network, NetworkConfig, Precision, ProjectedGrid, images_tensor};
+use crate::net::{
+    FusedHead, Network, NetworkConfig, Precision, ProjectedGrid, Rows, images_tensor,
+};
 use crate::so3::{GridLevel, MAX_LEVEL, to_row_major_f32};
 
 /// Errors of the engine; each maps to one gRPC status code in the service.
@@ -127,7 +129,7 @@ pub struct SearchParams {
     /// every level).
     pub keep_taper: f64,
     /// The arithmetic of every level but the finest, which is scored in f32: bfloat16 ranks
-    /// the cells to refine at about 2.7 times the f32 rate.
+    /// the cells to refine at about 2.6 times the f32 rate.
     pub coarse_precision: Precision,
 }
 
@@ -636,8 +638,11 @@ impl Model {
             let mats: Vec<[f32; 9]> = (start..(start + (1 << 16)).min(n))
                 .map(|c| to_row_major_f32(&grid.rotation(c)))
                 .collect();
-            let projected = self.fused.project_rotations(&encoding.encode(&mats));
-            logits.extend(self.fused.scores_in(precision, &image, &projected));
+            let encodings = encoding.encode(&mats);
+            logits.extend(
+                self.fused
+                    .scores_in(precision, &image, Rows::Encoded(&encodings)),
+            );
         }
         Ok(logits)
     }
@@ -844,10 +849,11 @@ impl Model {
             .iter()
             .zip(rotations)
             .map(|(f, rotations)| {
-                self.fused.scores_of_encodings(
+                let encodings = encoding.encode(rotations);
+                self.fused.scores_in(
                     precision,
                     &self.fused.image_term(f),
-                    &encoding.encode(rotations),
+                    Rows::Encoded(&encodings),
                 )
             })
             .collect()

@@ -10,7 +10,7 @@
 //! a tile stream past it [`MR`] at a time; bias and ReLU are applied as each block leaves the
 //! registers, and the last hidden layer goes straight into the `width → 1` dot product.
 
-use super::fused::{Dense, FusedHead, TILE_ROWS};
+use super::fused::{Dense, FusedHead, Precision, Rows, TILE_ROWS, by_tiles};
 
 /// Rows of the native kernel's register block.
 pub const MR: usize = 6;
@@ -65,41 +65,15 @@ impl Bf16Head {
         matches!(self, Bf16Head::Native(_))
     }
 
-    /// Both branches' log-weights, as [`FusedHead::branch_scores`].
-    pub fn branch_scores(&self, image_term: &[f32], projected: &[f32]) -> (Vec<f32>, Vec<f32>) {
-        match self {
-            Bf16Head::Native(native) => {
-                native.branch_scores(image_term, Rows::Projected(projected))
-            }
-            Bf16Head::Emulated(head) => head.branch_scores(image_term, projected),
-        }
-    }
-
-    /// Both branches' log-weights of rotations given by their encodings (row-major
-    /// `[n, rotation_dim]`): the rotation half of the first layer in bfloat16 too, inside the
+    /// Both branches' log-weights of `rows`, as [`FusedHead::branch_scores_in`]. From encodings,
+    /// the native kernel runs the rotation half of the first layer in bfloat16 too, inside the
     /// tiles (no projection pass).
-    pub fn branch_scores_of_encodings(
-        &self,
-        image_term: &[f32],
-        encodings: &[f32],
-    ) -> (Vec<f32>, Vec<f32>) {
+    pub fn branch_scores(&self, image_term: &[f32], rows: Rows<'_>) -> (Vec<f32>, Vec<f32>) {
         match self {
-            Bf16Head::Native(native) => native.branch_scores(image_term, Rows::Encoded(encodings)),
-            Bf16Head::Emulated(head) => {
-                let rounded: Vec<f32> = encodings.iter().copied().map(round_bf16).collect();
-                head.branch_scores(image_term, &head.project_rotations(&rounded))
-            }
+            Bf16Head::Native(native) => native.branch_scores(image_term, rows),
+            Bf16Head::Emulated(head) => head.branch_scores_in(Precision::F32, image_term, rows),
         }
     }
-}
-
-/// What a tile's rows are given as.
-#[derive(Clone, Copy)]
-enum Rows<'a> {
-    /// The rotation half of the first layer, `[n, width]` f32.
-    Projected(&'a [f32]),
-    /// The rotations' encodings, `[n, rotation_dim]` f32.
-    Encoded(&'a [f32]),
 }
 
 /// One layer's weights as bfloat16 column panels.
@@ -226,40 +200,34 @@ impl NativeHead {
 
     /// Both branches' log-weights of `rows`.
     fn branch_scores(&self, image_term: &[f32], rows: Rows<'_>) -> (Vec<f32>, Vec<f32>) {
-        use rayon::prelude::*;
         let (given, per_row) = match rows {
             Rows::Projected(p) => (p, self.width),
             Rows::Encoded(e) => (e, self.encoding),
         };
-        let n = given.len() / per_row;
-        let (mut shape, mut feature) = (vec![0.0; n], vec![0.0; n]);
         // The first layer's bias with the image's term in it, for encoded rows.
         let mut first_bias = self.rotation.bias.clone();
         for (b, i) in first_bias.iter_mut().zip(image_term) {
             *b += i;
         }
         let blocked = TILE_ROWS.div_ceil(MR) * MR;
-        shape
-            .par_chunks_mut(TILE_ROWS)
-            .zip(feature.par_chunks_mut(TILE_ROWS))
-            .zip(given.par_chunks(TILE_ROWS * per_row))
-            .for_each_init(
-                || Scratch {
-                    e: vec![0; blocked * 2 * self.rotation.pairs],
-                    x: vec![0; blocked * self.padded],
-                    a: vec![0; blocked * self.padded],
-                    b: vec![0; blocked * self.padded],
-                    dots: vec![0.0; blocked],
-                },
-                |scratch, ((shape, feature), given)| {
-                    let tile = match rows {
-                        Rows::Projected(_) => Rows::Projected(given),
-                        Rows::Encoded(_) => Rows::Encoded(given),
-                    };
-                    self.tile(image_term, &first_bias, tile, scratch, [shape, feature]);
-                },
-            );
-        (shape, feature)
+        by_tiles(
+            given,
+            per_row,
+            || Scratch {
+                e: vec![0; blocked * 2 * self.rotation.pairs],
+                x: vec![0; blocked * self.padded],
+                a: vec![0; blocked * self.padded],
+                b: vec![0; blocked * self.padded],
+                dots: vec![0.0; blocked],
+            },
+            |scratch, given, out| {
+                let tile = match rows {
+                    Rows::Projected(_) => Rows::Projected(given),
+                    Rows::Encoded(_) => Rows::Encoded(given),
+                };
+                self.tile(image_term, &first_bias, tile, scratch, out);
+            },
+        )
     }
 
     /// One tile of rows: the shared input `relu(P_R + W_I·f + b)`, then each branch.

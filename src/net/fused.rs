@@ -55,6 +55,37 @@ impl std::str::FromStr for Precision {
     }
 }
 
+/// The rotations a head scores, as their rotation projections or as their encodings.
+#[derive(Debug, Clone, Copy)]
+pub enum Rows<'a> {
+    /// The rotation half of the first layer, `[n, width]` ([`FusedHead::project_rotations`]):
+    /// a grid's, computed once.
+    Projected(&'a [f32]),
+    /// The rotations' encodings, `[n, rotation_dim]`.
+    Encoded(&'a [f32]),
+}
+
+/// Both branches' scores of the `given.len() / per_row` rows of `given`, one tile of
+/// [`TILE_ROWS`] rows per task over the cores, each task with its scratch from `init`:
+/// `tile(scratch, rows of the tile, [shape, feature] outputs of the tile)`.
+pub(super) fn by_tiles<S>(
+    given: &[f32],
+    per_row: usize,
+    init: impl Fn() -> S + Send + Sync,
+    tile: impl Fn(&mut S, &[f32], [&mut [f32]; 2]) + Send + Sync,
+) -> (Vec<f32>, Vec<f32>) {
+    let n = given.len() / per_row;
+    let (mut shape, mut feature) = (vec![0.0; n], vec![0.0; n]);
+    shape
+        .par_chunks_mut(TILE_ROWS)
+        .zip(feature.par_chunks_mut(TILE_ROWS))
+        .zip(given.par_chunks(TILE_ROWS * per_row))
+        .for_each_init(init, |scratch, ((shape, feature), given)| {
+            tile(scratch, given, [shape, feature])
+        });
+    (shape, feature)
+}
+
 /// One linear layer, row-major `[inputs, outputs]` weights.
 #[derive(Debug, Clone)]
 pub(super) struct Dense {
@@ -182,7 +213,8 @@ impl FusedHead {
     }
 
     /// This head with the branches' and the rotation layer's weights rounded to bfloat16 and each
-    /// branch GEMM's input rounded too: the emulation of [`Bf16Head`] on the f32 GEMM. The image
+    /// GEMM's input (encodings included) rounded too: the emulation of [`Bf16Head`] on the f32
+    /// GEMM. The image
     /// half of the first layer stays f32, as in the native kernel, and so do projections made
     /// beforehand by the f32 head (a search's start level).
     pub(super) fn rounded_to_bf16(&self) -> FusedHead {
@@ -260,82 +292,43 @@ impl FusedHead {
     /// [`FusedHead::image_term`].
     pub fn branch_scores(&self, image_term: &[f32], projected: &[f32]) -> (Vec<f32>, Vec<f32>) {
         let w = self.width;
-        let n = projected.len() / w;
-        let (mut shape, mut feature) = (vec![0.0; n], vec![0.0; n]);
-        shape
-            .par_chunks_mut(TILE_ROWS)
-            .zip(feature.par_chunks_mut(TILE_ROWS))
-            .zip(projected.par_chunks(TILE_ROWS * w))
-            .for_each_init(
-                || Scratch {
-                    x: vec![0.0; TILE_ROWS * w],
-                    a: vec![0.0; TILE_ROWS * w],
-                    b: vec![0.0; TILE_ROWS * w],
-                },
-                |scratch, ((shape, feature), projected)| {
-                    self.tile(image_term, projected, scratch, [shape, feature]);
-                },
-            );
-        (shape, feature)
+        by_tiles(
+            projected,
+            w,
+            || Scratch {
+                x: vec![0.0; TILE_ROWS * w],
+                a: vec![0.0; TILE_ROWS * w],
+                b: vec![0.0; TILE_ROWS * w],
+            },
+            |scratch, projected, out| self.tile(image_term, projected, scratch, out),
+        )
     }
 
-    /// [`FusedHead::branch_scores`] in `precision`.
+    /// Both branches' log-weights `(s_θ, s_φ)` of `rows` in `precision`, for one image's
+    /// [`FusedHead::image_term`]. Encoded rows are projected first in f32; in bfloat16 the
+    /// projection runs inside the tiles too.
     pub fn branch_scores_in(
         &self,
         precision: Precision,
         image_term: &[f32],
-        projected: &[f32],
+        rows: Rows<'_>,
     ) -> (Vec<f32>, Vec<f32>) {
-        match (precision, &self.bf16) {
-            (Precision::Bf16, Some(bf16)) => bf16.branch_scores(image_term, projected),
-            _ => self.branch_scores(image_term, projected),
+        match (precision, &self.bf16, rows) {
+            (Precision::Bf16, Some(bf16), _) => bf16.branch_scores(image_term, rows),
+            (_, _, Rows::Projected(projected)) => self.branch_scores(image_term, projected),
+            (_, _, Rows::Encoded(encodings)) if self.round_inputs => {
+                let rounded: Vec<f32> = encodings.iter().copied().map(round_bf16).collect();
+                self.branch_scores(image_term, &self.project_rotations(&rounded))
+            }
+            (_, _, Rows::Encoded(encodings)) => {
+                self.branch_scores(image_term, &self.project_rotations(encodings))
+            }
         }
     }
 
-    /// `s_θ + s_φ` ([`FusedHead::branch_scores`] summed).
-    pub fn scores(&self, image_term: &[f32], projected: &[f32]) -> Vec<f32> {
-        self.scores_in(Precision::F32, image_term, projected)
-    }
-
-    /// `s_θ + s_φ` of rotations given by their encodings (row-major `[n, rotation_dim]`) in
-    /// `precision`: in f32 projected first ([`FusedHead::project_rotations`]); in bfloat16 the
-    /// projection runs inside the tiles too.
-    pub fn scores_of_encodings(
-        &self,
-        precision: Precision,
-        image_term: &[f32],
-        encodings: &[f32],
-    ) -> Vec<f32> {
-        let (mut shape, feature) =
-            self.branch_scores_of_encodings(precision, image_term, encodings);
-        for (s, f) in shape.iter_mut().zip(feature) {
-            *s += f;
-        }
-        shape
-    }
-
-    /// Both branches' log-weights of rotations given by their encodings, in `precision`
-    /// ([`FusedHead::scores_of_encodings`] before the sum).
-    pub fn branch_scores_of_encodings(
-        &self,
-        precision: Precision,
-        image_term: &[f32],
-        encodings: &[f32],
-    ) -> (Vec<f32>, Vec<f32>) {
-        match (precision, &self.bf16) {
-            (Precision::Bf16, Some(bf16)) => bf16.branch_scores_of_encodings(image_term, encodings),
-            _ => self.branch_scores(image_term, &self.project_rotations(encodings)),
-        }
-    }
-
-    /// `s_θ + s_φ` in `precision`.
-    pub fn scores_in(
-        &self,
-        precision: Precision,
-        image_term: &[f32],
-        projected: &[f32],
-    ) -> Vec<f32> {
-        let (mut shape, feature) = self.branch_scores_in(precision, image_term, projected);
+    /// `s_θ + s_φ` of `rows` in `precision` ([`FusedHead::branch_scores_in`] summed).
+    pub fn scores_in(&self, precision: Precision, image_term: &[f32], rows: Rows<'_>) -> Vec<f32> {
+        let (mut shape, feature) = self.branch_scores_in(precision, image_term, rows);
         for (s, f) in shape.iter_mut().zip(feature) {
             *s += f;
         }

@@ -9,7 +9,7 @@ pub mod loss;
 pub mod network;
 
 pub use encoder::{Encoder, EncoderConfig, ResNetLayout};
-pub use fused::{FusedHead, Precision};
+pub use fused::{FusedHead, Precision, Rows};
 pub use head::{BranchScores, DualHead, HeadConfig};
 pub use loss::{gkl_loss, ipdf_loss, l1_measure_loss};
 pub use network::{Network, NetworkConfig, ProjectedGrid, images_tensor};

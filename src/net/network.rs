@@ -9,6 +9,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 
 use super::{
     BranchScores, DualHead, Encoder, EncoderConfig, FusedHead, HeadConfig, Precision, ResNetLayout,
+    Rows,
 };
 use crate::encoding::RotationEncoding;
 use crate::so3::{GridLevel, So3Error};
@@ -146,8 +147,11 @@ impl ProjectedGrid {
         feature_rows(features)
             .iter()
             .map(|f| {
-                self.head
-                    .scores_in(precision, &self.head.image_term(f), &self.projected)
+                self.head.scores_in(
+                    precision,
+                    &self.head.image_term(f),
+                    Rows::Projected(&self.projected),
+                )
             })
             .collect()
     }
