@@ -36,12 +36,7 @@ fn main() {
         .filter(|im| model.objects[im.object].name == *object_name)
     {
         let object = &model.objects[im.object];
-        let whole = CropBox {
-            x: 0,
-            y: 0,
-            width: im.depth.width,
-            height: im.depth.height,
-        };
+        let whole = CropBox::pixels(0, 0, im.depth.width, im.depth.height);
         let pts = back_project(&im.depth, &im.intrinsics, &whole, None, 256, "depth").unwrap();
         let seen = SeenPoints::Camera(object.fusion.camera_points(&pts, "depth").unwrap());
         let input = DepthInput {

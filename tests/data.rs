@@ -352,6 +352,7 @@ fn frame_evaluation_crops_show_the_same_poses_as_the_rendered_ones() {
         meshes: vec![Shape::Tetrahedron.mesh().normalised().0],
         supersample: 4,
         pool: None,
+        realism: None,
     };
     let names = vec!["tet".to_string()];
     let symmetries = vec![vec![nalgebra::Rotation3::identity()]];

@@ -36,12 +36,7 @@ fn depth_fusion_finds_the_translation_and_the_rotation_of_a_rendered_cube() {
             values: image.depth.iter().map(|z| z * scale as f32).collect(),
         };
         let [x, y, width, height] = object_pixel_box(&mesh, &pose, &camera);
-        let bbox = CropBox {
-            x,
-            y,
-            width,
-            height,
-        };
+        let bbox = CropBox::pixels(x, y, width, height);
         // Clean, then σ = 2 % of the radius with 10 % of the pixels missing.
         for (sigma, missing) in [(0.0, 0.0), (0.02, 0.1)] {
             let map = spoil(&clean, sigma * scale, missing, &mut rng);
@@ -93,12 +88,7 @@ fn the_view_table_places_a_close_cylinder_from_its_depth_alone() {
                 height: image.height,
                 values: image.depth.clone(),
             };
-            let whole = CropBox {
-                x: 0,
-                y: 0,
-                width: map.width,
-                height: map.height,
-            };
+            let whole = CropBox::pixels(0, 0, map.width, map.height);
             let back =
                 back_project(&map, &Intrinsics::from(&camera), &whole, None, 256, "d").unwrap();
             let seen = CameraPoints {

@@ -45,14 +45,26 @@ fn check(result: Result<Vec<u8>, EngineError>, size: u32) -> Result<(), TestCase
 }
 
 fn crop_strategy() -> impl Strategy<Value = Option<CropBox>> {
-    proptest::option::of((0u32..80, 0u32..80, 0u32..80, 0u32..80).prop_map(
+    let whole = (0u32..80, 0u32..80, 0u32..80, 0u32..80)
+        .prop_map(|(x, y, width, height)| CropBox::pixels(x, y, width, height));
+    // Sub-pixel boxes reaching beyond the image, and any f64 at all (NaN, ±∞, huge).
+    let fractional = (-100f64..200.0, -100f64..200.0, -1f64..300.0, -1f64..300.0).prop_map(
         |(x, y, width, height)| CropBox {
             x,
             y,
             width,
             height,
         },
-    ))
+    );
+    let wild = (any::<f64>(), any::<f64>(), any::<f64>(), any::<f64>()).prop_map(
+        |(x, y, width, height)| CropBox {
+            x,
+            y,
+            width,
+            height,
+        },
+    );
+    proptest::option::of(prop_oneof![whole, fractional, wild])
 }
 
 const LIMITS: ImageLimits = ImageLimits {
@@ -91,7 +103,14 @@ proptest! {
         let data = png(w, h, seed);
         let r = prepare_image(&ImageRequest { data: &data, raw_size: None, crop: None }, size, &LIMITS);
         if w * h <= 128 * 128 && data.len() <= 64 * 1024 {
-            prop_assert_eq!(r.unwrap().len(), (size * size * 3) as usize);
+            if w.max(h) <= w.min(h) * size {
+                prop_assert_eq!(r.unwrap().len(), (size * size * 3) as usize);
+            } else {
+                // Padded to a square it would be under one pixel across at the input.
+                let elongated = matches!(&r, Err(EngineError::InvalidArgument { message, .. })
+                    if message.contains("elongated"));
+                prop_assert!(elongated, "not refused as elongated: {:?}", r.map(|v| v.len()));
+            }
         } else {
             let exhausted = matches!(r, Err(EngineError::ResourceExhausted { .. }));
             prop_assert!(exhausted, "not RESOURCE_EXHAUSTED");

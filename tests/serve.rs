@@ -446,6 +446,7 @@ async fn bad_input_gets_its_status_code_and_the_server_keeps_serving() {
                     width: 4,
                     height: 4,
                     crop: None,
+                    crop_box: None,
                 }),
                 ..ok()
             },
@@ -458,7 +459,7 @@ async fn bad_input_gets_its_status_code_and_the_server_keeps_serving() {
                 image: Some(ImageInput {
                     data: cube_png(5),
                     crop: Some(CropBox {
-                        x: 20,
+                        x: 40,
                         y: 0,
                         width: 20,
                         height: 10,
@@ -1058,6 +1059,7 @@ async fn frame_requests_fuse_a_depth_image_and_answer_the_translation() {
             }),
             object: "cube".into(),
             mask: Vec::new(),
+            bbox: None,
         }],
         top_k: 3,
         level: 4,
@@ -1242,6 +1244,7 @@ async fn frame_requests_fuse_a_depth_image_and_answer_the_translation() {
                     }),
                     object: "cube".into(),
                     mask: Vec::new(),
+                    bbox: None,
                 }],
                 ..with_depth(depth.clone())
             },
@@ -1281,6 +1284,15 @@ async fn frame_requests_answer_every_box_in_the_camera_frame() {
         }),
         object: String::new(),
         mask: Vec::new(),
+        bbox: None,
+    };
+    // A detector's box: sub-pixel, reaching past the frame's left edge (pad, don't refuse).
+    let cut = [-25.5, 300.25, 90.5, 120.0];
+    let fractional = Detection {
+        r#box: None,
+        bbox: Some(alignist::client::pixel_box(cut)),
+        object: String::new(),
+        mask: Vec::new(),
     };
     let intrinsics = Some(Intrinsics {
         fx: k[0],
@@ -1292,7 +1304,7 @@ async fn frame_requests_answer_every_box_in_the_camera_frame() {
         model: "tiny".into(),
         image: image(png.clone()),
         intrinsics,
-        detections: vec![detection(bbox), detection(other)],
+        detections: vec![detection(bbox), detection(other), fractional],
         top_k: 5,
         level: 3,
         mode_angle_deg: 0.0,
@@ -1303,8 +1315,11 @@ async fn frame_requests_answer_every_box_in_the_camera_frame() {
         .await
         .unwrap()
         .into_inner();
-    assert_eq!(answer.detections.len(), 2);
+    assert_eq!(answer.detections.len(), 3);
     assert_eq!(answer.model, "tiny");
+    assert!(answer.detections[2].r#box.is_none());
+    let echoed = answer.detections[2].bbox.unwrap();
+    assert_eq!([echoed.x, echoed.y, echoed.width, echoed.height], cut);
     let sha = client
         .get_model(GetModelRequest {
             name: "tiny".into(),
@@ -1317,8 +1332,12 @@ async fn frame_requests_answer_every_box_in_the_camera_frame() {
 
     // Each answer is the crop-only answer for that box's perspective crop, turned by R_ray.
     let rgb = image::load_from_memory(&png).unwrap().to_rgb8();
-    for (d, b) in answer.detections.iter().zip([bbox, other]) {
-        let bf = [b[0] as f64, b[1] as f64, b[2] as f64, b[3] as f64];
+    let whole = |b: [u32; 4]| b.map(|v| v as f64);
+    for (d, bf) in answer
+        .detections
+        .iter()
+        .zip([whole(bbox), whole(other), cut])
+    {
         let (crop, view) = perspective_crop(rgb.as_raw(), 640, 480, &k, bf, 32).unwrap();
         assert_eq!(
             view.r_ray,
@@ -1335,6 +1354,7 @@ async fn frame_requests_answer_every_box_in_the_camera_frame() {
                     width: 32,
                     height: 32,
                     crop: None,
+                    crop_box: None,
                 }),
                 top_k: 5,
                 level: 3,
@@ -1373,7 +1393,7 @@ async fn frame_requests_answer_every_box_in_the_camera_frame() {
     };
     let cases: Vec<(FrameRequest, &str)> = vec![
         (
-            bad(&|r| r.detections[1] = detection([600, 400, 100, 100])),
+            bad(&|r| r.detections[1] = detection([640, 400, 100, 100])),
             "detections[1].box",
         ),
         (

@@ -82,6 +82,7 @@ fn tiny_fresh_set() -> TrainingSet {
             meshes: vec![Shape::Cube.mesh()],
             supersample: 2,
             pool: None,
+            realism: None,
         }),
         ..tiny_set()
     }
@@ -302,6 +303,7 @@ fn a_few_hundred_real_steps_lower_the_loss_and_beat_uniform_on_held_out_renders(
         meshes: vec![mesh.clone()],
         supersample: 2,
         pool: None,
+        realism: None,
     };
     let set = TrainingSet {
         objects: vec![baked],
@@ -501,6 +503,7 @@ fn a_pool_of_fresh_renders_repeats_the_same_images_in_every_run() {
         meshes: vec![Shape::Cube.mesh(), Shape::Tetrahedron.mesh()],
         supersample: 1,
         pool: Some(3),
+        realism: None,
     };
     let seeds = |object: usize, run: u64, fresh: &FreshRenders| -> BTreeSet<u64> {
         let mut rng = ChaCha8Rng::seed_from_u64(run);
@@ -521,6 +524,7 @@ fn a_pool_of_fresh_renders_repeats_the_same_images_in_every_run() {
     );
     let unpooled = FreshRenders {
         pool: None,
+        realism: None,
         ..pooled
     };
     assert_eq!(seeds(0, 1, &unpooled).len(), 200);

@@ -66,12 +66,7 @@ fn frames(
                 object: model.object_index(&renders.names[o])?,
                 rgb_png,
                 depth_png,
-                bbox: CropBox {
-                    x,
-                    y,
-                    width,
-                    height,
-                },
+                bbox: CropBox::pixels(x, y, width, height),
             })
         })
         .collect()

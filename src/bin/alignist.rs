@@ -38,9 +38,10 @@ struct ImageArgs {
     /// PNG or JPEG image of the object.
     #[arg(long)]
     image: PathBuf,
-    /// Crop box inside the image: x,y,width,height in pixels.
+    /// Box of the object: x,y,width,height in pixels (fractions allowed; it may extend beyond
+    /// the image).
     #[arg(long, value_parser = parse_crop)]
-    crop: Option<[u32; 4]>,
+    crop: Option<[f64; 4]>,
 }
 
 #[derive(Subcommand)]
@@ -90,7 +91,7 @@ struct PredictArgs {
     /// A detection box x,y,width,height in pixels of the full image; repeat per object (needs
     /// --intrinsics).
     #[arg(long = "box", id = "boxes", value_parser = parse_crop, requires = "intrinsics")]
-    boxes: Vec<[u32; 4]>,
+    boxes: Vec<[f64; 4]>,
     /// A depth image registered to --image (16-bit PNG; 0 = no measurement): RGB-D fusion,
     /// with each object's translation found (needs --intrinsics, --box, --depth-scale).
     #[arg(long, requires_all = ["intrinsics", "depth_scale"])]
@@ -148,14 +149,22 @@ struct LoadArgs {
     level: u32,
 }
 
-fn parse_crop(s: &str) -> Result<[u32; 4], String> {
-    let v: Vec<u32> = s
+fn parse_crop(s: &str) -> Result<[f64; 4], String> {
+    let v: Vec<f64> = s
         .split(',')
-        .map(|p| p.trim().parse::<u32>())
+        .map(|p| p.trim().parse::<f64>())
         .collect::<Result<_, _>>()
         .map_err(|e| format!("'{s}': {e} (expected x,y,width,height)"))?;
-    v.try_into()
-        .map_err(|_| format!("'{s}': expected 4 numbers x,y,width,height"))
+    let v: [f64; 4] = v
+        .try_into()
+        .map_err(|_| format!("'{s}': expected 4 numbers x,y,width,height"))?;
+    if !(v.iter().all(|x| x.is_finite()) && v[2] > 0.0 && v[3] > 0.0) {
+        return Err(format!(
+            "'{s}': x and y must be finite, width and height positive (pixels; fractions and \
+             boxes reaching beyond the image are fine)"
+        ));
+    }
+    Ok(v)
 }
 
 fn parse_intrinsics(s: &str) -> Result<[f64; 4], String> {
@@ -271,7 +280,7 @@ async fn predict_frame(
     args: &PredictArgs,
     [fx, fy, cx, cy]: [f64; 4],
 ) -> Result<()> {
-    use alignist::serve::proto::{CropBox, DepthImage, Detection, FrameRequest, Intrinsics};
+    use alignist::serve::proto::{DepthImage, Detection, FrameRequest, Intrinsics};
     if !args.masks.is_empty() && args.masks.len() != args.boxes.len() {
         bail!(
             "--mask: give one per --box ({} masks for {} boxes)",
@@ -298,13 +307,9 @@ async fn predict_frame(
         .boxes
         .iter()
         .enumerate()
-        .map(|(i, &[x, y, width, height])| Detection {
-            r#box: Some(CropBox {
-                x,
-                y,
-                width,
-                height,
-            }),
+        .map(|(i, &b)| Detection {
+            r#box: None,
+            bbox: Some(alignist::client::pixel_box(b)),
             object: args.image.object.clone(),
             mask: masks.get(i).cloned().unwrap_or_default(),
         })

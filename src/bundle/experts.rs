@@ -199,6 +199,28 @@ impl ExpertSet {
                 return Err(field(format!("files: no entry for {name}")));
             }
         }
+        // Shapes are checked before any network is allocated: a manifest is user input.
+        let shapes = &crate::net::NETWORK_LIMITS;
+        crate::net::check_range(
+            "sdf.config.hidden",
+            manifest.sdf.config.hidden,
+            &shapes.hidden,
+        )
+        .and_then(|()| {
+            crate::net::check_range(
+                "sdf.config.layers",
+                manifest.sdf.config.layers,
+                &shapes.layers,
+            )
+        })
+        .and_then(|()| {
+            crate::net::check_range(
+                "features.config.width",
+                manifest.features.config.width,
+                &(1..=512),
+            )
+        })
+        .map_err(field)?;
         if manifest.object.mesh_sha256 != manifest.files[MESH_FILE].sha256 {
             return Err(field(
                 "object.mesh_sha256 differs from files.\"mesh.ply\".sha256".into(),

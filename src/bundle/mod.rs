@@ -6,7 +6,7 @@ pub mod model;
 
 use std::fs;
 use std::io::Write;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use burn::module::Module;
 use burn::store::{ModuleSnapshot, SafetensorsStore};
@@ -91,6 +91,28 @@ pub(crate) fn io_err(path: &Path, source: std::io::Error) -> BundleError {
         path: path.display().to_string(),
         source,
     }
+}
+
+/// `dir/rel`, refused unless `rel` is a plain relative path that stays inside `dir` (no root, no
+/// `..`, and, where it exists, no link that leads out). The error names what is wrong, never the
+/// server's own paths.
+pub fn inside(dir: &Path, rel: &str) -> Result<PathBuf, String> {
+    use std::path::Component;
+    let relative = Path::new(rel);
+    let plain = !rel.is_empty()
+        && relative
+            .components()
+            .all(|c| matches!(c, Component::Normal(_) | Component::CurDir));
+    if !plain {
+        return Err(format!("{rel:?} is outside the bundle (not a plain relative path)"));
+    }
+    let path = dir.join(relative);
+    if let (Ok(real), Ok(root)) = (path.canonicalize(), dir.canonicalize())
+        && !real.starts_with(&root)
+    {
+        return Err(format!("{rel:?} leads outside the bundle"));
+    }
+    Ok(path)
 }
 
 /// Checks a file against its manifest entry.

@@ -165,6 +165,7 @@ impl ModelBundle {
                 meshes: self.experts.iter().map(|e| e.mesh.clone()).collect(),
                 supersample,
                 pool: None,
+                realism: None,
             },
             names: self
                 .manifest
@@ -225,9 +226,26 @@ impl ModelBundle {
         if manifest.objects.is_empty() {
             return Err(field("objects: the bundle names no object".into()));
         }
-        for (rel, entry) in &manifest.files {
-            super::verify_file(&dir.join(rel), entry)?;
+        manifest.network.validate().map_err(field)?;
+        for (name, level) in [
+            ("levels.full_max", manifest.levels.full_max),
+            ("levels.search_max", manifest.levels.search_max),
+        ] {
+            crate::net::check_range(name, level, &(0..=crate::so3::MAX_LEVEL)).map_err(field)?;
         }
+        for (rel, entry) in &manifest.files {
+            let path = super::inside(dir, rel).map_err(|e| field(format!("files: {e}")))?;
+            super::verify_file(&path, entry)?;
+        }
+        let expert_dirs = manifest
+            .objects
+            .iter()
+            .enumerate()
+            .map(|(i, o)| {
+                super::inside(dir, &o.experts)
+                    .map_err(|e| field(format!("objects[{i}].experts: {e}")))
+            })
+            .collect::<Result<Vec<_>, _>>()?;
         let network_entry = manifest
             .files
             .get(NETWORK_FILE)
@@ -238,10 +256,9 @@ impl ModelBundle {
             &dir.join(NETWORK_FILE),
             network_entry,
         )?;
-        let experts = manifest
-            .objects
+        let experts = expert_dirs
             .iter()
-            .map(|o| ExpertSet::load(&dir.join(&o.experts)))
+            .map(|d| ExpertSet::load(d))
             .collect::<Result<Vec<_>, _>>()?;
         Ok(ModelBundle {
             manifest,

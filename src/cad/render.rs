@@ -127,16 +127,8 @@ pub fn render(mesh: &Mesh, camera: &Camera, pose: &Pose, options: &RenderOptions
         .map(|v| rot * v.cast::<f64>() + pose.translation)
         .collect();
     let screen: Vec<(f64, f64)> = cam.iter().map(|p| camera.project(p)).collect();
-    let mut raster = Raster {
-        width: w,
-        height: h,
-        zbuf: vec![f64::INFINITY; w * h],
-        face_at: vec![u32::MAX; w * h],
-        nocs: vec![[f32::NAN; 3]; w * h],
-    };
-    for f in 0..mesh.triangles.len() {
-        raster.draw_triangle(mesh, f, &cam, &screen);
-    }
+    let mut raster = Raster::new(w, h);
+    raster.draw_mesh(mesh, 0, &cam, &screen);
     let face_rgb: Vec<[u8; 3]> = (0..mesh.triangles.len())
         .map(|f| {
             let centroid = mesh.triangles[f]
@@ -172,21 +164,53 @@ pub fn render(mesh: &Mesh, camera: &Camera, pose: &Pose, options: &RenderOptions
     }
 }
 
-/// The z-buffer of a render: per pixel the nearest depth, its face and its object coordinates.
-struct Raster {
-    width: usize,
-    height: usize,
-    zbuf: Vec<f64>,
-    face_at: Vec<u32>,
-    nocs: Vec<[f32; 3]>,
+/// The z-buffer of a render: per pixel the nearest depth, its object, its face, the
+/// perspective-correct barycentric weights of the point seen and its object coordinates.
+pub(crate) struct Raster {
+    pub(crate) width: usize,
+    pub(crate) height: usize,
+    pub(crate) zbuf: Vec<f64>,
+    pub(crate) object_at: Vec<u16>,
+    pub(crate) face_at: Vec<u32>,
+    pub(crate) bary: Vec<[f32; 3]>,
+    pub(crate) nocs: Vec<[f32; 3]>,
 }
 
 impl Raster {
+    /// An empty `width × height` buffer.
+    pub(crate) fn new(width: usize, height: usize) -> Raster {
+        let n = width * height;
+        Raster {
+            width,
+            height,
+            zbuf: vec![f64::INFINITY; n],
+            object_at: vec![u16::MAX; n],
+            face_at: vec![u32::MAX; n],
+            bary: vec![[0.0; 3]; n],
+            nocs: vec![[f32::NAN; 3]; n],
+        }
+    }
+
+    /// Draws every face of `mesh` as object `object` (vertices `cam` in the camera frame,
+    /// `screen` projected).
+    pub(crate) fn draw_mesh(
+        &mut self,
+        mesh: &Mesh,
+        object: u16,
+        cam: &[Vector3<f64>],
+        screen: &[(f64, f64)],
+    ) {
+        for f in 0..mesh.triangles.len() {
+            self.draw_triangle(mesh, object, f, cam, screen);
+        }
+    }
+
     /// Draws face `f` of `mesh` (vertices `cam` in the camera frame, `screen` projected) into the
     /// buffer: every pixel centre inside it that is nearer than what the buffer holds.
     fn draw_triangle(
         &mut self,
         mesh: &Mesh,
+        object: u16,
         f: usize,
         cam: &[Vector3<f64>],
         screen: &[(f64, f64)],
@@ -239,8 +263,11 @@ impl Raster {
                 let idx = y * w + x;
                 if z < self.zbuf[idx] {
                     self.zbuf[idx] = z;
+                    self.object_at[idx] = object;
                     self.face_at[idx] = f as u32;
-                    let obj = (o0 * (b0 / z0) + o1 * (b1 / z1) + o2 * (b2 / z2)) * z;
+                    let weights = [b0 / z0 * z, b1 / z1 * z, b2 / z2 * z];
+                    self.bary[idx] = weights.map(|b| b as f32);
+                    let obj = o0 * weights[0] + o1 * weights[1] + o2 * weights[2];
                     self.nocs[idx] = [obj.x as f32, obj.y as f32, obj.z as f32];
                 }
             }

@@ -10,8 +10,8 @@ use tonic::transport::{Channel, Endpoint};
 
 use crate::serve::proto::alignist_client::AlignistClient;
 use crate::serve::proto::{
-    CropBox, DistributionRequest, FrameRequest, FrameResponse, ImageInput, ListModelsRequest,
-    ListModelsResponse, ModelInfo, PredictRequest, PredictResponse, Rotation,
+    DistributionRequest, FrameRequest, FrameResponse, ImageInput, ListModelsRequest,
+    ListModelsResponse, ModelInfo, PixelBox, PredictRequest, PredictResponse, Rotation,
 };
 
 /// Client errors; a server status keeps its code and message.
@@ -81,18 +81,25 @@ pub async fn connect(url: &str, timeout: Duration) -> Result<Channel, ClientErro
         .map_err(|e| err(e.to_string()))
 }
 
-/// An image input from file bytes and an optional crop.
-pub fn image_input(data: Vec<u8>, crop: Option<[u32; 4]>) -> ImageInput {
+/// An image input from file bytes and an optional box `[x, y, width, height]` (sub-pixel; it may
+/// extend beyond the image).
+pub fn image_input(data: Vec<u8>, crop: Option<[f64; 4]>) -> ImageInput {
     ImageInput {
         data,
         width: 0,
         height: 0,
-        crop: crop.map(|[x, y, width, height]| CropBox {
-            x,
-            y,
-            width,
-            height,
-        }),
+        crop: None,
+        crop_box: crop.map(pixel_box),
+    }
+}
+
+/// `[x, y, width, height]` as a [`PixelBox`].
+pub fn pixel_box([x, y, width, height]: [f64; 4]) -> PixelBox {
+    PixelBox {
+        x,
+        y,
+        width,
+        height,
     }
 }
 

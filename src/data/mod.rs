@@ -1,6 +1,7 @@
 //! Datasets: renders written and read in the BOP layout, object-centred crops.
 
 pub mod bop;
+pub mod realism;
 mod render_set;
 pub mod virtual_crop;
 

@@ -115,23 +115,12 @@ pub fn back_project(
     max_points: usize,
     field: &str,
 ) -> Result<BackProjected, EngineError> {
-    if bbox.width == 0
-        || bbox.height == 0
-        || bbox.x as u64 + bbox.width as u64 > map.width as u64
-        || bbox.y as u64 + bbox.height as u64 > map.height as u64
-    {
-        return Err(invalid(
-            field,
-            format!(
-                "({}, {}) {}×{} is not inside the {}×{} depth image",
-                bbox.x, bbox.y, bbox.width, bbox.height, map.width, map.height
-            ),
-        ));
-    }
+    bbox.check(map.width, map.height, field)?;
+    let (u0, v0, u1, v1) = bbox.pixel_span(map.width, map.height);
     let w = map.width as usize;
     let mut valid = Vec::new();
-    for v in bbox.y as usize..(bbox.y + bbox.height) as usize {
-        for u in bbox.x as usize..(bbox.x + bbox.width) as usize {
+    for v in v0..v1 {
+        for u in u0..u1 {
             let i = v * w + u;
             let z = map.values[i];
             if z > 0.0 && z.is_finite() && mask.is_none_or(|m| m[i]) {
@@ -214,12 +203,7 @@ mod tests {
     fn back_projection_inverts_the_pinhole_projection_at_pixel_centres() {
         let mut map = plane(4, 4, 2.0);
         map.values[5] = 0.0; // (1, 1): no measurement
-        let whole = CropBox {
-            x: 0,
-            y: 0,
-            width: 4,
-            height: 4,
-        };
+        let whole = CropBox::pixels(0, 0, 4, 4);
         let seen = back_project(&map, &K, &whole, None, 100, "box").unwrap();
         let points = &seen.points;
         assert_eq!(points.len(), 15);
@@ -250,7 +234,7 @@ mod tests {
         // Nothing valid, or a box outside the map: an error naming the box.
         let empty = back_project(&plane(4, 4, 0.0), &K, &whole, None, 100, "det.box");
         assert!(empty.unwrap_err().to_string().starts_with("det.box"));
-        let outside = CropBox { x: 2, ..whole };
+        let outside = CropBox { x: 4.5, ..whole };
         let e = back_project(&map, &K, &outside, None, 100, "det.box").unwrap_err();
         assert!(e.to_string().starts_with("det.box"));
     }

@@ -26,17 +26,89 @@ impl Default for ImageLimits {
     }
 }
 
-/// A pixel rectangle inside the image.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// A box around the object in image pixels, with sub-pixel precision as detectors give it. It
+/// may extend beyond the image (an object cut by the frame's edge: the crop is black there) but
+/// must overlap it ([`CropBox::check`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct CropBox {
-    /// Left column.
-    pub x: u32,
-    /// Top row.
-    pub y: u32,
+    /// Left edge (pixel `u` covers `[u, u + 1)`).
+    pub x: f64,
+    /// Top edge.
+    pub y: f64,
     /// Width (> 0).
-    pub width: u32,
+    pub width: f64,
     /// Height (> 0).
-    pub height: u32,
+    pub height: f64,
+}
+
+/// How far a box may reach beyond the image, in image sides: further out it is no detection.
+const BOX_REACH: f64 = 4.0;
+
+impl CropBox {
+    /// The box of whole pixels `(x, y)` … `(x + width, y + height)`.
+    pub fn pixels(x: u32, y: u32, width: u32, height: u32) -> CropBox {
+        CropBox {
+            x: x as f64,
+            y: y as f64,
+            width: width as f64,
+            height: height as f64,
+        }
+    }
+
+    /// `[x, y, width, height]`.
+    pub fn as_array(&self) -> [f64; 4] {
+        [self.x, self.y, self.width, self.height]
+    }
+
+    /// Checks that the box is finite, has a positive size, overlaps the `width × height` image
+    /// and reaches no further than [`BOX_REACH`] image sides beyond it; `field` names it.
+    pub fn check(&self, width: u32, height: u32, field: &str) -> Result<(), EngineError> {
+        let (w, h) = (width as f64, height as f64);
+        let side = w.max(h);
+        let describe = || format!("({}, {}) {}×{}", self.x, self.y, self.width, self.height);
+        if !self.as_array().iter().all(|v| v.is_finite()) {
+            return Err(invalid(field, format!("{} is not finite", describe())));
+        }
+        if self.width <= 0.0 || self.height <= 0.0 {
+            return Err(invalid(field, format!("{} has no area", describe())));
+        }
+        if self.x >= w || self.y >= h || self.x + self.width <= 0.0 || self.y + self.height <= 0.0 {
+            return Err(invalid(
+                field,
+                format!("{} does not overlap the {width}×{height} image", describe()),
+            ));
+        }
+        let reach = BOX_REACH * side;
+        if self.width > reach
+            || self.height > reach
+            || self.x < -reach
+            || self.y < -reach
+            || self.x + self.width > w + reach
+            || self.y + self.height > h + reach
+        {
+            return Err(invalid(
+                field,
+                format!(
+                    "{} reaches more than {BOX_REACH} image sides beyond the {width}×{height} image",
+                    describe()
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// The whole pixels whose centres lie inside the box and the `width × height` image:
+    /// `(u0, v0, u1, v1)`, end exclusive (empty ranges when none).
+    pub fn pixel_span(&self, width: u32, height: u32) -> (usize, usize, usize, usize) {
+        let span = |lo: f64, len: f64, n: u32| {
+            let a = (lo - 0.5).ceil().clamp(0.0, n as f64) as usize;
+            let b = ((lo + len - 0.5).ceil()).clamp(0.0, n as f64) as usize;
+            (a, b.max(a))
+        };
+        let (u0, u1) = span(self.x, self.width, width);
+        let (v0, v1) = span(self.y, self.height, height);
+        (u0, v0, u1, v1)
+    }
 }
 
 /// An image as a request carries it.
@@ -71,38 +143,44 @@ pub fn prepare_image(
     limits: &ImageLimits,
 ) -> Result<Vec<u8>, EngineError> {
     let image = decode_image(request, limits)?;
-    let image = match request.crop {
-        None => image,
+    let (left, top, side) = match request.crop {
+        // Never stretch: a non-square image is padded (black) to a square around its centre.
+        None => {
+            let (long, short) = (
+                image.width().max(image.height()),
+                image.width().min(image.height()),
+            );
+            if long as u64 > short as u64 * size as u64 {
+                return Err(invalid(
+                    "image",
+                    format!(
+                        "{}×{} pixels is too elongated: padded to a square it would be under one \
+                         pixel across at the model's {size}×{size} input (send image.crop, the \
+                         object's box)",
+                        image.width(),
+                        image.height()
+                    ),
+                ));
+            }
+            let side = long;
+            let left = (image.width() as i64 - side as i64) / 2;
+            let top = (image.height() as i64 - side as i64) / 2;
+            (left, top, side)
+        }
         Some(c) => {
-            check_box(&c, &image, "image.crop")?;
+            c.check(image.width(), image.height(), "image.crop")?;
             // The crop convention's scale rule (DESIGN.md §1): a square of CROP_MARGIN × the
             // box's longer side around its centre. Without intrinsics this is a plain cut (a
             // camera looking through the image centre), black where it leaves the image.
-            let side = (CROP_MARGIN * c.width.max(c.height) as f64)
-                .round()
-                .max(1.0) as u32;
-            let cx = c.x as f64 + c.width as f64 / 2.0;
-            let cy = c.y as f64 + c.height as f64 / 2.0;
+            let side = (CROP_MARGIN * c.width.max(c.height)).round().max(1.0) as u32;
+            let cx = c.x + c.width / 2.0;
+            let cy = c.y + c.height / 2.0;
             let left = (cx - side as f64 / 2.0).round() as i64;
             let top = (cy - side as f64 / 2.0).round() as i64;
-            cut_square(&image, left, top, side)
+            (left, top, side)
         }
     };
-    // Never stretch: a non-square image is padded (black) to a square around its centre.
-    let image = if image.width() == image.height() {
-        image
-    } else {
-        let side = image.width().max(image.height());
-        let left = (image.width() as i64 - side as i64) / 2;
-        let top = (image.height() as i64 - side as i64) / 2;
-        cut_square(&image, left, top, side)
-    };
-    let image = if image.width() == size && image.height() == size {
-        image
-    } else {
-        image::imageops::resize(&image, size, size, FilterType::Triangle)
-    };
-    Ok(image.into_raw())
+    Ok(square_resized(&image, left, top, side, size).into_raw())
 }
 
 /// Pinhole intrinsics of a full camera image, in pixels.
@@ -185,20 +263,23 @@ pub fn prepare_frame(
     }
     let image = decode_image(request, limits)?;
     for (i, b) in boxes.iter().enumerate() {
-        check_box(b, &image, &format!("detections[{i}].box"))?;
+        b.check(
+            image.width(),
+            image.height(),
+            &format!("detections[{i}].box"),
+        )?;
     }
     let k = intrinsics.matrix();
     boxes
         .iter()
         .enumerate()
         .map(|(i, b)| {
-            let bbox = [b.x as f64, b.y as f64, b.width as f64, b.height as f64];
             let (rgb, view) = crate::data::virtual_crop::perspective_crop(
                 image.as_raw(),
                 image.width(),
                 image.height(),
                 &k,
-                bbox,
+                b.as_array(),
                 size,
             )
             .ok_or_else(|| invalid(&format!("detections[{i}].box"), "has no area"))?;
@@ -209,33 +290,6 @@ pub fn prepare_frame(
             })
         })
         .collect()
-}
-
-/// Checks that a box has a positive size and lies inside the image.
-fn check_box(c: &CropBox, image: &RgbImage, field: &str) -> Result<(), EngineError> {
-    if c.width == 0 || c.height == 0 {
-        return Err(invalid(
-            field,
-            format!("has zero size ({}×{})", c.width, c.height),
-        ));
-    }
-    if c.x as u64 + c.width as u64 > image.width() as u64
-        || c.y as u64 + c.height as u64 > image.height() as u64
-    {
-        return Err(invalid(
-            field,
-            format!(
-                "({}, {}) {}×{} is not inside the {}×{} image",
-                c.x,
-                c.y,
-                c.width,
-                c.height,
-                image.width(),
-                image.height()
-            ),
-        ));
-    }
-    Ok(())
 }
 
 /// Checks encoded (or raw) request data against the byte limit; `field` names it.
@@ -345,10 +399,42 @@ fn decode_image(request: &ImageRequest<'_>, limits: &ImageLimits) -> Result<RgbI
 }
 
 /// The `side × side` square of `image` whose top-left corner is `(left, top)` (which may lie
-/// outside the image); black where it leaves the image.
-fn cut_square(image: &RgbImage, left: i64, top: i64, side: u32) -> RgbImage {
-    let mut out = RgbImage::new(side, side);
-    image::imageops::overlay(&mut out, image, -left, -top);
+/// outside the image), black where it leaves the image, resized to `size × size`.
+///
+/// The square itself is never allocated: only the part of the image inside it is resized (to its
+/// share of the output) and placed on a black `size × size` canvas. Memory and time are bounded
+/// by the decoded image and the output, whatever the padding (a 1 048 576 × 1 image pads to a
+/// square of 3.3 TB of RGB8; this makes 32 × 32 × 3 bytes of it).
+fn square_resized(image: &RgbImage, left: i64, top: i64, side: u32, size: u32) -> RgbImage {
+    let mut out = RgbImage::new(size, size);
+    let (w, h) = (image.width() as i64, image.height() as i64);
+    let (x0, x1) = (left.max(0), (left + side as i64).min(w));
+    let (y0, y1) = (top.max(0), (top + side as i64).min(h));
+    if x0 >= x1 || y0 >= y1 {
+        return out;
+    }
+    let scale = size as f64 / side as f64;
+    // The visible part's place on the canvas, at least one output pixel on each axis.
+    let place = |from: i64, to: i64, origin: i64| {
+        let a = (((from - origin) as f64 * scale).round() as i64).clamp(0, size as i64 - 1);
+        let b = (((to - origin) as f64 * scale).round() as i64).clamp(a + 1, size as i64);
+        (a, (b - a) as u32)
+    };
+    let (dx, dw) = place(x0, x1, left);
+    let (dy, dh) = place(y0, y1, top);
+    let visible = image::imageops::crop_imm(
+        image,
+        x0 as u32,
+        y0 as u32,
+        (x1 - x0) as u32,
+        (y1 - y0) as u32,
+    );
+    let resized = if (dw as i64, dh as i64) == (x1 - x0, y1 - y0) {
+        visible.to_image()
+    } else {
+        image::imageops::resize(&*visible, dw, dh, FilterType::Triangle)
+    };
+    image::imageops::replace(&mut out, &resized, dx, dy);
     out
 }
 
@@ -381,6 +467,75 @@ mod tests {
     }
 
     #[test]
+    fn a_long_thin_image_is_refused_or_cut_without_allocating_its_square() {
+        // 1 048 576 × 1 is under the pixel limit; its padded square (3.3 TB of RGB8) must never
+        // be made. Whole, it is refused: at the input it would be under one pixel high.
+        let (w, h) = (1 << 20, 1);
+        let data = vec![255u8; w * h * 3];
+        let request = ImageRequest {
+            data: &data,
+            raw_size: Some((w as u32, h as u32)),
+            crop: None,
+        };
+        let err = prepare_image(&request, 32, &ImageLimits::default()).unwrap_err();
+        assert!(
+            matches!(&err, EngineError::InvalidArgument { field, .. } if field == "image"),
+            "{err:?}"
+        );
+        // 64 × 2 at a 32-pixel input is one output row: padded, not refused.
+        let data = vec![255u8; 64 * 2 * 3];
+        let thin = ImageRequest {
+            data: &data,
+            raw_size: Some((64, 2)),
+            crop: None,
+        };
+        let out = prepare_image(&thin, 32, &ImageLimits::default()).unwrap();
+        let bright: Vec<usize> = (0..32).filter(|&y| out[(y * 32 + 5) * 3] > 128).collect();
+        assert_eq!(bright, vec![16]);
+        // A box of the whole long row: its square (1.2 × 1 048 576) is cut without being made.
+        let request = ImageRequest {
+            crop: Some(CropBox::pixels(0, 0, w as u32, 1)),
+            ..request
+        };
+        let out = prepare_image(&request, 32, &ImageLimits::default()).unwrap();
+        assert_eq!(out.len(), 32 * 32 * 3);
+        assert!(out.iter().any(|&v| v > 128));
+    }
+
+    #[test]
+    fn boxes_may_be_fractional_and_reach_beyond_the_image_but_must_overlap_it() {
+        let data = vec![255u8; 60 * 40 * 3];
+        let request = |b: CropBox| ImageRequest {
+            data: &data,
+            raw_size: Some((60, 40)),
+            crop: Some(b),
+        };
+        let limits = ImageLimits::default();
+        // Half outside on the left: the crop's left part is black, its right part white.
+        let cut = CropBox {
+            x: -10.5,
+            y: 10.25,
+            width: 21.0,
+            height: 20.0,
+        };
+        let out = prepare_image(&request(cut), 24, &limits).unwrap();
+        let row: Vec<u8> = (0..24).map(|x| out[(12 * 24 + x) * 3]).collect();
+        assert_eq!(row[2], 0, "{row:?}");
+        assert_eq!(row[21], 255, "{row:?}");
+        for (bad, what) in [
+            (CropBox { x: 61.0, ..cut }, "does not overlap"),
+            (CropBox { width: 0.0, ..cut }, "no area"),
+            (CropBox { y: f64::NAN, ..cut }, "not finite"),
+            (CropBox { width: 1e9, ..cut }, "beyond"),
+        ] {
+            let err = prepare_image(&request(bad), 24, &limits).unwrap_err();
+            assert!(err.to_string().contains(what), "{bad:?}: {err}");
+        }
+        // The pixels of a box are those whose centres it holds, inside the image.
+        assert_eq!(cut.pixel_span(60, 40), (0, 10, 10, 30));
+    }
+
+    #[test]
     fn a_box_is_cut_as_the_square_of_the_crop_convention() {
         // A white 10×20 box at (20, 10) in a black 60×40 image: the crop is the 24×24 square
         // around its centre (25, 20), so the box spans the middle 10/24 of the crop's width.
@@ -394,12 +549,7 @@ mod tests {
         let request = ImageRequest {
             data: &data,
             raw_size: Some((60, 40)),
-            crop: Some(CropBox {
-                x: 20,
-                y: 10,
-                width: 10,
-                height: 20,
-            }),
+            crop: Some(CropBox::pixels(20, 10, 10, 20)),
         };
         let out = prepare_image(&request, 24, &ImageLimits::default()).unwrap();
         let white: Vec<usize> = (0..24).filter(|&x| out[(12 * 24 + x) * 3] > 128).collect();

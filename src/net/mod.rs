@@ -12,4 +12,7 @@ pub use encoder::{Encoder, EncoderConfig, ResNetLayout};
 pub use fused::{FusedHead, Precision, Rows};
 pub use head::{BranchScores, DualHead, HeadConfig};
 pub use loss::{gkl_loss, ipdf_loss, l1_measure_loss};
-pub use network::{Network, NetworkConfig, ProjectedGrid, images_tensor};
+pub use network::{
+    NETWORK_LIMITS, Network, NetworkConfig, NetworkLimits, ProjectedGrid, check_range,
+    images_tensor,
+};

@@ -44,7 +44,57 @@ pub struct Network {
     pub head: DualHead,
 }
 
+/// Sane ranges of a network's shape, checked before anything is allocated
+/// ([`NetworkConfig::validate`]): a manifest is user input to the server.
+pub const NETWORK_LIMITS: NetworkLimits = NetworkLimits {
+    image_size: 8..=1024,
+    hidden: 1..=4096,
+    layers: 1..=16,
+    frequencies: 1..=16,
+};
+
+/// Ranges of [`NETWORK_LIMITS`].
+pub struct NetworkLimits {
+    /// Side of the input crops.
+    pub image_size: std::ops::RangeInclusive<u32>,
+    /// Head width.
+    pub hidden: std::ops::RangeInclusive<usize>,
+    /// Linear layers per branch.
+    pub layers: std::ops::RangeInclusive<usize>,
+    /// IPDF encoding frequencies.
+    pub frequencies: std::ops::RangeInclusive<usize>,
+}
+
+/// `Err("field: value is outside lo ..= hi")` unless `value` lies in `range`.
+pub fn check_range<T: PartialOrd + std::fmt::Display>(
+    field: &str,
+    value: T,
+    range: &std::ops::RangeInclusive<T>,
+) -> Result<(), String> {
+    if range.contains(&value) {
+        Ok(())
+    } else {
+        Err(format!(
+            "{field}: {value} is outside {} ..= {}",
+            range.start(),
+            range.end()
+        ))
+    }
+}
+
 impl NetworkConfig {
+    /// Checks the shape against [`NETWORK_LIMITS`]; the error names the field (`network.…`).
+    pub fn validate(&self) -> Result<(), String> {
+        let l = &NETWORK_LIMITS;
+        check_range("network.image_size", self.image_size, &l.image_size)?;
+        check_range("network.hidden", self.hidden, &l.hidden)?;
+        check_range("network.layers", self.layers, &l.layers)?;
+        if let RotationEncoding::Ipdf { frequencies } = self.encoding {
+            check_range("network.encoding.frequencies", frequencies, &l.frequencies)?;
+        }
+        Ok(())
+    }
+
     /// Builds the network on `device`.
     pub fn init(&self, device: &Device) -> Network {
         Network {

@@ -234,13 +234,28 @@ fn required_image(image: Option<ImageInput>) -> Result<ImageInput, Status> {
     image.ok_or_else(|| invalid_field("image", "is required"))
 }
 
-fn crop_of(image: &ImageInput) -> Option<CropBox> {
-    image.crop.map(|c| CropBox {
-        x: c.x,
-        y: c.y,
-        width: c.width,
-        height: c.height,
-    })
+/// The box of `whole` (pixels) or `fractional` (sub-pixel), at most one of them set; `field`
+/// names the pair.
+fn box_of(
+    whole: Option<proto::CropBox>,
+    fractional: Option<proto::PixelBox>,
+    field: &str,
+) -> Result<Option<CropBox>, Status> {
+    match (whole, fractional) {
+        (Some(_), Some(_)) => Err(invalid_field(field, "set one of the two boxes, not both")),
+        (Some(c), None) => Ok(Some(CropBox::pixels(c.x, c.y, c.width, c.height))),
+        (None, Some(b)) => Ok(Some(CropBox {
+            x: b.x,
+            y: b.y,
+            width: b.width,
+            height: b.height,
+        })),
+        (None, None) => Ok(None),
+    }
+}
+
+fn crop_of(image: &ImageInput) -> Result<Option<CropBox>, Status> {
+    box_of(image.crop, image.crop_box, "image.crop")
 }
 
 fn raw_size(image: &ImageInput) -> Result<Option<(u32, u32)>, Status> {
@@ -305,7 +320,7 @@ async fn encode(p: &mut Prepared) -> Result<batcher::Encoded, Status> {
         let request = ImageRequest {
             data: &image.data,
             raw_size: raw_size(&image)?,
-            crop: crop_of(&image),
+            crop: crop_of(&image)?,
         };
         model.prepare(&request).map_err(status_of)
     })
@@ -515,7 +530,7 @@ impl AlignistService {
                 let request = ImageRequest {
                     data: &image.data,
                     raw_size: raw_size(&image)?,
-                    crop: crop_of(&image),
+                    crop: crop_of(&image)?,
                 };
                 model
                     .prepare_frame(&request, &intrinsics, &boxes)
@@ -562,6 +577,7 @@ impl AlignistService {
             .record(compute.elapsed().as_secs_f64());
         let answered = FrameAnswers {
             boxes: &boxes,
+            whole: req.detections.iter().map(|d| d.r#box).collect(),
             rays: &rays,
             objects: &objects,
             depth: &depth,
@@ -579,6 +595,8 @@ impl AlignistService {
 /// What a frame's boxes were answered with, box by box.
 struct FrameAnswers<'a> {
     boxes: &'a [CropBox],
+    /// The boxes as given in whole pixels (`Detection.box`), echoed as they came.
+    whole: Vec<Option<proto::CropBox>>,
     rays: &'a [nalgebra::Rotation3<f64>],
     objects: &'a [Option<usize>],
     depth: &'a [Option<CropDepth>],
@@ -601,7 +619,8 @@ impl FrameAnswers<'_> {
             .map(|(i, p)| {
                 let (b, depth) = (&self.boxes[i], &self.depth[i]);
                 DetectionPrediction {
-                    r#box: Some(proto::CropBox {
+                    r#box: self.whole[i],
+                    bbox: Some(proto::PixelBox {
                         x: b.x,
                         y: b.y,
                         width: b.width,
@@ -656,15 +675,10 @@ fn frame_detections(
     let mut boxes = Vec::with_capacity(detections.len());
     let mut objects = Vec::with_capacity(detections.len());
     for (i, d) in detections.iter().enumerate() {
-        let b = d
-            .r#box
-            .ok_or_else(|| invalid_field(&format!("detections[{i}].box"), "is required"))?;
-        boxes.push(CropBox {
-            x: b.x,
-            y: b.y,
-            width: b.width,
-            height: b.height,
-        });
+        let field = format!("detections[{i}].box");
+        let b = box_of(d.r#box, d.bbox, &field)?
+            .ok_or_else(|| invalid_field(&field, "is required (box or bbox)"))?;
+        boxes.push(b);
         objects.push(match d.object.is_empty() {
             true => None,
             false => Some(model.object_index(&d.object).map_err(status_of)?),

@@ -138,6 +138,10 @@ pub struct MetricsSummary {
     pub accuracy_at: Vec<(f64, f64)>,
     /// Median over images of the argmax's error in degrees.
     pub median_error_deg: f64,
+    /// Fraction of images whose density at the truth is below uniform (image LL < 0): the
+    /// distribution is sharp somewhere else, *confidently wrong*.
+    #[serde(default)]
+    pub confidently_wrong: f64,
 }
 
 /// Averages per-image metrics; `thresholds_deg` are the `θ` of `AR@θ` (e.g. `[30.0]`).
@@ -159,6 +163,7 @@ pub fn summarize(per_image: &[ImageMetrics], thresholds_deg: &[f64]) -> MetricsS
             .map(|&t| (t, errors.iter().filter(|&&e| e < t).count() as f64 / n))
             .collect(),
         median_error_deg: median,
+        confidently_wrong: per_image.iter().filter(|m| m.log_likelihood < 0.0).count() as f64 / n,
     }
 }
 

@@ -106,6 +106,7 @@ pub fn bench_training(config: &TrainingBenchConfig) -> Result<TrainingBench, Tra
             meshes: vec![mesh],
             supersample: 4,
             pool: None,
+            realism: None,
         }),
     };
     let network = NetworkConfig::new(config.layout, RotationEncoding::Cube)

@@ -1,11 +1,14 @@
 //! Training and evaluation images — from BOP datasets, or rendered fresh — as object-centred
 //! crops, ground truths, and the visible canonical points the experts score.
 
+use std::sync::Arc;
+
 use nalgebra::{Rotation3, Vector3};
 use rand::{Rng, RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use crate::cad::{Mesh, RenderOptions};
+use crate::data::realism::{Realism, SceneAssets, realistic_crop};
 use crate::data::virtual_crop::{RenderedCrop, frame_camera, random_placement, render_crop};
 use crate::data::{BopDataset, DataError};
 use crate::experts::energy::visible_points;
@@ -89,6 +92,9 @@ pub struct FreshRenders {
     /// pool for every run, whatever its seed), for the low-data regime; `None`: a new render
     /// every time.
     pub pool: Option<usize>,
+    /// `Some`: training crops are realistic ([`crate::data::realism`]: materials, lights,
+    /// backgrounds, clutter, detector boxes, a camera model); `None`: flat grey on black.
+    pub realism: Option<Arc<SceneAssets>>,
 }
 
 impl FreshRenders {
@@ -126,6 +132,15 @@ impl FreshRenders {
         size: u32,
         rng: &mut R,
     ) -> TrainingImage {
+        if let Some(assets) = &self.realism {
+            let crop = realistic_crop(assets, object, size, self.supersample, rng);
+            return TrainingImage {
+                object,
+                rgb: crop.rgb,
+                rotation: crop.r_virtual,
+                visible: visible_points(&crop.render, VISIBLE_POINTS, rng),
+            };
+        }
         let crop = self.random_crop(object, size, rng);
         TrainingImage {
             object,
@@ -204,6 +219,37 @@ impl FreshRenders {
                 object: names[i].clone(),
                 rgb: crop.rgb,
                 equivalents: equivalents(&crop.r_virtual, &symmetries[i]),
+            })
+            .collect()
+    }
+
+    /// `per_object` realistic evaluation crops of each object from `seed`, made as `realism`
+    /// says ([`crate::data::realism`]; its held-out split for a test unlike training), with every
+    /// equivalent ground truth in the virtual camera.
+    pub fn realistic_eval_images(
+        &self,
+        names: &[String],
+        symmetries: &[Vec<Rotation3<f64>>],
+        size: u32,
+        per_object: usize,
+        seed: u64,
+        realism: Realism,
+    ) -> Vec<EvalImage> {
+        use rayon::prelude::*;
+        let assets = SceneAssets::new(&self.meshes, realism);
+        let draws: Vec<(usize, u64)> = (0..self.meshes.len())
+            .flat_map(|i| (0..per_object as u64).map(move |j| (i, j)))
+            .collect();
+        draws
+            .par_iter()
+            .map(|&(i, j)| {
+                let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x4ea1 ^ ((i as u64) << 32) ^ j);
+                let crop = realistic_crop(&assets, i, size, self.supersample, &mut rng);
+                EvalImage {
+                    object: names[i].clone(),
+                    rgb: crop.rgb,
+                    equivalents: equivalents(&crop.r_virtual, &symmetries[i]),
+                }
             })
             .collect()
     }

@@ -200,12 +200,7 @@ fn score_image(
                 true => spoil(&im.depth, noise.sigma * radius, noise.missing, rng),
                 false => im.depth.clone(),
             };
-            let whole = crate::engine::CropBox {
-                x: 0,
-                y: 0,
-                width: map.width,
-                height: map.height,
-            };
+            let whole = crate::engine::CropBox::pixels(0, 0, map.width, map.height);
             let points = back_project(
                 &map,
                 &im.intrinsics,

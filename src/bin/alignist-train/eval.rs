@@ -26,12 +26,14 @@ pub(crate) fn print_eval(e: &alignist::train::eval::EvalReport) {
                 .map_or(f64::NAN, |c| c.1)
         };
         eprintln!(
-            "  {name:8} LL {:6.2}  spread {:6.1}°  AR@30 {:.3} (chance {:.3})  median {:6.1}°  ({} images)",
+            "  {name:8} LL {:6.2}  spread {:6.1}°  AR@30 {:.3} (chance {:.3})  median {:6.1}°  \
+             wrong & sure {:5.1} %  ({} images)",
             m.log_likelihood,
             m.spread_deg,
             m.accuracy_at.first().map_or(f64::NAN, |a| a.1),
             chance,
             m.median_error_deg,
+            100.0 * m.confidently_wrong,
             m.images
         );
     }
@@ -83,6 +85,16 @@ pub(crate) struct EvalArgs {
     /// figures with the ray correction and without it, beside the directly rendered crops'.
     #[arg(long, requires = "fresh", conflicts_with = "depth")]
     frames: bool,
+    /// With --fresh: also evaluate on realistic crops unlike the training ones (the held-out
+    /// split of src/data/realism.rs: other background families, the other bands of every colour,
+    /// light, material and camera range, seed --seed + 1), around the exact boxes and around
+    /// boxes with a detector's error (σ --box-sigma of the side per edge), printed beside the
+    /// clean renders' figures.
+    #[arg(long, requires = "fresh", conflicts_with_all = ["depth", "frames"])]
+    realistic: bool,
+    /// With --realistic: σ of each box edge's error, as a fraction of the box's side.
+    #[arg(long, default_value_t = 0.08, requires = "realistic")]
+    box_sigma: f64,
     /// With --fresh: RGB-D fusion measured. Each crop is scored from the image alone, fused with
     /// the depth of its render, and fused with that depth spoiled (--depth-noise,
     /// --depth-missing), through the serving engine: LL and AR@30 at --level, the served top-1's
@@ -216,6 +228,81 @@ fn frames_report(
     Ok(())
 }
 
+/// `eval --fresh --realistic`: clean renders, realistic held-out crops with exact boxes and with
+/// a detector's boxes, each evaluated and printed, the three reports written together.
+fn realistic_report(
+    args: &EvalArgs,
+    bundle: &alignist::bundle::model::ModelBundle,
+    renders: &alignist::bundle::model::BundleRenders,
+    clean: Vec<alignist::train::eval::EvalImage>,
+) -> Result<()> {
+    use alignist::data::realism::Realism;
+    use alignist::train::eval::evaluate;
+    if !(args.box_sigma.is_finite() && (0.0..=0.5).contains(&args.box_sigma)) {
+        bail!("--box-sigma must be in [0, 0.5], got {}", args.box_sigma);
+    }
+    let size = bundle.manifest.network.image_size;
+    let realistic = |realism| {
+        renders.fresh.realistic_eval_images(
+            &renders.names,
+            &renders.symmetries,
+            size,
+            args.images,
+            args.seed.wrapping_add(1),
+            realism,
+        )
+    };
+    let sets = [
+        ("clean renders", clean),
+        (
+            "realistic (held-out split), exact boxes",
+            realistic(Realism::HELD_OUT),
+        ),
+        (
+            "realistic, detector boxes",
+            realistic(Realism::held_out_boxes(args.box_sigma)),
+        ),
+    ];
+    let mut reports = Vec::new();
+    for (label, tests) in &sets {
+        eprintln!("{label}: {} images", tests.len());
+        let bar = ProgressBar::new(tests.len() as u64);
+        let report = evaluate(
+            &bundle.network,
+            &bundle.manifest.network,
+            tests,
+            args.level,
+            |n| bar.set_position(n as u64),
+        )?;
+        bar.finish_and_clear();
+        print_eval(&report);
+        reports.push((label, report));
+    }
+    eprintln!(
+        "side by side at level {} ({} images per object and set; uniform LL 0):",
+        args.level, args.images
+    );
+    eprintln!(
+        "  {:42} {:>7} {:>7} {:>9}",
+        "set", "LL", "AR@30", "wrong&sure"
+    );
+    for (label, r) in &reports {
+        eprintln!(
+            "  {label:42} {:7.2} {:7.3} {:8.1} %",
+            r.overall.log_likelihood,
+            r.overall.accuracy_at.first().map_or(f64::NAN, |a| a.1),
+            100.0 * r.overall.confidently_wrong
+        );
+    }
+    let json: Vec<_> = reports
+        .iter()
+        .map(|(label, r)| serde_json::json!({ "set": label, "box_sigma": args.box_sigma, "report": r }))
+        .collect();
+    std::fs::write(&args.out, serde_json::to_string_pretty(&json)?)
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    Ok(())
+}
+
 pub(crate) fn eval_cmd(args: &EvalArgs) -> Result<()> {
     use alignist::bundle::model::ModelBundle;
     use alignist::data::BopDataset;
@@ -238,6 +325,9 @@ pub(crate) fn eval_cmd(args: &EvalArgs) -> Result<()> {
             return depth_report(args, &renders);
         }
         tests = renders.eval_images(size, args.images, args.seed);
+        if args.realistic {
+            return realistic_report(args, &bundle, &renders, tests);
+        }
         if args.frames {
             let (corrected, uncorrected) = renders.fresh.frame_eval_images(
                 &renders.names,

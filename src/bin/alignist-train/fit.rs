@@ -21,6 +21,11 @@ pub(crate) struct FitArgs {
     /// crops) instead of reading --data.
     #[arg(long)]
     fresh: bool,
+    /// Realistic fresh training crops (with --fresh): random materials and 1–3 coloured lights,
+    /// procedural backgrounds, other objects behind and in front, objects cut by the frame's edge,
+    /// detector-like boxes and a camera model (src/data/realism.rs, its training split).
+    #[arg(long, requires = "fresh")]
+    realistic: bool,
     /// Supersampling per axis of fresh renders (anti-aliasing).
     #[arg(long, default_value_t = 4)]
     supersample: u32,
@@ -345,6 +350,7 @@ pub(crate) fn dataset_fit_data(args: &FitArgs) -> Result<FitData> {
 pub(crate) fn fresh_fit_data(args: &FitArgs) -> Result<FitData> {
     use alignist::bundle::experts::ExpertSet;
     use alignist::bundle::model::BundleObject;
+    use alignist::data::realism::{Realism, SceneAssets};
     use alignist::train::data::FreshRenders;
 
     if !(1..=8).contains(&args.supersample) {
@@ -355,8 +361,12 @@ pub(crate) fn fresh_fit_data(args: &FitArgs) -> Result<FitData> {
         .iter()
         .map(|e| ExpertSet::load(e).with_context(|| format!("--experts {}", e.display())))
         .collect::<Result<Vec<_>>>()?;
+    let meshes: Vec<_> = sets.iter().map(|s| s.mesh.clone()).collect();
     let fresh = FreshRenders {
-        meshes: sets.iter().map(|s| s.mesh.clone()).collect(),
+        realism: args
+            .realistic
+            .then(|| SceneAssets::new(&meshes, Realism::TRAIN)),
+        meshes,
         supersample: args.supersample,
         // The low-data regime on fresh renders: a fixed pool holding `fraction` of the images a
         // run of this budget sees (steps × batch), shared out over the objects.
@@ -382,7 +392,11 @@ pub(crate) fn fresh_fit_data(args: &FitArgs) -> Result<FitData> {
             name: name.clone(),
             experts: format!("experts/{name}"),
             data: match fresh.pool {
-                None => format!("fresh renders ({}x supersampled)", args.supersample),
+                None => format!(
+                    "fresh {}renders ({}x supersampled)",
+                    if args.realistic { "realistic " } else { "" },
+                    args.supersample
+                ),
                 Some(n) => format!(
                     "a fixed pool of {n} renders ({}x supersampled)",
                     args.supersample
