@@ -221,6 +221,17 @@ fn train_and_held_out_splits_draw_from_disjoint_bands() {
         let lights = random_lighting(&mut rng, Split::Train);
         assert!((1..=3).contains(&lights.lights.len()));
     }
+    // Each split has its own photographs, all decoded.
+    let (train, held) = (
+        alignist::data::realism::photos(Split::Train),
+        alignist::data::realism::photos(Split::HeldOut),
+    );
+    assert_eq!((train.len(), held.len()), (5, 4));
+    assert!(
+        train
+            .iter()
+            .all(|t| held.iter().all(|h| t.as_raw() != h.as_raw()))
+    );
     // Backgrounds of either split fill the image with finite colours.
     let mut rng = ChaCha8Rng::seed_from_u64(3);
     for split in [Split::Train, Split::HeldOut] {
@@ -259,4 +270,79 @@ fn detector_boxes_err_around_the_true_box_and_stay_in_the_frame() {
         jitter_box(&mut rng, exact, 0.0, 640, 480),
         [600.0, 100.0, 40.0, 40.0]
     );
+}
+
+#[test]
+fn a_textured_obj_renders_its_texture() {
+    // A 2 × 2 quad facing the camera, its texture a 4 × 4 PNG of four 2 × 2 blocks: red top left,
+    // green top right, blue bottom left, yellow bottom right (image rows down, OBJ's v up).
+    let dir = tempfile::tempdir().unwrap();
+    let texture = image::RgbImage::from_fn(4, 4, |x, y| {
+        image::Rgb(match (x < 2, y < 2) {
+            (true, true) => [255, 0, 0],
+            (false, true) => [0, 255, 0],
+            (true, false) => [0, 0, 255],
+            (false, false) => [255, 255, 0],
+        })
+    });
+    texture.save(dir.path().join("blocks.png")).unwrap();
+    std::fs::write(
+        dir.path().join("quad.mtl"),
+        "newmtl blocks\nKd 1 1 1\nmap_Kd blocks.png\n",
+    )
+    .unwrap();
+    std::fs::write(
+        dir.path().join("quad.obj"),
+        "mtllib quad.mtl\nv -1 -1 0\nv 1 -1 0\nv 1 1 0\nv -1 1 0\n\
+         vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nusemtl blocks\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\n",
+    )
+    .unwrap();
+    let mesh = alignist::cad::Mesh::load(&dir.path().join("quad.obj")).unwrap();
+    assert!(matches!(
+        mesh.colors,
+        Some(alignist::cad::MeshColors::Texture(_))
+    ));
+    let normals = CornerNormals::new(&mesh, 35.0);
+    let scene = render_scene(
+        &[SceneObject {
+            mesh: &mesh,
+            normals: &normals,
+            pose: Pose {
+                rotation: Rotation3::identity(),
+                translation: Vector3::new(0.0, 0.0, 3.0),
+            },
+            material: Material::MATTE,
+        }],
+        &Camera::square(96),
+        // Ambient light only: a pixel's colour is the albedo, the texel's colour made linear.
+        &Lighting {
+            lights: Vec::new(),
+            ambient: [1.0; 3],
+        },
+    );
+    // Object (x, y) is seen at pixel (48 + 32x, 48 + 32y) (camera y points down): the texel
+    // of uv (0.25, 0.75) (red) at object (−0.5, 0.5), and so on.
+    let at = |u: usize, v: usize| scene.linear[v * 96 + u].expect("on the quad");
+    for ((u, v), want) in [
+        ((32, 64), [1.0, 0.0, 0.0]),
+        ((64, 64), [0.0, 1.0, 0.0]),
+        ((32, 32), [0.0, 0.0, 1.0]),
+        ((64, 32), [1.0, 1.0, 0.0]),
+    ] {
+        let got = at(u, v);
+        for k in 0..3 {
+            assert!(
+                (got[k] - want[k]).abs() < 1e-3,
+                "pixel ({u}, {v}): {got:?}, want {want:?}"
+            );
+        }
+    }
+    // Written to PLY (a bundle's mesh), the texture is kept as the colours at the vertices.
+    let ply = dir.path().join("quad.ply");
+    alignist::cad::write_ply(&mesh, &ply).unwrap();
+    let back = alignist::cad::Mesh::load(&ply).unwrap();
+    assert!(matches!(
+        back.colors,
+        Some(alignist::cad::MeshColors::PerVertex(_))
+    ));
 }

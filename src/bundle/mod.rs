@@ -104,7 +104,9 @@ pub fn inside(dir: &Path, rel: &str) -> Result<PathBuf, String> {
             .components()
             .all(|c| matches!(c, Component::Normal(_) | Component::CurDir));
     if !plain {
-        return Err(format!("{rel:?} is outside the bundle (not a plain relative path)"));
+        return Err(format!(
+            "{rel:?} is outside the bundle (not a plain relative path)"
+        ));
     }
     let path = dir.join(relative);
     if let (Ok(real), Ok(root)) = (path.canonicalize(), dir.canonicalize())

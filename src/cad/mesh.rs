@@ -19,6 +19,52 @@ pub enum MeshColors {
     PerFace(Vec<[u8; 3]>),
     /// One RGB colour per vertex (rendered per face as the mean of its vertices).
     PerVertex(Vec<[u8; 3]>),
+    /// A texture image and each vertex's coordinates in it (OBJ + MTL `map_Kd`).
+    Texture(Texture),
+}
+
+/// A texture image with per-vertex coordinates `(u, v)` in `[0, 1]`, `v` up (OBJ's convention:
+/// image row `(1 − v) · height`); coordinates outside wrap around.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Texture {
+    /// Per-vertex texture coordinates.
+    pub uv: Vec<[f32; 2]>,
+    /// The image (sRGB).
+    pub image: std::sync::Arc<image::RgbImage>,
+}
+
+impl Texture {
+    /// The sRGB colour at `(u, v)`, bilinearly interpolated between texel centres.
+    pub fn sample(&self, uv: [f32; 2]) -> [f32; 3] {
+        let (w, h) = (self.image.width() as i64, self.image.height() as i64);
+        let x = uv[0].rem_euclid(1.0) * w as f32 - 0.5;
+        let y = (1.0 - uv[1].rem_euclid(1.0)) * h as f32 - 0.5;
+        let (x0, y0) = (x.floor() as i64, y.floor() as i64);
+        let (tx, ty) = (x - x0 as f32, y - y0 as f32);
+        let at = |i: i64, j: i64| {
+            let p = self
+                .image
+                .get_pixel(i.rem_euclid(w) as u32, j.rem_euclid(h) as u32);
+            p.0.map(|c| c as f32)
+        };
+        let (a, b, c, d) = (
+            at(x0, y0),
+            at(x0 + 1, y0),
+            at(x0, y0 + 1),
+            at(x0 + 1, y0 + 1),
+        );
+        std::array::from_fn(|k| {
+            (a[k] * (1.0 - tx) + b[k] * tx) * (1.0 - ty) + (c[k] * (1.0 - tx) + d[k] * tx) * ty
+        })
+    }
+
+    /// The texture's colour at each vertex (what a PLY file can hold of it).
+    pub fn vertex_colours(&self) -> Vec<[u8; 3]> {
+        self.uv
+            .iter()
+            .map(|&uv| self.sample(uv).map(|c| c.round().clamp(0.0, 255.0) as u8))
+            .collect()
+    }
 }
 
 /// A triangle mesh. `source` names where it came from (a file path or `shape:<name>`), so that
@@ -122,6 +168,16 @@ impl Mesh {
                     ),
                 })
             }
+            Some(MeshColors::Texture(t)) if t.uv.len() != self.vertices.len() => {
+                Err(CadError::Parse {
+                    mesh: self.source.clone(),
+                    message: format!(
+                        "{} texture coordinates for {} vertices",
+                        t.uv.len(),
+                        self.vertices.len()
+                    ),
+                })
+            }
             Some(MeshColors::PerVertex(c)) if c.len() != self.vertices.len() => {
                 Err(CadError::Parse {
                     mesh: self.source.clone(),
@@ -198,6 +254,10 @@ impl Mesh {
             Some(MeshColors::PerVertex(c)) => {
                 Some(MeshColors::PerVertex(kept.iter().map(|&i| c[i]).collect()))
             }
+            Some(MeshColors::Texture(t)) => Some(MeshColors::Texture(Texture {
+                uv: kept.iter().map(|&i| t.uv[i]).collect(),
+                image: t.image.clone(),
+            })),
             other => other.clone(),
         };
         Mesh {
@@ -267,6 +327,13 @@ impl Mesh {
                     (sum / 3) as u8
                 })
             }
+            Some(MeshColors::Texture(tex)) => {
+                let t = self.triangles[face];
+                let uv = std::array::from_fn(|k| {
+                    t.iter().map(|&i| tex.uv[i as usize][k]).sum::<f32>() / 3.0
+                });
+                tex.sample(uv).map(|c| c.round().clamp(0.0, 255.0) as u8)
+            }
             None => default,
         }
     }
@@ -334,13 +401,23 @@ fn load_obj(path: &Path) -> Result<Mesh, CadError> {
         ..Default::default()
     };
     let mut reader = open(path)?;
-    let (models, _) = tobj::load_obj_buf(&mut reader, &options, |_| {
-        Err(tobj::LoadError::OpenFileFailed)
+    let folder = path.parent().unwrap_or(Path::new("."));
+    // Materials (`mtllib`) are read beside the OBJ; one that cannot be read leaves the mesh
+    // without its colours, not without its shape.
+    let (models, materials) = tobj::load_obj_buf(&mut reader, &options, |mtl| {
+        tobj::load_mtl(folder.join(mtl))
     })
     .map_err(|e| parse_err(path, e.to_string()))?;
+    let materials = materials.unwrap_or_else(|e| {
+        tracing::warn!(mesh = %path.display(), "materials not read: {e}");
+        Vec::new()
+    });
     let mut vertices = Vec::new();
     let mut triangles = Vec::new();
     let mut colors = Vec::new();
+    let mut diffuse = Vec::new();
+    let mut uv = Vec::new();
+    let mut textures = std::collections::BTreeSet::new();
     for model in models {
         let m = model.mesh;
         if let Some(face) = m.face_arities.iter().position(|&a| a != 3) {
@@ -361,14 +438,42 @@ fn load_obj(path: &Path) -> Result<Mesh, CadError> {
                 .chunks_exact(3)
                 .map(|t| [t[0] + base, t[1] + base, t[2] + base]),
         );
-        colors.extend(
-            m.vertex_color
-                .chunks_exact(3)
-                .map(|c| std::array::from_fn(|k| (c[k].clamp(0.0, 1.0) * 255.0).round() as u8)),
-        );
+        let to_byte = |c: &[f32]| -> [u8; 3] {
+            std::array::from_fn(|k| (c[k].clamp(0.0, 1.0) * 255.0).round() as u8)
+        };
+        colors.extend(m.vertex_color.chunks_exact(3).map(to_byte));
+        let material = m.material_id.and_then(|i| materials.get(i));
+        let n = m.positions.len() / 3;
+        let kd = material.and_then(|mat| mat.diffuse).map(|d| to_byte(&d));
+        diffuse.extend(std::iter::repeat_n(kd, n));
+        match material.and_then(|mat| mat.diffuse_texture.clone()) {
+            Some(texture) if m.texcoords.len() == 2 * n => {
+                textures.insert(texture);
+                uv.extend(m.texcoords.chunks_exact(2).map(|t| [t[0], t[1]]));
+            }
+            _ => uv.extend(std::iter::repeat_n([f32::NAN; 2], n)),
+        }
     }
-    let colors = (!colors.is_empty() && colors.len() == vertices.len())
-        .then_some(MeshColors::PerVertex(colors));
+    let colors = if textures.len() == 1 && uv.iter().all(|t| t[0].is_finite()) {
+        // One texture over the whole mesh (several would need an atlas: their Kd colours serve).
+        let name = textures.first().cloned().unwrap_or_default();
+        let file = folder.join(name.replace('\\', "/"));
+        let image = image::open(&file)
+            .map_err(|e| parse_err(path, format!("texture {}: {e}", file.display())))?
+            .to_rgb8();
+        Some(MeshColors::Texture(Texture {
+            uv,
+            image: std::sync::Arc::new(image),
+        }))
+    } else if !colors.is_empty() && colors.len() == vertices.len() {
+        Some(MeshColors::PerVertex(colors))
+    } else if diffuse.iter().any(Option::is_some) {
+        Some(MeshColors::PerVertex(
+            diffuse.into_iter().map(|c| c.unwrap_or([255; 3])).collect(),
+        ))
+    } else {
+        None
+    };
     Ok(Mesh {
         source: path.display().to_string(),
         vertices,
@@ -514,6 +619,18 @@ pub fn write_ply(mesh: &Mesh, path: &Path) -> Result<(), CadError> {
     let io_err = |source| CadError::Io {
         path: path.display().to_string(),
         source,
+    };
+    // A texture is kept as the colours at the vertices (what PLY holds).
+    let baked;
+    let mesh = match &mesh.colors {
+        Some(MeshColors::Texture(t)) => {
+            baked = Mesh {
+                colors: Some(MeshColors::PerVertex(t.vertex_colours())),
+                ..mesh.clone()
+            };
+            &baked
+        }
+        _ => mesh,
     };
     let mut out = Vec::new();
     let vertex_colors = matches!(mesh.colors, Some(MeshColors::PerVertex(_)));

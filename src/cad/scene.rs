@@ -261,6 +261,13 @@ fn albedo(mesh: &Mesh, f: usize, bary: [f32; 3], base: [f32; 3]) -> [f32; 3] {
                     .sum()
             })
         }
+        Some(MeshColors::Texture(tex)) => {
+            let t = mesh.triangles[f];
+            let uv =
+                std::array::from_fn(|k| (0..3).map(|j| bary[j] * tex.uv[t[j] as usize][k]).sum());
+            tex.sample(uv)
+                .map(|c| srgb_to_linear(c.round().clamp(0.0, 255.0) as u8))
+        }
     };
     std::array::from_fn(|k| own[k] * base[k])
 }

@@ -4,8 +4,9 @@
 //! camera model (exposure, white balance, gamma, blur, noise, JPEG).
 //!
 //! Every randomised factor is drawn from one of two disjoint sets ([`Split`]): training draws
-//! from even bands of each range and from its own background families, the held-out evaluation
-//! from the odd bands and other families. A model that scores well on the held-out split has met
+//! from even bands of each range and from its own background families and photographs, the
+//! held-out evaluation from the odd bands and other families and photographs
+//! (`assets/backgrounds/`, public domain or CC0, sources in `SOURCES.md` there). A model that scores well on the held-out split has met
 //! colours, lights, materials and backgrounds it was never trained on.
 //!
 //! Everything comes from the `rng` a crop is made with: one seed, one crop.
@@ -46,24 +47,29 @@ pub struct Realism {
     pub clutter: f64,
     /// Chance that the object is placed where the frame's edge may cut it.
     pub truncation: f64,
+    /// Share of crops rendered plain instead (flat grey on black, the exact box): one more
+    /// variation, so that clean renders stay in the training distribution.
+    pub plain: f64,
 }
 
 impl Realism {
     /// Training crops: detector-like boxes (σ up to 12 % of the side per edge), clutter in 80 %
-    /// of them, a quarter placed where the frame may cut them.
+    /// of them, a quarter placed where the frame may cut them, one in ten plain.
     pub const TRAIN: Realism = Realism {
         split: Split::Train,
         box_jitter: 0.12,
         clutter: 0.8,
         truncation: 0.25,
+        plain: 0.1,
     };
 
-    /// Held-out crops around the exact box.
+    /// Held-out crops around the exact box, none plain.
     pub const HELD_OUT: Realism = Realism {
         split: Split::HeldOut,
         box_jitter: 0.0,
         clutter: 0.8,
         truncation: 0.25,
+        plain: 0.0,
     };
 
     /// Held-out crops with a detector's box error of σ = `sigma` × side per edge (every crop).
@@ -275,9 +281,104 @@ fn mix(a: [f32; 3], b: [f32; 3], t: f32) -> [f32; 3] {
     std::array::from_fn(|k| a[k] * (1.0 - t) + b[k] * t)
 }
 
-/// A procedural background, `n × n` linear RGB. Training draws multi-scale noise, random shapes
-/// and lines, or gradients; the held-out split draws stripes and checks, cells, or soft blobs.
+/// Share of backgrounds that are real photographs (the rest are procedural).
+pub const PHOTO_SHARE: f64 = 0.4;
+
+/// The background photographs of a split (`assets/backgrounds/`, their sources and licences in
+/// `SOURCES.md` there), decoded once.
+pub fn photos(split: Split) -> &'static [image::RgbImage] {
+    use std::sync::OnceLock;
+    static TRAIN: OnceLock<Vec<image::RgbImage>> = OnceLock::new();
+    static HELD_OUT: OnceLock<Vec<image::RgbImage>> = OnceLock::new();
+    const TRAIN_FILES: [&[u8]; 5] = [
+        include_bytes!("../../assets/backgrounds/train/chelsea.jpg"),
+        include_bytes!("../../assets/backgrounds/train/coffee.jpg"),
+        include_bytes!("../../assets/backgrounds/train/brick.jpg"),
+        include_bytes!("../../assets/backgrounds/train/grass.jpg"),
+        include_bytes!("../../assets/backgrounds/train/camera.jpg"),
+    ];
+    const HELD_OUT_FILES: [&[u8]; 4] = [
+        include_bytes!("../../assets/backgrounds/held_out/astronaut.jpg"),
+        include_bytes!("../../assets/backgrounds/held_out/rocket.jpg"),
+        include_bytes!("../../assets/backgrounds/held_out/gravel.jpg"),
+        include_bytes!("../../assets/backgrounds/held_out/clock_motion.jpg"),
+    ];
+    let decode = |files: &[&[u8]]| {
+        files
+            .iter()
+            .filter_map(|bytes| image::load_from_memory(bytes).ok().map(|i| i.to_rgb8()))
+            .collect()
+    };
+    match split {
+        Split::Train => TRAIN.get_or_init(|| decode(&TRAIN_FILES)),
+        Split::HeldOut => HELD_OUT.get_or_init(|| decode(&HELD_OUT_FILES)),
+    }
+}
+
+/// A random window of one of the split's photographs (30–100 % of its shorter side, anywhere,
+/// maybe mirrored), resampled bilinearly to `n × n`, made linear and tinted.
+fn photo_background<R: Rng + ?Sized>(rng: &mut R, split: Split, n: usize) -> Option<Vec<[f32; 3]>> {
+    let set = photos(split);
+    if set.is_empty() {
+        return None;
+    }
+    let photo = &set[rng.random_range(0..set.len())];
+    let (w, h) = (photo.width() as f32, photo.height() as f32);
+    let side = w.min(h) * rng.random_range(0.3..1.0f32);
+    let (x0, y0) = (
+        rng.random::<f32>() * (w - side),
+        rng.random::<f32>() * (h - side),
+    );
+    let mirror = rng.random::<f64>() < 0.5;
+    let tint: [f32; 3] = std::array::from_fn(|_| rng.random_range(0.6..1.4f32));
+    let gain = 2f32.powf(rng.random_range(-0.8..0.8f32));
+    let scale = side / n as f32;
+    let at = |x: i64, y: i64| {
+        let p = photo.get_pixel(
+            x.clamp(0, photo.width() as i64 - 1) as u32,
+            y.clamp(0, photo.height() as i64 - 1) as u32,
+        );
+        p.0.map(|c| crate::cad::scene::srgb_to_linear(c))
+    };
+    Some(
+        (0..n * n)
+            .map(|i| {
+                let (mut i_x, i_y) = ((i % n) as f32, (i / n) as f32);
+                if mirror {
+                    i_x = n as f32 - 1.0 - i_x;
+                }
+                let (x, y) = (
+                    x0 + (i_x + 0.5) * scale - 0.5,
+                    y0 + (i_y + 0.5) * scale - 0.5,
+                );
+                let (xf, yf) = (x.floor(), y.floor());
+                let (tx, ty) = (x - xf, y - yf);
+                let (xi, yi) = (xf as i64, yf as i64);
+                let (a, b, c, d) = (
+                    at(xi, yi),
+                    at(xi + 1, yi),
+                    at(xi, yi + 1),
+                    at(xi + 1, yi + 1),
+                );
+                std::array::from_fn(|k| {
+                    let v = (a[k] * (1.0 - tx) + b[k] * tx) * (1.0 - ty)
+                        + (c[k] * (1.0 - tx) + d[k] * tx) * ty;
+                    v * tint[k] * gain
+                })
+            })
+            .collect(),
+    )
+}
+
+/// A background, `n × n` linear RGB: a real photograph ([`PHOTO_SHARE`] of them, each split its
+/// own) or a procedural texture. Training draws multi-scale noise, random shapes and lines, or
+/// gradients; the held-out split draws stripes and checks, cells, or soft blobs.
 pub fn background<R: Rng + ?Sized>(rng: &mut R, split: Split, n: usize) -> Vec<[f32; 3]> {
+    if rng.random::<f64>() < PHOTO_SHARE
+        && let Some(photo) = photo_background(rng, split, n)
+    {
+        return photo;
+    }
     let colour = |rng: &mut R| random_colour(rng, split, (0.0, 1.0), (0.05, 1.0));
     let (a, b) = (colour(rng), colour(rng));
     let kind = rng.random_range(0..3);

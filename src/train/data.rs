@@ -132,7 +132,9 @@ impl FreshRenders {
         size: u32,
         rng: &mut R,
     ) -> TrainingImage {
-        if let Some(assets) = &self.realism {
+        if let Some(assets) = &self.realism
+            && rng.random::<f64>() >= assets.realism.plain
+        {
             let crop = realistic_crop(assets, object, size, self.supersample, rng);
             return TrainingImage {
                 object,
