@@ -170,3 +170,139 @@ async fn bundles_out_of_range_are_refused_alone_at_start_and_on_reload() {
     assert_eq!(answer.top.len(), 1);
     assert_eq!(health(ch).await, 1);
 }
+
+/// A frame request for the tiny model: a 64 × 48 image of the cube, one box per `boxes`.
+fn frame_request(boxes: usize, top_k: u32) -> alignist::serve::proto::FrameRequest {
+    use alignist::serve::proto::{Detection, FrameRequest, Intrinsics};
+    let png = cube_png(3);
+    let rgb = image::load_from_memory(&png).unwrap().to_rgb8();
+    let mut frame = image::RgbImage::new(64, 48);
+    image::imageops::replace(&mut frame, &rgb, 16, 8);
+    let mut data = Vec::new();
+    frame
+        .write_to(
+            &mut std::io::Cursor::new(&mut data),
+            image::ImageFormat::Png,
+        )
+        .unwrap();
+    FrameRequest {
+        model: "tiny".into(),
+        image: image(data),
+        intrinsics: Some(Intrinsics {
+            fx: 64.0,
+            fy: 64.0,
+            cx: 32.0,
+            cy: 24.0,
+        }),
+        detections: (0..boxes)
+            .map(|_| Detection {
+                bbox: Some(alignist::client::pixel_box([18.5, 10.0, 28.0, 28.0])),
+                ..Default::default()
+            })
+            .collect(),
+        top_k,
+        level: 1,
+        ..Default::default()
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn values_of_no_camera_truncated_files_and_oversized_answers_get_invalid_argument() {
+    let server = start_server(&[]);
+    let ch = channel(&server).await;
+    wait_serving(ch.clone()).await;
+    let mut client = AlignistClient::new(ch.clone());
+    assert_eq!(
+        client
+            .predict_frame(frame_request(2, 3))
+            .await
+            .unwrap()
+            .into_inner()
+            .detections
+            .len(),
+        2
+    );
+    // Intrinsics that pass "finite and positive" but are no camera's (every rotation was NaN).
+    let mut tiny_focal = frame_request(1, 3);
+    tiny_focal.intrinsics.as_mut().unwrap().fx = 5e-324;
+    let status = client.predict_frame(tiny_focal).await.unwrap_err();
+    assert_eq!(status.code(), tonic::Code::InvalidArgument, "{status:?}");
+    assert!(status.message().contains("intrinsics.fx"), "{status:?}");
+    let mut far_centre = frame_request(1, 3);
+    far_centre.intrinsics.as_mut().unwrap().cx = -1e9;
+    let status = client.predict_frame(far_centre).await.unwrap_err();
+    assert_eq!(status.code(), tonic::Code::InvalidArgument, "{status:?}");
+    // top_k × detections over what one answer may hold, refused before any work, limit named.
+    let status = client
+        .predict_frame(frame_request(32, 16_384))
+        .await
+        .unwrap_err();
+    assert_eq!(status.code(), tonic::Code::InvalidArgument, "{status:?}");
+    assert!(status.message().contains("16384"), "{status:?}");
+    // A truncated JPEG is not decoded leniently into grey.
+    let rgb = image::load_from_memory(&cube_png(4)).unwrap().to_rgb8();
+    let mut jpeg = Vec::new();
+    rgb.write_to(
+        &mut std::io::Cursor::new(&mut jpeg),
+        image::ImageFormat::Jpeg,
+    )
+    .unwrap();
+    // Cut in the middle of the scan, where the decoder would fill the rest with grey.
+    let scan = jpeg.windows(2).position(|w| w == [0xFF, 0xDA]).unwrap();
+    jpeg.truncate(scan + (jpeg.len() - scan) / 2);
+    let status = client
+        .predict(PredictRequest {
+            model: "tiny".into(),
+            image: image(jpeg),
+            top_k: 1,
+            ..Default::default()
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(status.code(), tonic::Code::InvalidArgument, "{status:?}");
+    assert!(status.message().contains("truncated"), "{status:?}");
+    // Nothing is in flight now: the admission and queue gauges are back at zero.
+    let text = http_get(&server.metrics).await;
+    assert_eq!(metric(&text, "alignist_admitted_bytes", &[]), 0.0, "{text}");
+    assert_eq!(metric(&text, "alignist_queue_depth", &[]), 0.0, "{text}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn the_cli_reports_a_full_or_closed_stdout_and_refuses_a_zero_timeout() {
+    use std::process::{Command, Stdio};
+    let server = start_server(&[]);
+    wait_serving(channel(&server).await).await;
+    let cli = env!("CARGO_BIN_EXE_alignist");
+    // A full stdout (/dev/full): exit 1 with a message, not a panic (exit 101).
+    let full = std::fs::OpenOptions::new()
+        .write(true)
+        .open("/dev/full")
+        .unwrap();
+    let out = Command::new(cli)
+        .args(["--server", &server.grpc, "models"])
+        .stdout(Stdio::from(full))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("writing to standard output"), "{stderr}");
+    // A closed stdout (the reader went away before the answer came).
+    let mut child = Command::new(cli)
+        .args(["--server", &server.grpc, "models"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    let out = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    // A zero timeout is refused by the argument parser.
+    let out = Command::new(cli)
+        .args(["--server", &server.grpc, "--timeout-s", "0", "models"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--timeout-s"));
+}

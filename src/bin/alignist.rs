@@ -9,6 +9,26 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
 
 /// Asks an alignist server how an object is oriented.
+/// Writes a line to standard output; a closed or full stdout ends the command with a message
+/// (exit 1), not a panic.
+macro_rules! out {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        writeln!(std::io::stdout().lock(), $($arg)*).context("writing to standard output")?
+    }};
+}
+
+/// Writes text (its own line ends included) to standard output, as [`out!`] does.
+macro_rules! out_text {
+    ($text:expr) => {{
+        use std::io::Write as _;
+        std::io::stdout()
+            .lock()
+            .write_all($text.as_bytes())
+            .context("writing to standard output")?
+    }};
+}
+
 #[derive(Parser)]
 #[command(name = "alignist", version, about, long_about = None)]
 struct Cli {
@@ -20,8 +40,9 @@ struct Cli {
         default_value = "http://127.0.0.1:50051"
     )]
     server: String,
-    /// Seconds before a call gives up.
-    #[arg(long, global = true, default_value_t = 60)]
+    /// Seconds before a call gives up (at least 1).
+    #[arg(long, global = true, default_value_t = 60,
+          value_parser = clap::value_parser!(u64).range(1..))]
     timeout_s: u64,
     #[command(subcommand)]
     command: Command,
@@ -247,7 +268,7 @@ fn default_image() -> Result<Vec<u8>> {
 }
 
 async fn run(cli: Cli) -> Result<()> {
-    let timeout = Duration::from_secs(cli.timeout_s.max(1));
+    let timeout = Duration::from_secs(cli.timeout_s);
     if matches!(cli.command, Command::Load { .. }) && !client::load::is_loopback(&cli.server) {
         bail!(
             "--server {}: the load generator only targets this machine (localhost, 127.0.0.1, ::1)",
@@ -265,7 +286,7 @@ async fn run(cli: Cli) -> Result<()> {
         Command::Load(args) => load(channel, args, &cli.server, timeout).await,
         Command::Health { service } => {
             let status = client::health(channel, &service).await?;
-            println!("{status}");
+            out!("{status}");
             if status != "Serving" {
                 bail!("server is {status}");
             }
@@ -327,9 +348,9 @@ async fn predict_frame(
     let answer = client::predict_frame(channel, request).await?;
     if args.json {
         let json = serde_json::to_string_pretty(&client::frame_json(&answer))?;
-        println!("{json}");
+        out!("{json}");
     } else {
-        print!("{}", client::frame_table(&answer));
+        out_text!(client::frame_table(&answer));
     }
     Ok(())
 }
@@ -357,9 +378,9 @@ async fn predict(
     let answer = client::predict(channel, request).await?;
     if args.json {
         let json = serde_json::to_string_pretty(&client::predict_json(&answer))?;
-        println!("{json}");
+        out!("{json}");
     } else {
-        print!("{}", client::predict_table(&answer));
+        out_text!(client::predict_table(&answer));
     }
     if let Some(path) = &args.plot {
         // The plot shows the whole distribution (level 3), not just the top-k.
@@ -393,7 +414,7 @@ async fn distribution(channel: tonic::transport::Channel, args: &DistributionArg
     std::fs::write(&args.out, csv)
         .with_context(|| format!("writing --out {}", args.out.display()))?;
     let total: f64 = probs.iter().map(|&p| p as f64).sum();
-    println!(
+    out!(
         "level {level}: {} cells, total probability {total:.6}, written to {}",
         probs.len(),
         args.out.display()
@@ -408,7 +429,7 @@ async fn distribution(channel: tonic::transport::Channel, args: &DistributionArg
 async fn models(channel: tonic::transport::Channel, json: bool) -> Result<()> {
     let list = client::models(channel).await?;
     if !json {
-        print!("{}", client::models_table(&list));
+        out_text!(client::models_table(&list));
         return Ok(());
     }
     let models: Vec<serde_json::Value> = list
@@ -434,7 +455,7 @@ async fn models(channel: tonic::transport::Channel, json: bool) -> Result<()> {
         })
         .collect();
     let json = serde_json::json!({ "models": models, "failed": failed });
-    println!("{}", serde_json::to_string_pretty(&json)?);
+    out!("{}", serde_json::to_string_pretty(&json)?);
     Ok(())
 }
 
@@ -467,7 +488,7 @@ async fn load(
     };
     let report =
         client::load::run_load(channels, request, args.requests, args.concurrency, timeout).await?;
-    println!("{report}");
+    out!("{report}");
     if report.failures() > 0 {
         bail!("{} of {} calls failed", report.failures(), report.requests);
     }

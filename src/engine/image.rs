@@ -227,6 +227,41 @@ impl Intrinsics {
         Ok(())
     }
 
+    /// Checks the values against a `width × height` image: focal lengths within 1/100 ..= 100
+    /// times its longer side, the principal point within one image size of the image. Values
+    /// outside are no camera's (5e-324 passes the positive check and turns every answer to NaN).
+    pub fn validate_for(&self, width: u32, height: u32) -> Result<(), EngineError> {
+        self.validate()?;
+        let side = width.max(height) as f64;
+        for (name, v) in [("fx", self.fx), ("fy", self.fy)] {
+            if !(side / 100.0..=side * 100.0).contains(&v) {
+                return Err(invalid(
+                    &format!("intrinsics.{name}"),
+                    format!(
+                        "{v} pixels is no focal length for a {width}×{height} image (expected \
+                         {} ..= {})",
+                        side / 100.0,
+                        side * 100.0
+                    ),
+                ));
+            }
+        }
+        for (name, v, extent) in [
+            ("cx", self.cx, width as f64),
+            ("cy", self.cy, height as f64),
+        ] {
+            if !(-extent..=2.0 * extent).contains(&v) {
+                return Err(invalid(
+                    &format!("intrinsics.{name}"),
+                    format!(
+                        "{v} pixels is more than one image size from the {width}×{height} image"
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    }
+
     /// The row-major 3×3 matrix `K`.
     pub fn matrix(&self) -> [f64; 9] {
         [self.fx, 0.0, self.cx, 0.0, self.fy, self.cy, 0.0, 0.0, 1.0]
@@ -262,6 +297,7 @@ pub fn prepare_frame(
         ));
     }
     let image = decode_image(request, limits)?;
+    intrinsics.validate_for(image.width(), image.height())?;
     for (i, b) in boxes.iter().enumerate() {
         b.check(
             image.width(),
@@ -361,6 +397,12 @@ pub(super) fn decode_within(
         .into_dimensions()
         .map_err(|e| invalid(field, format!("is not a valid image: {e}")))?;
     check_pixels(w, h, limits, image)?;
+    if image::guess_format(data).ok() == Some(image::ImageFormat::Jpeg) && !jpeg_is_complete(data) {
+        return Err(invalid(
+            field,
+            "is a truncated JPEG (no end-of-image marker after its last scan)",
+        ));
+    }
     let mut reader = ImageReader::new(std::io::Cursor::new(data))
         .with_guessed_format()
         .map_err(|e| invalid(field, format!("cannot be read: {e}")))?;
@@ -372,6 +414,14 @@ pub(super) fn decode_within(
     reader
         .decode()
         .map_err(|e| invalid(field, format!("is not a valid image: {e}")))
+}
+
+/// Whether a JPEG's last scan (`FF DA`) is followed by the end-of-image marker (`FF D9`): the
+/// decoder fills a cut-off scan with grey and reports nothing.
+fn jpeg_is_complete(data: &[u8]) -> bool {
+    let last_scan = data.windows(2).rposition(|w| w == [0xFF, 0xDA]);
+    let end = data.windows(2).rposition(|w| w == [0xFF, 0xD9]);
+    matches!((last_scan, end), (Some(s), Some(e)) if e > s)
 }
 
 /// Decodes PNG/JPEG or raw RGB8 within the limits (checked before decoding).
@@ -533,6 +583,50 @@ mod tests {
         }
         // The pixels of a box are those whose centres it holds, inside the image.
         assert_eq!(cut.pixel_span(60, 40), (0, 10, 10, 30));
+    }
+
+    #[test]
+    fn truncated_jpegs_and_intrinsics_of_no_camera_are_refused() {
+        let img =
+            image::RgbImage::from_fn(40, 30, |x, y| image::Rgb([x as u8 * 6, y as u8 * 8, 90]));
+        let mut jpeg = Vec::new();
+        img.write_to(
+            &mut std::io::Cursor::new(&mut jpeg),
+            image::ImageFormat::Jpeg,
+        )
+        .unwrap();
+        let request = |data: &[u8]| {
+            let request = ImageRequest {
+                data,
+                raw_size: None,
+                crop: None,
+            };
+            prepare_image(&request, 16, &ImageLimits::default())
+        };
+        assert!(request(&jpeg).is_ok());
+        // Cut in the middle of the scan, where the decoder would fill the rest with grey.
+        let scan = jpeg.windows(2).position(|w| w == [0xFF, 0xDA]).unwrap();
+        let err = request(&jpeg[..scan + (jpeg.len() - scan) / 2]).unwrap_err();
+        assert!(err.to_string().contains("truncated"), "{err}");
+        let k = Intrinsics {
+            fx: 500.0,
+            fy: 500.0,
+            cx: 320.0,
+            cy: 240.0,
+        };
+        assert!(k.validate_for(640, 480).is_ok());
+        for (bad, field) in [
+            (Intrinsics { fx: 5e-324, ..k }, "intrinsics.fx"),
+            (Intrinsics { fy: 1e9, ..k }, "intrinsics.fy"),
+            (Intrinsics { cx: -1e9, ..k }, "intrinsics.cx"),
+            (Intrinsics { cy: f64::NAN, ..k }, "intrinsics.cy"),
+        ] {
+            let err = bad.validate_for(640, 480).unwrap_err();
+            assert!(
+                matches!(&err, EngineError::InvalidArgument { field: f, .. } if f == field),
+                "{err:?}"
+            );
+        }
     }
 
     #[test]

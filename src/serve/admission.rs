@@ -39,12 +39,28 @@ pub struct Admission {
     heads: Arc<Semaphore>,
 }
 
-/// A call's admitted share of the budget; returned when dropped.
+/// A call's admitted share of the budget; returned when dropped (and the gauge lowered).
 #[derive(Debug)]
 pub struct Admitted {
-    _permit: Option<OwnedSemaphorePermit>,
+    permit: Option<OwnedSemaphorePermit>,
+    budget: Option<(Arc<Semaphore>, usize)>,
     /// The bytes it accounts for.
     pub bytes: usize,
+}
+
+impl Drop for Admitted {
+    fn drop(&mut self) {
+        drop(self.permit.take());
+        if let Some((bytes, capacity_kib)) = &self.budget {
+            set_admitted_gauge(bytes, *capacity_kib);
+        }
+    }
+}
+
+/// `alignist_admitted_bytes`: the image bytes admitted and not yet answered.
+fn set_admitted_gauge(bytes: &Semaphore, capacity_kib: usize) {
+    metrics::gauge!("alignist_admitted_bytes")
+        .set((capacity_kib.saturating_sub(bytes.available_permits()) * 1024) as f64);
 }
 
 impl Admission {
@@ -63,10 +79,10 @@ impl Admission {
         let kib = bytes.div_ceil(1024).clamp(1, self.capacity_kib);
         match self.bytes.clone().try_acquire_many_owned(kib as u32) {
             Ok(permit) => {
-                metrics::gauge!("alignist_admitted_bytes")
-                    .set(((self.capacity_kib - self.bytes.available_permits()) * 1024) as f64);
+                set_admitted_gauge(&self.bytes, self.capacity_kib);
                 Ok(Admitted {
-                    _permit: Some(permit),
+                    permit: Some(permit),
+                    budget: Some((self.bytes.clone(), self.capacity_kib)),
                     bytes,
                 })
             }

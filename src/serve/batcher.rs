@@ -205,6 +205,9 @@ fn run(model: Arc<Model>, config: BatchConfig, mut receiver: mpsc::Receiver<Job>
     // encoded at once instead of waiting `max_delay` for calls that are not coming.
     let mut busy = false;
     while let Some(mut jobs) = next_batch(&mut receiver, &config, busy) {
+        // What is still queued once this batch is taken: the gauge falls as the queue drains.
+        metrics::gauge!("alignist_queue_depth", "model" => model.name.clone())
+            .set(receiver.len() as f64);
         busy = jobs.len() > 1;
         // A caller that gave up (cancelled, deadline) is not worth encoding.
         jobs.retain(|j| !j.reply.is_closed());

@@ -522,6 +522,19 @@ impl AlignistService {
         let (boxes, objects) = frame_detections(&model, &req.detections)?;
         let options = predict_options(req.top_k, req.level, req.mode_angle_deg)?;
         let level = model.check_predict(&options).map_err(status_of)?;
+        // The answer's size is bounded up front: no more rotations than one Predict may ask.
+        if options.top_k.saturating_mul(boxes.len()) > crate::engine::MAX_TOP_K {
+            return Err(invalid_field(
+                "top_k",
+                format!(
+                    "{} rotations for each of {} detections is over the limit of {} rotations \
+                     in one answer",
+                    options.top_k,
+                    boxes.len(),
+                    crate::engine::MAX_TOP_K
+                ),
+            ));
+        }
         let batcher = batcher_of(&served, &model)?;
         let crops = {
             let model = model.clone();
