@@ -338,7 +338,7 @@ fn photo_background<R: Rng + ?Sized>(rng: &mut R, split: Split, n: usize) -> Opt
             x.clamp(0, photo.width() as i64 - 1) as u32,
             y.clamp(0, photo.height() as i64 - 1) as u32,
         );
-        p.0.map(|c| crate::cad::scene::srgb_to_linear(c))
+        p.0.map(crate::cad::scene::srgb_to_linear)
     };
     Some(
         (0..n * n)
