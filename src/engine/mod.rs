@@ -71,6 +71,22 @@ pub enum EngineError {
     Models(String),
 }
 
+/// A name from a request as messages and logs show it: quoted, control characters escaped, at
+/// most 64 characters (a longer one would not fit a status's metadata; a `\n` would forge a log
+/// line).
+pub fn quoted_name(name: &str) -> String {
+    const MOST: usize = 64;
+    let escaped: String = name
+        .chars()
+        .take(MOST)
+        .flat_map(char::escape_debug)
+        .collect();
+    match name.chars().count() > MOST {
+        true => format!("'{escaped}…' ({} characters)", name.chars().count()),
+        false => format!("'{escaped}'"),
+    }
+}
+
 fn invalid(field: &str, message: impl Into<String>) -> EngineError {
     EngineError::InvalidArgument {
         field: field.into(),
@@ -495,7 +511,8 @@ impl Model {
             .position(|o| o.name == name)
             .ok_or_else(|| {
                 EngineError::NotFound(format!(
-                    "object '{name}' is not in model '{}' (objects: {})",
+                    "object {} is not in model '{}' (objects: {})",
+                    quoted_name(name),
                     self.name,
                     self.object_names()
                 ))
@@ -1089,7 +1106,9 @@ impl Engine {
                     tracing::error!(model = %name, "bundle refused: {e}");
                     metrics::counter!("alignist_model_load_failures_total", "model" => name.clone())
                         .increment(1);
-                    failed.insert(name, e.to_string());
+                    // Clients see paths inside the models directory, not the server's own.
+                    let inside = format!("{}{}", dir.display(), std::path::MAIN_SEPARATOR);
+                    failed.insert(name, e.to_string().replace(&inside, ""));
                 }
             }
         }
@@ -1155,7 +1174,8 @@ impl Engine {
         }
         self.models.get(name).cloned().ok_or_else(|| {
             EngineError::NotFound(format!(
-                "model '{name}' is not loaded (models: {})",
+                "model {} is not loaded (models: {})",
+                quoted_name(name),
                 self.names().join(", ")
             ))
         })
