@@ -82,8 +82,9 @@ enum Command {
     Load(LoadArgs),
     /// The server's health (grpc.health.v1); exits 1 unless SERVING.
     Health {
-        /// Service name ("" for the whole server).
-        #[arg(long, default_value = "")]
+        /// Service name: by default the one that answers predictions (SERVING only once models
+        /// are loaded); "" for the whole server (liveness: SERVING while models still load).
+        #[arg(long, default_value = "alignist.v1.Alignist")]
         service: String,
     },
 }
