@@ -648,7 +648,7 @@ pub(crate) fn log_progress(log: &mut ProgressLog, step: usize, steps: usize, los
 pub(crate) fn print_profile(p: &alignist::train::trainer::StepProfile) {
     println!("step profile (ms per step, mean of {} steps):", p.steps);
     for (name, v) in [
-        ("data", p.data),
+        ("data (rendering)", p.data),
         ("sampling", p.sampling),
         ("targets", p.targets),
         ("encoder forward", p.encoder_forward),
