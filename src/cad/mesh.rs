@@ -23,6 +23,46 @@ pub enum MeshColors {
     Texture(Texture),
 }
 
+/// What [`bilinear`] reads beyond an image's edge.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Edges {
+    /// The image repeats (textures).
+    Wrap,
+    /// The edge pixels extend (photographs).
+    Clamp,
+}
+
+/// `image` at pixel coordinates `(x, y)` (pixel centres at whole numbers), each of the four
+/// nearest texels mapped by `texel` and then bilinearly interpolated.
+pub fn bilinear(
+    image: &image::RgbImage,
+    x: f32,
+    y: f32,
+    edges: Edges,
+    texel: impl Fn(u8) -> f32,
+) -> [f32; 3] {
+    let (w, h) = (image.width() as i64, image.height() as i64);
+    let (xf, yf) = (x.floor(), y.floor());
+    let (tx, ty) = (x - xf, y - yf);
+    let (x0, y0) = (xf as i64, yf as i64);
+    let at = |i: i64, j: i64| {
+        let (i, j) = match edges {
+            Edges::Wrap => (i.rem_euclid(w), j.rem_euclid(h)),
+            Edges::Clamp => (i.clamp(0, w - 1), j.clamp(0, h - 1)),
+        };
+        image.get_pixel(i as u32, j as u32).0.map(&texel)
+    };
+    let (a, b, c, d) = (
+        at(x0, y0),
+        at(x0 + 1, y0),
+        at(x0, y0 + 1),
+        at(x0 + 1, y0 + 1),
+    );
+    std::array::from_fn(|k| {
+        (a[k] * (1.0 - tx) + b[k] * tx) * (1.0 - ty) + (c[k] * (1.0 - tx) + d[k] * tx) * ty
+    })
+}
+
 /// A texture image with per-vertex coordinates `(u, v)` in `[0, 1]`, `v` up (OBJ's convention:
 /// image row `(1 − v) · height`); coordinates outside wrap around.
 #[derive(Debug, Clone, PartialEq)]
@@ -36,26 +76,14 @@ pub struct Texture {
 impl Texture {
     /// The sRGB colour at `(u, v)`, bilinearly interpolated between texel centres.
     pub fn sample(&self, uv: [f32; 2]) -> [f32; 3] {
-        let (w, h) = (self.image.width() as i64, self.image.height() as i64);
-        let x = uv[0].rem_euclid(1.0) * w as f32 - 0.5;
-        let y = (1.0 - uv[1].rem_euclid(1.0)) * h as f32 - 0.5;
-        let (x0, y0) = (x.floor() as i64, y.floor() as i64);
-        let (tx, ty) = (x - x0 as f32, y - y0 as f32);
-        let at = |i: i64, j: i64| {
-            let p = self
-                .image
-                .get_pixel(i.rem_euclid(w) as u32, j.rem_euclid(h) as u32);
-            p.0.map(|c| c as f32)
-        };
-        let (a, b, c, d) = (
-            at(x0, y0),
-            at(x0 + 1, y0),
-            at(x0, y0 + 1),
-            at(x0 + 1, y0 + 1),
-        );
-        std::array::from_fn(|k| {
-            (a[k] * (1.0 - tx) + b[k] * tx) * (1.0 - ty) + (c[k] * (1.0 - tx) + d[k] * tx) * ty
-        })
+        let (w, h) = (self.image.width() as f32, self.image.height() as f32);
+        bilinear(
+            &self.image,
+            uv[0].rem_euclid(1.0) * w - 0.5,
+            (1.0 - uv[1].rem_euclid(1.0)) * h - 0.5,
+            Edges::Wrap,
+            |c| c as f32,
+        )
     }
 
     /// The texture's colour at each vertex (what a PLY file can hold of it).

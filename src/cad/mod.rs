@@ -6,7 +6,9 @@ pub mod scene;
 mod sdf;
 pub mod shapes;
 
-pub use mesh::{Mesh, MeshColors, Normalisation, SurfacePoint, Texture, write_ply};
+pub use mesh::{
+    Edges, Mesh, MeshColors, Normalisation, SurfacePoint, Texture, bilinear, write_ply,
+};
 pub use render::{Camera, Pose, Render, RenderOptions, render};
 pub use scene::{CornerNormals, Light, Lighting, Material, SceneObject, SceneRender, render_scene};
 pub use sdf::SignedDistance;

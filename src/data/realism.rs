@@ -20,7 +20,9 @@ use crate::cad::{
     Camera, CornerNormals, Light, Lighting, Material, Mesh, Pose, Render, SceneObject, Shape,
     render_scene,
 };
-use crate::data::virtual_crop::{FRAME_DISTANCE, VirtualCamera, frame_camera, object_box};
+use crate::data::virtual_crop::{
+    FRAME_DISTANCE, VirtualCamera, frame_camera, object_box, placement_at_depth,
+};
 use crate::so3::haar_rotation;
 
 /// Crease angle of the shading normals: edges sharper than this stay hard.
@@ -333,13 +335,6 @@ fn photo_background<R: Rng + ?Sized>(rng: &mut R, split: Split, n: usize) -> Opt
     let tint: [f32; 3] = std::array::from_fn(|_| rng.random_range(0.6..1.4f32));
     let gain = 2f32.powf(rng.random_range(-0.8..0.8f32));
     let scale = side / n as f32;
-    let at = |x: i64, y: i64| {
-        let p = photo.get_pixel(
-            x.clamp(0, photo.width() as i64 - 1) as u32,
-            y.clamp(0, photo.height() as i64 - 1) as u32,
-        );
-        p.0.map(crate::cad::scene::srgb_to_linear)
-    };
     Some(
         (0..n * n)
             .map(|i| {
@@ -347,24 +342,14 @@ fn photo_background<R: Rng + ?Sized>(rng: &mut R, split: Split, n: usize) -> Opt
                 if mirror {
                     i_x = n as f32 - 1.0 - i_x;
                 }
-                let (x, y) = (
+                let c = crate::cad::bilinear(
+                    photo,
                     x0 + (i_x + 0.5) * scale - 0.5,
                     y0 + (i_y + 0.5) * scale - 0.5,
+                    crate::cad::Edges::Clamp,
+                    crate::cad::scene::srgb_to_linear,
                 );
-                let (xf, yf) = (x.floor(), y.floor());
-                let (tx, ty) = (x - xf, y - yf);
-                let (xi, yi) = (xf as i64, yf as i64);
-                let (a, b, c, d) = (
-                    at(xi, yi),
-                    at(xi + 1, yi),
-                    at(xi, yi + 1),
-                    at(xi + 1, yi + 1),
-                );
-                std::array::from_fn(|k| {
-                    let v = (a[k] * (1.0 - tx) + b[k] * tx) * (1.0 - ty)
-                        + (c[k] * (1.0 - tx) + d[k] * tx) * ty;
-                    v * tint[k] * gain
-                })
+                std::array::from_fn(|k| c[k] * tint[k] * gain)
             })
             .collect(),
     )
@@ -640,33 +625,16 @@ fn jpeg_round_trip(rgb: &[u8], size: u32, quality: u8) -> Option<Vec<u8>> {
     Some(decoded.to_rgb8().into_raw())
 }
 
-/// Where the subject sits in the frame: anywhere its whole sphere fits, or (with the realism's
-/// truncation chance) its centre anywhere in the frame, so the edge may cut up to about half.
+/// Where the subject sits in the frame: a Haar-random rotation at a distance in
+/// [`FRAME_DISTANCE`], anywhere its whole sphere fits, or (with the realism's truncation chance)
+/// its centre anywhere in the frame, so the edge may cut up to about half.
 fn placement<R: Rng + ?Sized>(rng: &mut R, camera: &Camera, truncation: f64) -> Pose {
     let rotation = haar_rotation(rng);
     let z = rng.random_range(FRAME_DISTANCE.0..FRAME_DISTANCE.1);
-    let r_px = camera.fx.max(camera.fy) / (z * z - 1.0).sqrt();
     let cut = rng.random::<f64>() < truncation;
-    let mut span = |extent: f64| {
-        let (lo, hi) = if cut {
-            (0.0, extent)
-        } else {
-            (r_px, extent - r_px)
-        };
-        if lo < hi {
-            rng.random_range(lo..hi)
-        } else {
-            extent / 2.0
-        }
-    };
-    let (u, v) = (span(camera.width as f64), span(camera.height as f64));
     Pose {
         rotation,
-        translation: Vector3::new(
-            (u - camera.cx) / camera.fx * z,
-            (v - camera.cy) / camera.fy * z,
-            z,
-        ),
+        ..placement_at_depth(camera, z, !cut, rng)
     }
 }
 

@@ -163,9 +163,26 @@ pub fn object_pixel_box(mesh: &Mesh, pose: &Pose, camera: &Camera) -> [u32; 4] {
 /// sphere's radius from every edge, so the whole object is in the frame.
 pub fn random_placement_in<R: Rng + ?Sized>(camera: &Camera, rng: &mut R) -> Pose {
     let z = rng.random_range(FRAME_DISTANCE.0..FRAME_DISTANCE.1);
+    placement_at_depth(camera, z, true, rng)
+}
+
+/// A random position at distance `z` of a NOCS object (radius 1) in `camera`'s frame, the
+/// identity rotation: its centre's projection at least the projected sphere's radius from every
+/// edge when `whole` (the whole object in the frame), else anywhere in the frame (the edge may
+/// cut up to about half of it).
+pub fn placement_at_depth<R: Rng + ?Sized>(
+    camera: &Camera,
+    z: f64,
+    whole: bool,
+    rng: &mut R,
+) -> Pose {
     let r_px = camera.fx.max(camera.fy) / (z * z - 1.0).sqrt();
     let mut span = |extent: f64| {
-        let (lo, hi) = (r_px, extent - r_px);
+        let (lo, hi) = if whole {
+            (r_px, extent - r_px)
+        } else {
+            (0.0, extent)
+        };
         if lo < hi {
             rng.random_range(lo..hi)
         } else {

@@ -181,6 +181,24 @@ fn depth_report(args: &EvalArgs, renders: &alignist::bundle::model::BundleRender
     Ok(())
 }
 
+/// Evaluates `bundle` on `tests` at `level` with a progress bar.
+fn evaluate_shown(
+    bundle: &alignist::bundle::model::ModelBundle,
+    tests: &[alignist::train::eval::EvalImage],
+    level: u8,
+) -> Result<alignist::train::eval::EvalReport> {
+    let bar = ProgressBar::new(tests.len() as u64);
+    let report = alignist::train::eval::evaluate(
+        &bundle.network,
+        &bundle.manifest.network,
+        tests,
+        level,
+        |n| bar.set_position(n as u64),
+    )?;
+    bar.finish_and_clear();
+    Ok(report)
+}
+
 /// `eval --fresh --frames`: the same poses as directly rendered crops, as perspective crops of
 /// whole frames with the ray correction, and without it.
 fn frames_report(
@@ -188,7 +206,6 @@ fn frames_report(
     bundle: &alignist::bundle::model::ModelBundle,
     sets: [Vec<alignist::train::eval::EvalImage>; 3],
 ) -> Result<()> {
-    use alignist::train::eval::evaluate;
     let labels = [
         "rendered crops (virtual camera)",
         "full frames, R_ray·R_virtual (served)",
@@ -197,15 +214,7 @@ fn frames_report(
     let mut reports = Vec::new();
     for (label, tests) in labels.iter().zip(&sets) {
         eprintln!("{label}: {} images", tests.len());
-        let bar = ProgressBar::new(tests.len() as u64);
-        let report = evaluate(
-            &bundle.network,
-            &bundle.manifest.network,
-            tests,
-            args.level,
-            |n| bar.set_position(n as u64),
-        )?;
-        bar.finish_and_clear();
+        let report = evaluate_shown(bundle, tests, args.level)?;
         reports.push(serde_json::json!({ "crops": label, "report": report }));
     }
     let text = serde_json::to_string_pretty(&reports)?;
@@ -237,7 +246,6 @@ fn realistic_report(
     clean: Vec<alignist::train::eval::EvalImage>,
 ) -> Result<()> {
     use alignist::data::realism::Realism;
-    use alignist::train::eval::evaluate;
     if !(args.box_sigma.is_finite() && (0.0..=0.5).contains(&args.box_sigma)) {
         bail!("--box-sigma must be in [0, 0.5], got {}", args.box_sigma);
     }
@@ -266,15 +274,7 @@ fn realistic_report(
     let mut reports = Vec::new();
     for (label, tests) in &sets {
         eprintln!("{label}: {} images", tests.len());
-        let bar = ProgressBar::new(tests.len() as u64);
-        let report = evaluate(
-            &bundle.network,
-            &bundle.manifest.network,
-            tests,
-            args.level,
-            |n| bar.set_position(n as u64),
-        )?;
-        bar.finish_and_clear();
+        let report = evaluate_shown(bundle, tests, args.level)?;
         print_eval(&report);
         reports.push((label, report));
     }
