@@ -2,7 +2,7 @@
 //! colour or the mesh's own colours, roughness, metalness), shaded per pixel from normals
 //! interpolated over smooth parts of the surface (hard edges kept), under coloured directional
 //! lights plus an ambient term. Colours are linear (not yet exposed or gamma-encoded: a camera
-//! model does that, `crate::data::realism`).
+//! model does that, in `src/data/realism.rs`).
 //!
 //! Shading is Blinn–Phong with a roughness-derived exponent and Schlick's Fresnel, energy
 //! normalised (`(n + 8) / 8π`): the usual real-time stand-in for a microfacet model. Object 0 of a
