@@ -15,10 +15,7 @@
 #   7. four more warm restarts that draw fewer of the K rotations from the experts' mode table
 #      (--focused-fraction; the paper's 3/4 until here), 5 000 steps each at peak lr 1e-4
 #      (~19 min each): 1/2 (data seed 5), then 1/4 (seed 6), 1/10 (seed 7) and 1/20 (seed 8);
-#   8. a warm restart on realistic renders (fit --realistic; 8 000 steps at peak lr 3e-4, focused
-#      1/10, data seed 102, ~70 min beside other work), so that camera images of the objects on
-#      photographs and clutter are answered too;
-#   9. the bundle is evaluated on 250 fresh renders at level 3, then copied to models/symsol1.
+#   8. the bundle is evaluated on 250 fresh renders at level 3, then copied to models/symsol1.
 # Usage: scripts/train_shipped_model.sh [WORK_DIR]   (default: target/symsol)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -63,14 +60,5 @@ FOCUSED=("${FIT_WARM[@]}" --steps 5000 --lr 1e-4)
   --init "$WORK/models/alignist-ff50-25" --out "$WORK/models/alignist-ff10"
 "${FOCUSED[@]}" --seed 8 --focused-fraction 0.05 \
   --init "$WORK/models/alignist-ff10" --out "$WORK/models/alignist-ff05"
-# The realistic stage: a warm restart on realistic renders (random materials and coloured
-# lights, photographs and procedural backgrounds, clutter, truncation, detector boxes, a camera
-# model; src/data/realism.rs), a tenth of them plain, 2x supersampled.
-"$BIN" fit --fresh --realistic \
-  --experts "$E/tet" --experts "$E/cube" --experts "$E/icosa" --experts "$E/cone" --experts "$E/cyl" \
-  --method alignist --image-size 32 --batch 16 --k 256 --supersample 2 \
-  --eval-level 3 --eval-images 50 --checkpoint-every 250 --profile --resume \
-  --steps 8000 --lr 3e-4 --seed 102 --focused-fraction 0.1 \
-  --init "$WORK/models/alignist-ff05" --out "$WORK/models/alignist-realistic"
 rm -rf models/symsol1
-cp -r "$WORK/models/alignist-realistic" models/symsol1
+cp -r "$WORK/models/alignist-ff05" models/symsol1
