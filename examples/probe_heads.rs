@@ -23,6 +23,7 @@ fn main() {
         top_k: 5,
         level: Some(3),
         mode_angle_deg: None,
+        ..Default::default()
     };
     let n = 96;
     for threads in [1usize, 2, 8] {

@@ -38,6 +38,7 @@ fn main() -> anyhow::Result<()> {
         top_k: 10,
         level: Some(finest),
         mode_angle_deg: None,
+        ..Default::default()
     };
     let timed = |f: &mut dyn FnMut()| {
         median(

@@ -130,7 +130,7 @@ proptest! {
             alignist::engine::Engine::load_dir(common::models_dir(), Default::default()).unwrap()
         });
         let model = engine.model("tiny").unwrap();
-        let options = PredictOptions { top_k, level, mode_angle_deg: angle };
+        let options = PredictOptions { top_k, level, mode_angle_deg: angle, ..Default::default() };
         match model.check_predict(&options) {
             Ok(l) => {
                 prop_assert!(top_k >= 1 && l <= 6);

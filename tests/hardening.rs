@@ -322,3 +322,73 @@ async fn the_cli_reports_a_full_or_closed_stdout_and_refuses_a_zero_timeout() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("--timeout-s"));
 }
+
+/// 10 000 depth points on the cube's surface scale, in the tiny model's units.
+fn depth_points(n: usize) -> alignist::serve::proto::DepthPoints {
+    use rand::{RngExt, SeedableRng};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+    alignist::serve::proto::DepthPoints {
+        xyz: (0..3 * n).map(|_| rng.random_range(-0.5f32..0.5)).collect(),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_cancelled_distribution_with_depth_gives_its_cores_back_within_a_second() {
+    let server = start_server(&["--max-level", "4", "--depth-points", "10000"]);
+    let ch = channel(&server).await;
+    wait_serving(ch.clone()).await;
+    let pid = server.child.id();
+    // One call first: the first answer of a model pays its warm-up.
+    AlignistClient::new(ch.clone())
+        .predict(predict_request(9, 1, 3))
+        .await
+        .unwrap();
+    // Level 4 (294 912 cells) against 10 000 points: tens of seconds of work uncancelled.
+    let request = DistributionRequest {
+        model: "tiny".into(),
+        object: "cube".into(),
+        image: image(cube_png(4)),
+        level: 4,
+        depth: Some(depth_points(10_000)),
+        ..Default::default()
+    };
+    let call = {
+        let mut client = AlignistClient::new(ch.clone());
+        tokio::spawn(async move { client.predict_distribution(request).await })
+    };
+    tokio::time::sleep(Duration::from_millis(700)).await;
+    // The work is running: the server's cores are busy.
+    let busy = cpu_seconds(pid);
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    assert!(
+        cpu_seconds(pid) - busy > 0.2,
+        "the distribution is not computing"
+    );
+    assert!(!call.is_finished(), "the distribution should take seconds");
+    // The caller goes away (its stream is reset).
+    call.abort();
+    let cancelled = std::time::Instant::now();
+    // A second call is answered, and the cores are free within a second.
+    let mut client = AlignistClient::new(ch.clone());
+    let answer = client
+        .predict(predict_request(9, 1, 3))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(answer.top.len(), 1);
+    let latency = cancelled.elapsed();
+    assert!(
+        latency < Duration::from_secs(1),
+        "second call took {latency:?}"
+    );
+    tokio::time::sleep(Duration::from_secs(1).saturating_sub(cancelled.elapsed())).await;
+    let idle = cpu_seconds(pid);
+    tokio::time::sleep(Duration::from_millis(1000)).await;
+    let used = cpu_seconds(pid) - idle;
+    assert!(
+        used < 0.15,
+        "{used:.2} CPU seconds used in the second after the cancel + 1 s"
+    );
+    let metrics = http_get(&server.metrics).await;
+    assert!(metric(&metrics, "alignist_abandoned_work_total", &[]) >= 1.0);
+}

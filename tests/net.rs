@@ -227,6 +227,7 @@ fn the_default_search_finds_the_exhaustive_maximum_at_level_3() {
         top_k: 5,
         level: Some(3),
         mode_angle_deg: None,
+        ..Default::default()
     };
     for (i, im) in images.iter().enumerate() {
         let features = model.features(&[&im.rgb]);
@@ -279,6 +280,7 @@ fn the_manifests_levels_cap_what_the_engine_serves() {
         top_k: 1,
         level: Some(levels.search_max + 1),
         mode_angle_deg: None,
+        ..Default::default()
     };
     assert!(matches!(
         model.predict(&features, &above, None),

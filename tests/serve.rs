@@ -54,6 +54,7 @@ fn coarse_to_fine_top1_is_the_exhaustive_argmax_at_level_4() {
             top_k: 5,
             level: Some(4),
             mode_angle_deg: None,
+            ..Default::default()
         };
         let p = model.predict(&features, &options, None).unwrap();
         assert_eq!(p.top[0].cell, argmax, "seed {seed}");
@@ -117,6 +118,7 @@ fn a_batched_search_answers_each_image_as_its_own_search_does() {
         top_k: 10,
         level: Some(4),
         mode_angle_deg: None,
+        ..Default::default()
     };
     let many = model
         .predict_many(&features, &options, &[None, None, None])

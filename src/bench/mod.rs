@@ -153,6 +153,7 @@ pub fn bench(bundle: &Path, crops: &[Vec<u8>], objects: &[String]) -> anyhow::Re
         top_k: 10,
         level: Some(5),
         mode_angle_deg: None,
+        ..Default::default()
     };
     let mut lat: Vec<f64> = Vec::new();
     for i in 0..30 {
@@ -277,6 +278,7 @@ fn in_process_throughput(
         top_k: 5,
         level: Some(3),
         mode_angle_deg: None,
+        ..Default::default()
     };
     let t = Instant::now();
     std::thread::scope(|scope| {

@@ -101,6 +101,7 @@ pub fn study(
         top_k,
         level: Some(level),
         mode_angle_deg: None,
+        ..Default::default()
     };
     let neighbour = 2.0 * covering_radius(level);
     let started = Instant::now();

@@ -2,6 +2,7 @@
 //! modes and RGB-D fusion. No transport here: the gRPC service (src/serve) is a thin layer over
 //! [`Engine`], and everything below is testable without a socket.
 
+pub mod cancel;
 pub mod depth;
 pub mod fusion;
 pub mod image;
@@ -17,6 +18,7 @@ use rayon::prelude::*;
 pub use self::image::{
     CropBox, FrameCrop, ImageLimits, ImageRequest, Intrinsics, prepare_frame, prepare_image,
 };
+pub use cancel::{Cancel, CancelOnDrop};
 pub use depth::{BackProjected, DepthMap, DepthRequest, back_project, decode_depth, decode_mask};
 pub use fusion::{CameraPoints, DepthFusion, ViewTable};
 pub use search::{CellProbability, Mode, SearchResult, coarse_to_fine_many, group_modes};
@@ -69,6 +71,9 @@ pub enum EngineError {
     /// A models directory that cannot be served (no bundle in it, or none loads).
     #[error("{0}")]
     Models(String),
+    /// The work was abandoned: its caller went away ([`Cancel`]).
+    #[error("cancelled: the caller went away")]
+    Cancelled,
 }
 
 /// A name from a request as messages and logs show it: quoted, control characters escaped, at
@@ -373,11 +378,25 @@ impl DepthInput<'_> {
     /// The fused term of every cell centre of `grid` given (row-major rotations):
     /// `κ_L·(−U_SDF)` ([`DepthFusion::tempering`]), at `τ = 0` for centred points, at the
     /// estimate `τ₀(R)` for camera points ([`fusion`]).
-    pub fn cell_log_measure(&self, grid: &GridLevel, rotations: &[[f32; 9]]) -> Vec<f32> {
+    /// Stops with [`EngineError::Cancelled`] between chunks ([`cancel::cancel_chunk`]) once
+    /// `cancel` is set.
+    pub fn cell_log_measure(
+        &self,
+        grid: &GridLevel,
+        rotations: &[[f32; 9]],
+        cancel: &Cancel,
+    ) -> Result<Vec<f32>, EngineError> {
         let kappa = self.object.fusion.tempering(grid);
-        let mut terms = self.log_measure(rotations);
-        terms.iter_mut().for_each(|t| *t *= kappa);
-        terms
+        let mut terms = Vec::with_capacity(rotations.len());
+        let points = match self.points {
+            SeenPoints::Centred(p) => p.len(),
+            SeenPoints::Camera(p) => p.points.len(),
+        };
+        for chunk in rotations.chunks(cancel::cancel_chunk(points)) {
+            cancel.check()?;
+            terms.extend(self.log_measure(chunk).into_iter().map(|t| t * kappa));
+        }
+        Ok(terms)
     }
 
     /// The fused term `−U_SDF` of every candidate (row-major rotations): at `τ = 0` for centred
@@ -421,6 +440,8 @@ pub struct PredictOptions {
     pub level: Option<u8>,
     /// Mode grouping angle in degrees (`None`: 15°).
     pub mode_angle_deg: Option<f64>,
+    /// Set when the caller went away: the search stops at its next level or chunk.
+    pub cancel: Cancel,
 }
 
 impl Model {
@@ -601,21 +622,22 @@ impl Model {
         features: &Tensor<2>,
         level: u8,
         depth: Option<DepthInput<'_>>,
-    ) -> Vec<f32> {
+        cancel: &Cancel,
+    ) -> Result<Vec<f32>, EngineError> {
         let mut logits = self.projected[level as usize]
             .log_weights_of_features(features.clone())
             .swap_remove(0);
         if let Some(depth) = depth {
             let grid = &self.grids[level as usize];
-            let mut terms = depth.cell_log_measure(grid, &grid.matrices_f32());
+            let mut terms = depth.cell_log_measure(grid, &grid.matrices_f32(), cancel)?;
             if let Some(children) = self.grids.get(level as usize + 1) {
-                cell_means(&depth, grid, children, &mut terms);
+                cell_means(&depth, grid, children, &mut terms, cancel)?;
             }
             for (l, d) in logits.iter_mut().zip(terms) {
                 *l += d;
             }
         }
-        logits
+        Ok(logits)
     }
 
     /// `s_θ + s_φ` of every cell of `level` for one image's features `[1, D]`: from the
@@ -671,8 +693,20 @@ impl Model {
         level: u8,
         depth: Option<DepthInput<'_>>,
     ) -> Result<Distribution, EngineError> {
+        self.distribution_cancellable(features, level, depth, &Cancel::default())
+    }
+
+    /// [`Model::distribution`] that stops with [`EngineError::Cancelled`] at the next chunk of
+    /// the fused term once `cancel` is set.
+    pub fn distribution_cancellable(
+        &self,
+        features: &Tensor<2>,
+        level: u8,
+        depth: Option<DepthInput<'_>>,
+        cancel: &Cancel,
+    ) -> Result<Distribution, EngineError> {
         self.check_full_level(level)?;
-        let logits = self.full_logits(features, level, depth);
+        let logits = self.full_logits(features, level, depth, cancel)?;
         let lse = search::log_sum_exp(&logits);
         let log_n_over_volume = -self.grids[level as usize].cell_volume().ln();
         let log_p: Vec<f64> = logits.iter().map(|&l| l as f64 - lse).collect();
@@ -800,10 +834,12 @@ impl Model {
             } else {
                 search.coarse_precision
             };
+            // A level boundary: a call whose caller went away stops here.
+            options.cancel.check()?;
             let (mut logits, mats) = self.search_logits(features, grid, cells, start, precision);
-            fusion.add_terms(grid, cells, &mats, &mut logits);
-            logits
-        });
+            fusion.add_terms(grid, cells, &mats, &mut logits, &options.cancel)?;
+            Ok::<_, EngineError>(logits)
+        })?;
         let grid = &self.grids[level as usize];
         let angle = options.mode_angle_deg.unwrap_or(15.0).to_radians();
         Ok(results
@@ -900,7 +936,13 @@ const CELL_MEAN_RANGE: f32 = 30.0;
 /// `log mean_k exp(term(child_k))` over their 8 children (each scored at `children`'s level):
 /// the cell's share of the depth factor's mass, where a centre alone misses a peak narrower than
 /// the cell.
-fn cell_means(depth: &DepthInput<'_>, grid: &GridLevel, children: &GridLevel, terms: &mut [f32]) {
+fn cell_means(
+    depth: &DepthInput<'_>,
+    grid: &GridLevel,
+    children: &GridLevel,
+    terms: &mut [f32],
+    cancel: &Cancel,
+) -> Result<(), EngineError> {
     let best = terms.iter().copied().fold(f32::NEG_INFINITY, f32::max);
     let near: Vec<usize> = (0..terms.len())
         .filter(|&i| terms[i] >= best - CELL_MEAN_RANGE)
@@ -910,10 +952,11 @@ fn cell_means(depth: &DepthInput<'_>, grid: &GridLevel, children: &GridLevel, te
         .flat_map(|&i| grid.children(i as u64))
         .map(|c| to_row_major_f32(&children.rotation(c)))
         .collect();
-    let child_terms = depth.cell_log_measure(children, &rotations);
+    let child_terms = depth.cell_log_measure(children, &rotations, cancel)?;
     for (&i, eight) in near.iter().zip(child_terms.chunks_exact(8)) {
         terms[i] = search::log_sum_exp(eight) as f32 - 8f32.ln();
     }
+    Ok(())
 }
 
 /// The depth side of a batch of coarse-to-fine searches: each image's fused term added at every
@@ -953,7 +996,8 @@ impl<'a> DepthSearch<'a> {
         cells: &[Vec<u64>],
         mats: &[Vec<[f32; 9]>],
         logits: &mut [Vec<f32>],
-    ) {
+        cancel: &Cancel,
+    ) -> Result<(), EngineError> {
         for (i, d) in self.depth.iter().enumerate() {
             let Some(d) = d else { continue };
             let own;
@@ -969,8 +1013,10 @@ impl<'a> DepthSearch<'a> {
             };
             let finest = grid.level() == self.finest;
             let fused = match (&self.coarse[i], finest) {
-                (Some(points), false) => DepthInput { points, ..*d }.cell_log_measure(grid, m),
-                _ => d.cell_log_measure(grid, m),
+                (Some(points), false) => {
+                    DepthInput { points, ..*d }.cell_log_measure(grid, m, cancel)?
+                }
+                _ => d.cell_log_measure(grid, m, cancel)?,
             };
             if finest {
                 let kappa = d.object.fusion.tempering(grid);
@@ -981,6 +1027,7 @@ impl<'a> DepthSearch<'a> {
                 *l += d;
             }
         }
+        Ok(())
     }
 }
 

@@ -98,13 +98,14 @@ impl Keep {
 /// Coarse-to-fine search, `n` of them in lockstep (`grids` are consecutive levels, coarse first),
 /// so that each level's scoring is one call for all of
 /// them (a batch across requests): `score(grid, cells)` gets every search's cells of that level
-/// (the same number for each) and returns their log-weights in the same order.
-pub fn coarse_to_fine_many(
+/// (the same number for each) and returns their log-weights in the same order, or an error that
+/// ends the search at that level (a cancelled call).
+pub fn coarse_to_fine_many<E>(
     grids: &[&GridLevel],
     keep: Keep,
     n: usize,
-    mut score: impl FnMut(&GridLevel, &[Vec<u64>]) -> Vec<Vec<f32>>,
-) -> Vec<SearchResult> {
+    mut score: impl FnMut(&GridLevel, &[Vec<u64>]) -> Result<Vec<Vec<f32>>, E>,
+) -> Result<Vec<SearchResult>, E> {
     let first = grids[0];
     let mut cells: Vec<Vec<u64>> = vec![(0..first.len() as u64).collect(); n];
     let mut covered = vec![1.0f64; n];
@@ -122,7 +123,7 @@ pub fn coarse_to_fine_many(
                     .collect();
             }
         }
-        let logits = score(grid, &cells);
+        let logits = score(grid, &cells)?;
         for s in 0..n {
             let lse = log_sum_exp(&logits[s]);
             probs[s] = logits[s]
@@ -133,7 +134,7 @@ pub fn coarse_to_fine_many(
     }
     let grid = grids[grids.len() - 1];
     let log_cell_volume = grid.cell_volume().ln();
-    (0..n)
+    Ok((0..n)
         .map(|s| {
             let order = top_indices(&probs[s], probs[s].len());
             SearchResult {
@@ -149,7 +150,7 @@ pub fn coarse_to_fine_many(
                 covered_mass: covered[s],
             }
         })
-        .collect()
+        .collect())
 }
 
 /// A mode: top cells within an angle of its most probable cell.
@@ -269,8 +270,9 @@ mod tests {
                             .map(|&c| grid.rotation(c).angle().cos() as f32)
                             .collect()
                     })
-                    .collect()
-            });
+                    .collect::<Result<Vec<Vec<f32>>, std::convert::Infallible>>()
+            })
+            .unwrap();
             assert_eq!(results.len(), 2);
             counts
         };

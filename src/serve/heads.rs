@@ -17,7 +17,7 @@ use tonic::{Code, Status};
 
 use super::BatchConfig;
 use super::status::{Reason, refused, status_of};
-use crate::engine::{Model, PredictOptions, Prediction};
+use crate::engine::{Cancel, Model, PredictOptions, Prediction};
 
 /// One call's head work.
 struct HeadJob {
@@ -62,14 +62,17 @@ impl HeadStage {
         })
     }
 
-    /// The prediction for one image's features.
+    /// The prediction for one image's features. Dropping the returned future (the caller went
+    /// away) cancels the search at its next level or chunk ([`PredictOptions::cancel`]).
     pub async fn predict(
         &self,
         features: Vec<f32>,
-        options: PredictOptions,
+        mut options: PredictOptions,
         depth: Option<super::CropDepth>,
     ) -> Result<Prediction, Status> {
         let (reply, answer) = oneshot::channel();
+        options.cancel = Cancel::new();
+        let guard = options.cancel.on_drop();
         let job = HeadJob {
             features,
             options,
@@ -88,7 +91,9 @@ impl HeadStage {
             ),
             mpsc::error::TrySendError::Closed(_) => stopped(&self.model),
         })?;
-        answer.await.map_err(|_| stopped(&self.model))?
+        let answered = answer.await.map_err(|_| stopped(&self.model))?;
+        guard.disarm();
+        answered
     }
 }
 

@@ -14,13 +14,14 @@ use std::pin::Pin;
 use std::sync::{Arc, RwLock};
 use std::time::Instant;
 
-use std::sync::atomic::Ordering;
 use tokio_stream::Stream;
 use tonic::{Request, Response, Status};
 
 pub use batcher::{BatchConfig, BatchError, Batcher};
 
-use crate::engine::{CropBox, DepthInput, Engine, ImageRequest, Model, PredictOptions, SeenPoints};
+use crate::engine::{
+    Cancel, CropBox, DepthInput, Engine, ImageRequest, Model, PredictOptions, SeenPoints,
+};
 
 /// Generated protobuf types and the service's file descriptor set (for reflection).
 #[allow(missing_docs, clippy::all)]
@@ -161,25 +162,20 @@ use status::invalid_field;
 pub use status::{batch_status, status_of};
 
 /// Runs CPU work off the async threads; a panic inside becomes INTERNAL (and is counted), never
-/// a crash. Work whose caller went away (cancelled, deadline) before it started is skipped.
+/// a crash. The work gets a [`Cancel`] that is set when this future is dropped (the caller went
+/// away: cancelled, deadline): work not yet started is skipped, and long work stops at its next
+/// chunk or level boundary.
 async fn blocking<T: Send + 'static>(
-    work: impl FnOnce() -> Result<T, Status> + Send + 'static,
+    work: impl FnOnce(&Cancel) -> Result<T, Status> + Send + 'static,
 ) -> Result<T, Status> {
-    /// Marks the call as gone when its future is dropped before the work ran.
-    struct Gone(Arc<std::sync::atomic::AtomicBool>);
-    impl Drop for Gone {
-        fn drop(&mut self) {
-            self.0.store(true, Ordering::SeqCst);
-        }
-    }
-    let gone = Gone(Arc::new(std::sync::atomic::AtomicBool::new(false)));
-    let flag = gone.0.clone();
+    let cancel = Cancel::new();
+    let guard = cancel.on_drop();
     let result = tokio::task::spawn_blocking(move || {
-        if flag.load(Ordering::SeqCst) {
+        if cancel.is_cancelled() {
             metrics::counter!("alignist_abandoned_work_total").increment(1);
             return Err(Status::cancelled("the caller went away"));
         }
-        work()
+        work(&cancel)
     })
     .await
     .map_err(|e| {
@@ -193,7 +189,7 @@ async fn blocking<T: Send + 'static>(
             None,
         )
     })?;
-    drop(gone);
+    guard.disarm();
     result
 }
 
@@ -316,7 +312,7 @@ fn prepare(
 async fn encode(p: &mut Prepared) -> Result<batcher::Encoded, Status> {
     let model = p.model.clone();
     let image = std::mem::take(&mut p.image);
-    let crop = blocking(move || {
+    let crop = blocking(move |_| {
         let request = ImageRequest {
             data: &image.data,
             raw_size: raw_size(&image)?,
@@ -428,6 +424,7 @@ fn predict_options(top_k: u32, level: u32, mode_angle_deg: f32) -> Result<Predic
             l => Some(small_level(l, "level")?),
         },
         mode_angle_deg: (mode_angle_deg != 0.0).then_some(mode_angle_deg as f64),
+        ..Default::default()
     })
 }
 
@@ -539,7 +536,7 @@ impl AlignistService {
         let crops = {
             let model = model.clone();
             let boxes = boxes.clone();
-            blocking(move || {
+            blocking(move |_| {
                 let request = ImageRequest {
                     data: &image.data,
                     raw_size: raw_size(&image)?,
@@ -560,7 +557,7 @@ impl AlignistService {
                 let (detections, intrinsics) = (req.detections.clone(), intrinsics);
                 let image_size = image_size
                     .ok_or_else(|| invalid_field("image", "has no size (it did not decode)"))?;
-                blocking(move || {
+                blocking(move |_| {
                     frame_depth(
                         &model,
                         &depth,
@@ -709,16 +706,26 @@ async fn predict_boxes(
     options: &PredictOptions,
     rays: &[nalgebra::Rotation3<f64>],
 ) -> Result<Vec<crate::engine::Prediction>, Status> {
-    let calls: Vec<_> = encoded
-        .into_iter()
-        .zip(depth.iter().cloned())
-        .map(|(e, depth)| {
-            let (head, options) = (head.clone(), options.clone());
-            tokio::spawn(async move { head.predict(e.features, options, depth).await })
-        })
-        .collect();
-    let mut predictions = Vec::with_capacity(calls.len());
-    for (call, ray) in calls.into_iter().zip(rays) {
+    /// Aborts the boxes' head calls when the frame call is dropped (its caller went away):
+    /// an aborted call drops its future, which cancels its search.
+    struct AbortOnDrop(Vec<tokio::task::JoinHandle<Result<crate::engine::Prediction, Status>>>);
+    impl Drop for AbortOnDrop {
+        fn drop(&mut self) {
+            self.0.iter().for_each(|c| c.abort());
+        }
+    }
+    let mut calls = AbortOnDrop(
+        encoded
+            .into_iter()
+            .zip(depth.iter().cloned())
+            .map(|(e, depth)| {
+                let (head, options) = (head.clone(), options.clone());
+                tokio::spawn(async move { head.predict(e.features, options, depth).await })
+            })
+            .collect(),
+    );
+    let mut predictions = Vec::with_capacity(calls.0.len());
+    for (call, ray) in calls.0.iter_mut().zip(rays) {
         let p = call.await.map_err(|e| {
             status::refused(
                 tonic::Code::Internal,
@@ -932,10 +939,12 @@ impl AlignistService {
         let depth = p.depth;
         let _slot = self.admission.head_slot().await?;
         let compute = Instant::now();
-        let distribution = blocking(move || {
+        let distribution = blocking(move |cancel| {
             let f = model.features_tensor(&features);
             let fusion = depth.as_ref().map(|d| d.input(&model));
-            model.distribution(&f, level, fusion).map_err(status_of)
+            model
+                .distribution_cancellable(&f, level, fusion, cancel)
+                .map_err(status_of)
         })
         .await?;
         metrics::histogram!("alignist_compute_seconds", "method" => "PredictDistribution")

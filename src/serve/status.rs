@@ -33,6 +33,10 @@ pub enum Reason {
     TooLarge,
     /// An unknown model or object (NOT_FOUND).
     NotFound,
+    /// The caller went away and its work was stopped (CANCELLED; nobody reads it).
+    Cancelled,
+    /// A request message that does not decode (INVALID_ARGUMENT).
+    MalformedMessage,
 }
 
 impl Reason {
@@ -47,6 +51,8 @@ impl Reason {
             Reason::InvalidField => "INVALID_FIELD",
             Reason::TooLarge => "TOO_LARGE",
             Reason::NotFound => "NOT_FOUND",
+            Reason::Cancelled => "CANCELLED",
+            Reason::MalformedMessage => "MALFORMED_MESSAGE",
         }
     }
 }
@@ -114,6 +120,10 @@ pub fn status_of(error: EngineError) -> Status {
         | EngineError::Grid(_)
         | EngineError::Io { .. } => {
             refused(Code::Internal, Reason::ModelFailed, error.to_string(), None)
+        }
+        EngineError::Cancelled => {
+            metrics::counter!("alignist_abandoned_work_total").increment(1);
+            refused(Code::Cancelled, Reason::Cancelled, error.to_string(), None)
         }
     }
 }

@@ -169,9 +169,12 @@ pub fn start_server_with_env(models: &Path, extra: &[&str], env: &[(&str, &str)]
             "127.0.0.1:0",
             "--metrics-listen",
             &metrics,
-            "--max-level",
-            "3",
         ])
+        // The tests' default grid limit, unless a test sets its own.
+        .args(match extra.contains(&"--max-level") {
+            true => &[][..],
+            false => &["--max-level", "3"][..],
+        })
         .args(extra)
         .stdout(Stdio::piped())
         .stderr(Stdio::null())
@@ -269,4 +272,13 @@ pub async fn http_get(url: &str) -> String {
     let mut body = String::new();
     stream.read_to_string(&mut body).await.unwrap();
     body
+}
+
+/// CPU seconds (user + system) the process `pid` has used, from `/proc/PID/stat`.
+pub fn cpu_seconds(pid: u32) -> f64 {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap();
+    // Fields after the command name (which may hold spaces) start after the last ')'.
+    let fields: Vec<&str> = stat[stat.rfind(')').unwrap() + 2..].split(' ').collect();
+    let ticks: f64 = fields[11].parse::<f64>().unwrap() + fields[12].parse::<f64>().unwrap();
+    ticks / 100.0
 }
