@@ -43,7 +43,9 @@ fn main() {
             object,
             points: &seen,
         };
-        let terms = input.cell_log_measure(&grid, &all);
+        let terms = input
+            .cell_log_measure(&grid, &all, &Default::default())
+            .unwrap();
         let best = terms.iter().copied().fold(f32::MIN, f32::max);
         let mut cells: Vec<u64> = im.equivalents.iter().map(|g| grid.cell_of(g)).collect();
         cells.sort();
