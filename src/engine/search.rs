@@ -262,15 +262,17 @@ mod tests {
             let results = coarse_to_fine_many(&grids, keep, 2, |grid, cells| {
                 counts.push(cells[0].len());
                 // A smooth, image-free score: the cosine of the rotation angle.
-                cells
-                    .iter()
-                    .map(|cells| {
-                        cells
-                            .iter()
-                            .map(|&c| grid.rotation(c).angle().cos() as f32)
-                            .collect()
-                    })
-                    .collect::<Result<Vec<Vec<f32>>, std::convert::Infallible>>()
+                Ok::<_, std::convert::Infallible>(
+                    cells
+                        .iter()
+                        .map(|cells| {
+                            cells
+                                .iter()
+                                .map(|&c| grid.rotation(c).angle().cos() as f32)
+                                .collect()
+                        })
+                        .collect(),
+                )
             })
             .unwrap();
             assert_eq!(results.len(), 2);
