@@ -313,7 +313,7 @@ fn in_process_throughput(
 async fn serve_for_bench(
     models: &Path,
 ) -> anyhow::Result<(
-    tonic::transport::Channel,
+    crate::client::Connection,
     tokio::sync::oneshot::Sender<()>,
     tokio::task::JoinHandle<Result<(), crate::serve::server::ServeError>>,
 )> {
@@ -323,16 +323,8 @@ async fn serve_for_bench(
     let listen: std::net::SocketAddr = format!("127.0.0.1:{port}").parse()?;
     let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
     let config = ServerConfig {
-        models: models.to_path_buf(),
-        listen,
-        metrics_listen: None,
-        engine: EngineConfig::default(),
-        batch: BatchConfig::default(),
         drain_timeout: Duration::from_secs(5),
-        max_concurrent_streams: 1024,
-        reload_interval: None,
-        max_connection_age: None,
-        admission: Default::default(),
+        ..ServerConfig::new(models.to_path_buf(), listen)
     };
     let server = tokio::spawn(run(config, async {
         let _ = stopped.await;
@@ -354,7 +346,7 @@ async fn serve_for_bench(
 /// distribution's latency; returns the calls per second of `requests` Predicts (level 3, top-5)
 /// at `concurrency`.
 async fn grpc_figures(
-    channel: tonic::transport::Channel,
+    channel: crate::client::Connection,
     png: &[u8],
     concurrency: usize,
     requests: usize,

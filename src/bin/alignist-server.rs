@@ -7,7 +7,9 @@ use std::time::Duration;
 use alignist::engine::{EngineConfig, ImageLimits};
 use alignist::net::Precision;
 use alignist::serve::BatchConfig;
-use alignist::serve::server::{ServerConfig, run, shutdown_signal};
+use alignist::serve::auth::Token;
+use alignist::serve::server::{DEFAULT_MAX_STREAMS, ServerConfig, TlsFiles, run, shutdown_signal};
+use alignist::serve::transport::TransportLimits;
 use anyhow::{Context, Result, bail};
 use clap::Parser;
 
@@ -93,6 +95,42 @@ struct Cli {
     /// fail (tonic reports UNKNOWN); clients should retry them.
     #[arg(long, env = "ALIGNIST_MAX_CONNECTION_AGE_S", default_value_t = 0)]
     max_connection_age_s: u64,
+    /// Most client connections held at once. At the cap a new connection replaces the oldest
+    /// one that has not sent its first bytes, or is refused (counted in
+    /// alignist_connections_refused_total and logged).
+    #[arg(long, env = "ALIGNIST_MAX_CONNECTIONS", default_value_t = TransportLimits::default().max_connections)]
+    max_connections: usize,
+    /// Concurrent calls per connection (HTTP/2 streams); more wait in the client.
+    #[arg(long, env = "ALIGNIST_MAX_STREAMS", default_value_t = DEFAULT_MAX_STREAMS)]
+    max_streams: u32,
+    /// Seconds a new connection has to send its first bytes (the HTTP/2 preface or the TLS
+    /// hello; the TLS handshake too).
+    #[arg(long, env = "ALIGNIST_HANDSHAKE_TIMEOUT_S", default_value_t = TransportLimits::default().handshake_timeout.as_secs())]
+    handshake_timeout_s: u64,
+    /// Seconds a connection may move no byte either way before it is closed.
+    #[arg(long, env = "ALIGNIST_IDLE_TIMEOUT_S", default_value_t = TransportLimits::default().idle_timeout.as_secs())]
+    idle_timeout_s: u64,
+    /// Seconds a request body may take to arrive (DEADLINE_EXCEEDED after).
+    #[arg(long, env = "ALIGNIST_BODY_TIMEOUT_S", default_value_t = TransportLimits::default().body_timeout.as_secs())]
+    body_timeout_s: u64,
+    /// Most MiB of unfinished request bodies held at once, over all connections
+    /// (RESOURCE_EXHAUSTED with a retry delay beyond).
+    #[arg(long, env = "ALIGNIST_MAX_RECEIVING_MIB", default_value_t = TransportLimits::default().max_receiving_bytes >> 20)]
+    max_receiving_mib: usize,
+    /// Seconds between HTTP/2 pings on a silent connection (0: none). An answered ping is
+    /// traffic: pinged connections do not reach the idle timeout.
+    #[arg(long, env = "ALIGNIST_KEEPALIVE_S", default_value_t = 0)]
+    keepalive_s: u64,
+    /// TLS certificate chain (PEM); with --tls-key, the server speaks only TLS.
+    #[arg(long, env = "ALIGNIST_TLS_CERT", requires = "tls_key")]
+    tls_cert: Option<PathBuf>,
+    /// TLS private key (PEM).
+    #[arg(long, env = "ALIGNIST_TLS_KEY", requires = "tls_cert")]
+    tls_key: Option<PathBuf>,
+    /// A file holding a bearer token: every call but the health checks must then carry
+    /// `authorization: Bearer TOKEN` (UNAUTHENTICATED otherwise). Use it with TLS.
+    #[arg(long, env = "ALIGNIST_AUTH_TOKEN_FILE")]
+    auth_token_file: Option<PathBuf>,
 }
 
 fn main() -> Result<()> {
@@ -106,6 +144,29 @@ fn main() -> Result<()> {
         .init();
     if cli.max_batch == 0 || cli.queue == 0 || cli.head_workers == Some(0) {
         bail!("--max-batch, --queue and --head-workers must be at least 1");
+    }
+    if cli.max_connections == 0
+        || cli.max_streams == 0
+        || cli.handshake_timeout_s == 0
+        || cli.idle_timeout_s == 0
+        || cli.body_timeout_s == 0
+        || cli.max_receiving_mib == 0
+    {
+        bail!(
+            "--max-connections, --max-streams, --handshake-timeout-s, --idle-timeout-s, \
+             --body-timeout-s and --max-receiving-mib must be at least 1"
+        );
+    }
+    let auth_token = match &cli.auth_token_file {
+        Some(path) => Some(Token::from_file(path).context("--auth-token-file")?),
+        None => None,
+    };
+    if auth_token.is_some() && cli.tls_cert.is_none() && !cli.listen.ip().is_loopback() {
+        tracing::warn!(
+            "a bearer token over plaintext on {}: anyone on the path can read it; add --tls-cert \
+             and --tls-key",
+            cli.listen
+        );
     }
     if !cli.models.is_dir() {
         bail!(
@@ -152,7 +213,7 @@ fn main() -> Result<()> {
                 .unwrap_or(BatchConfig::default().head_workers),
         },
         drain_timeout: Duration::from_secs(cli.drain_timeout_s),
-        max_concurrent_streams: 1024,
+        max_concurrent_streams: cli.max_streams,
         reload_interval: (cli.reload_interval_s > 0)
             .then(|| Duration::from_secs(cli.reload_interval_s)),
         max_connection_age: (cli.max_connection_age_s > 0)
@@ -161,6 +222,19 @@ fn main() -> Result<()> {
             max_in_flight_bytes: cli.max_in_flight_mib << 20,
             ..Default::default()
         },
+        transport: TransportLimits {
+            max_connections: cli.max_connections,
+            handshake_timeout: Duration::from_secs(cli.handshake_timeout_s),
+            idle_timeout: Duration::from_secs(cli.idle_timeout_s),
+            body_timeout: Duration::from_secs(cli.body_timeout_s),
+            max_receiving_bytes: cli.max_receiving_mib << 20,
+        },
+        keepalive_interval: (cli.keepalive_s > 0).then(|| Duration::from_secs(cli.keepalive_s)),
+        tls: cli
+            .tls_cert
+            .zip(cli.tls_key)
+            .map(|(cert, key)| TlsFiles { cert, key }),
+        auth_token,
     };
     if cli.max_in_flight_mib << 20 < cli.max_image_bytes {
         bail!(

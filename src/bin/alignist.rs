@@ -3,7 +3,8 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
-use alignist::client::{self, ClientError};
+use alignist::client::{self, ClientError, ConnectOptions};
+use alignist::serve::auth::Token;
 use alignist::serve::proto::{DistributionRequest, PredictRequest};
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
@@ -44,6 +45,13 @@ struct Cli {
     #[arg(long, global = true, default_value_t = 60,
           value_parser = clap::value_parser!(u64).range(1..))]
     timeout_s: u64,
+    /// For an https:// server: the PEM certificate to trust (its private CA, or the server's
+    /// own self-signed certificate); without it, the public web roots.
+    #[arg(long, global = true, env = "ALIGNIST_CA_FILE")]
+    ca_file: Option<PathBuf>,
+    /// A file holding the bearer token the server asks for (its --auth-token-file).
+    #[arg(long, global = true, env = "ALIGNIST_TOKEN_FILE")]
+    token_file: Option<PathBuf>,
     #[command(subcommand)]
     command: Command,
 }
@@ -276,15 +284,33 @@ async fn run(cli: Cli) -> Result<()> {
             cli.server
         );
     }
-    let channel = client::connect(&cli.server, timeout).await?;
+    let token = match &cli.token_file {
+        Some(path) => Some(Token::from_file(path).context("--token-file")?),
+        None => None,
+    };
+    if token.is_some()
+        && cli.server.starts_with("http://")
+        && !client::load::is_loopback(&cli.server)
+    {
+        eprintln!(
+            "warning: sending the token in plaintext to {}; use https://",
+            cli.server
+        );
+    }
+    let options = ConnectOptions {
+        timeout,
+        ca_file: cli.ca_file.clone(),
+        token,
+    };
+    let channel = client::connect_with(&cli.server, &options).await?;
     match cli.command {
         Command::Predict(args) => match args.intrinsics {
             Some(intrinsics) => predict_frame(channel, &args, intrinsics).await,
-            None => predict(channel, &args, &cli.server, timeout).await,
+            None => predict(channel, &args, &cli.server, &options).await,
         },
         Command::Distribution(args) => distribution(channel, &args).await,
         Command::Models { json } => models(channel, json).await,
-        Command::Load(args) => load(channel, args, &cli.server, timeout).await,
+        Command::Load(args) => load(channel, args, &cli.server, &options).await,
         Command::Health { service } => {
             let status = client::health(channel, &service).await?;
             out!("{status}");
@@ -298,7 +324,7 @@ async fn run(cli: Cli) -> Result<()> {
 
 /// `predict --intrinsics … --box …`: PredictFrame, with depth and masks when given.
 async fn predict_frame(
-    channel: tonic::transport::Channel,
+    channel: alignist::client::Connection,
     args: &PredictArgs,
     [fx, fy, cx, cy]: [f64; 4],
 ) -> Result<()> {
@@ -358,10 +384,10 @@ async fn predict_frame(
 
 /// `predict` of a crop: Predict, with centred depth points when given, and the level-3 plot.
 async fn predict(
-    channel: tonic::transport::Channel,
+    channel: alignist::client::Connection,
     args: &PredictArgs,
     server: &str,
-    timeout: Duration,
+    options: &ConnectOptions,
 ) -> Result<()> {
     let depth = match &args.points {
         None => None,
@@ -386,7 +412,7 @@ async fn predict(
     if let Some(path) = &args.plot {
         // The plot shows the whole distribution (level 3), not just the top-k.
         let request = distribution_request(&args.image, 3)?;
-        let channel = client::connect(server, timeout).await?;
+        let channel = client::connect_with(server, options).await?;
         let (level, probs, _) = client::distribution(channel, request).await?;
         save_plot(path, level, &probs)?;
     }
@@ -405,7 +431,10 @@ fn distribution_request(image: &ImageArgs, level: u32) -> Result<DistributionReq
 }
 
 /// `distribution`: the CSV, and the plot when asked.
-async fn distribution(channel: tonic::transport::Channel, args: &DistributionArgs) -> Result<()> {
+async fn distribution(
+    channel: alignist::client::Connection,
+    args: &DistributionArgs,
+) -> Result<()> {
     let request = distribution_request(&args.image, args.level)?;
     let (level, probs, logs) = client::distribution(channel, request).await?;
     let mut csv = String::from("index,probability,log_density\n");
@@ -427,7 +456,7 @@ async fn distribution(channel: tonic::transport::Channel, args: &DistributionArg
 }
 
 /// `models`: the table, or JSON.
-async fn models(channel: tonic::transport::Channel, json: bool) -> Result<()> {
+async fn models(channel: alignist::client::Connection, json: bool) -> Result<()> {
     let list = client::models(channel).await?;
     if !json {
         out_text!(client::models_table(&list));
@@ -462,10 +491,10 @@ async fn models(channel: tonic::transport::Channel, json: bool) -> Result<()> {
 
 /// `load`: the bounded load test over `--connections` channels.
 async fn load(
-    channel: tonic::transport::Channel,
+    channel: alignist::client::Connection,
     args: LoadArgs,
     server: &str,
-    timeout: Duration,
+    options: &ConnectOptions,
 ) -> Result<()> {
     if args.requests == 0 || args.concurrency == 0 || args.connections == 0 {
         bail!("--requests, --concurrency and --connections must be at least 1");
@@ -478,7 +507,7 @@ async fn load(
     };
     let mut channels = vec![channel];
     for _ in 1..args.connections {
-        channels.push(client::connect(server, timeout).await?);
+        channels.push(client::connect_with(server, options).await?);
     }
     let request = PredictRequest {
         model: args.model,
@@ -487,8 +516,14 @@ async fn load(
         level: args.level,
         ..Default::default()
     };
-    let report =
-        client::load::run_load(channels, request, args.requests, args.concurrency, timeout).await?;
+    let report = client::load::run_load(
+        channels,
+        request,
+        args.requests,
+        args.concurrency,
+        options.timeout,
+    )
+    .await?;
     out!("{report}");
     if report.failures() > 0 {
         bail!("{} of {} calls failed", report.failures(), report.requests);

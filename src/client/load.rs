@@ -4,8 +4,6 @@
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
-use tonic::transport::Channel;
-
 use super::ClientError;
 use crate::serve::proto::PredictRequest;
 use crate::serve::proto::alignist_client::AlignistClient;
@@ -87,7 +85,7 @@ pub fn quantile(values: &[f64], q: f64) -> f64 {
 
 /// Sends `requests` copies of `request`, `concurrency` at a time, over `channels` (round-robin).
 pub async fn run_load(
-    channels: Vec<Channel>,
+    channels: Vec<super::Connection>,
     request: PredictRequest,
     requests: usize,
     concurrency: usize,

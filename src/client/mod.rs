@@ -66,19 +66,106 @@ impl From<tonic::Status> for ClientError {
     }
 }
 
-/// Connects to `url` (e.g. `http://127.0.0.1:50051`).
-pub async fn connect(url: &str, timeout: Duration) -> Result<Channel, ClientError> {
+/// Adds `authorization: Bearer TOKEN` to every call, when a token is given.
+#[derive(Clone, Default)]
+pub struct Bearer(Option<tonic::metadata::MetadataValue<tonic::metadata::Ascii>>);
+
+impl tonic::service::Interceptor for Bearer {
+    fn call(
+        &mut self,
+        mut request: tonic::Request<()>,
+    ) -> Result<tonic::Request<()>, tonic::Status> {
+        if let Some(value) = &self.0 {
+            request
+                .metadata_mut()
+                .insert("authorization", value.clone());
+        }
+        Ok(request)
+    }
+}
+
+/// A connection to a server: the channel, with the token (if any) on every call.
+pub type Connection = tonic::service::interceptor::InterceptedService<Channel, Bearer>;
+
+/// How to reach a server beyond its URL.
+#[derive(Debug, Clone, Default)]
+pub struct ConnectOptions {
+    /// Connect and call timeout.
+    pub timeout: Duration,
+    /// For `https://`: the PEM certificate(s) to trust (a private CA or a self-signed server);
+    /// `None`: the public web roots.
+    pub ca_file: Option<std::path::PathBuf>,
+    /// The bearer token sent with every call.
+    pub token: Option<crate::serve::auth::Token>,
+}
+
+/// Connects to `url` (e.g. `http://127.0.0.1:50051`) with no token.
+pub async fn connect(url: &str, timeout: Duration) -> Result<Connection, ClientError> {
+    connect_with(
+        url,
+        &ConnectOptions {
+            timeout,
+            ..Default::default()
+        },
+    )
+    .await
+}
+
+/// Connects to `url`: `https://` speaks TLS (trusting `options.ca_file`, or the public roots),
+/// `http://` plaintext; the token, if any, goes with every call.
+pub async fn connect_with(url: &str, options: &ConnectOptions) -> Result<Connection, ClientError> {
     let err = |message: String| ClientError::Connect {
         url: url.to_string(),
         message,
     };
-    Endpoint::from_shared(url.to_string())
+    let mut endpoint = Endpoint::from_shared(url.to_string())
         .map_err(|e| err(e.to_string()))?
-        .connect_timeout(timeout)
-        .timeout(timeout)
-        .connect()
-        .await
-        .map_err(|e| err(e.to_string()))
+        .connect_timeout(options.timeout)
+        .timeout(options.timeout);
+    match (url.starts_with("https://"), &options.ca_file) {
+        (true, ca) => {
+            let tls = tonic::transport::ClientTlsConfig::new();
+            let tls = match ca {
+                Some(path) => {
+                    let pem = std::fs::read(path)
+                        .map_err(|e| err(format!("--ca-file {}: {e}", path.display())))?;
+                    tls.ca_certificate(tonic::transport::Certificate::from_pem(pem))
+                }
+                None => tls.with_webpki_roots(),
+            };
+            endpoint = endpoint
+                .tls_config(tls)
+                .map_err(|e| err(format!("TLS: {e}")))?;
+        }
+        (false, Some(_)) => {
+            return Err(err(
+                "--ca-file is for https:// servers; this URL is plaintext".into(),
+            ));
+        }
+        (false, None) => {}
+    }
+    let bearer = match &options.token {
+        Some(token) => Some(
+            format!("Bearer {}", token.as_str())
+                .parse()
+                .map_err(|e| err(format!("the token cannot be a header: {e}")))?,
+        ),
+        None => None,
+    };
+    let channel = endpoint.connect().await.map_err(|e| {
+        // tonic's own text ("transport error") hides the cause; name it.
+        let mut message = e.to_string();
+        let mut source = std::error::Error::source(&e);
+        while let Some(s) = source {
+            message = format!("{message}: {s}");
+            source = s.source();
+        }
+        err(message)
+    })?;
+    Ok(tonic::service::interceptor::InterceptedService::new(
+        channel,
+        Bearer(bearer),
+    ))
 }
 
 /// An image input from file bytes and an optional box `[x, y, width, height]` (sub-pixel; it may
@@ -105,7 +192,7 @@ pub fn pixel_box([x, y, width, height]: [f64; 4]) -> PixelBox {
 
 /// Predict.
 pub async fn predict(
-    channel: Channel,
+    channel: Connection,
     request: PredictRequest,
 ) -> Result<PredictResponse, ClientError> {
     let mut client = AlignistClient::new(channel).max_decoding_message_size(64 << 20);
@@ -114,7 +201,7 @@ pub async fn predict(
 
 /// PredictFrame: one answer per detection box of a full image.
 pub async fn predict_frame(
-    channel: Channel,
+    channel: Connection,
     request: FrameRequest,
 ) -> Result<FrameResponse, ClientError> {
     let mut client = AlignistClient::new(channel).max_decoding_message_size(64 << 20);
@@ -123,7 +210,7 @@ pub async fn predict_frame(
 
 /// The full distribution, reassembled from its chunks: `(level, probabilities, log-densities)`.
 pub async fn distribution(
-    channel: Channel,
+    channel: Connection,
     request: DistributionRequest,
 ) -> Result<(u32, Vec<f32>, Vec<f32>), ClientError> {
     let mut client = AlignistClient::new(channel).max_decoding_message_size(64 << 20);
@@ -149,13 +236,13 @@ pub async fn distribution(
 }
 
 /// ListModels.
-pub async fn models(channel: Channel) -> Result<ListModelsResponse, ClientError> {
+pub async fn models(channel: Connection) -> Result<ListModelsResponse, ClientError> {
     let mut client = AlignistClient::new(channel);
     Ok(client.list_models(ListModelsRequest {}).await?.into_inner())
 }
 
 /// `grpc.health.v1` Check of `service` ("" for the whole server): the status's name.
-pub async fn health(channel: Channel, service: &str) -> Result<String, ClientError> {
+pub async fn health(channel: Connection, service: &str) -> Result<String, ClientError> {
     let mut client = tonic_health::pb::health_client::HealthClient::new(channel);
     let answer = client
         .check(tonic_health::pb::HealthCheckRequest {

@@ -3,11 +3,13 @@
 //! lives in [`crate::engine`].
 
 pub mod admission;
+pub mod auth;
 pub mod batcher;
 pub mod heads;
 pub mod observe;
 pub mod server;
 pub mod status;
+pub mod transport;
 
 use std::collections::BTreeMap;
 use std::pin::Pin;

@@ -8,11 +8,13 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use tokio::net::TcpListener;
-use tonic::transport::Server;
+use tonic::transport::{Identity, Server, ServerTlsConfig};
 use tonic_health::ServingStatus;
 use tracing::{error, info, warn};
 
+use super::auth::{AuthLayer, Token};
 use super::proto::alignist_server::AlignistServer;
+use super::transport::{BodyLimitLayer, BoundedIncoming, TransportLimits};
 use super::{AlignistService, BatchConfig, Served, ServiceState};
 use crate::engine::{Engine, EngineConfig};
 
@@ -40,6 +42,67 @@ pub struct ServerConfig {
     pub max_connection_age: Option<Duration>,
     /// Limits of the work in flight (image bytes, head slots).
     pub admission: super::admission::AdmissionConfig,
+    /// Connections and request bodies: counts, timeouts, bytes.
+    pub transport: TransportLimits,
+    /// HTTP/2 pings on a silent connection this often (`None`: none; an answered ping counts as
+    /// traffic, so pinged connections never reach the idle timeout).
+    pub keepalive_interval: Option<Duration>,
+    /// TLS: the certificate chain and private key, PEM (`None`: plaintext).
+    pub tls: Option<TlsFiles>,
+    /// The bearer token every call but the health checks must carry (`None`: no token).
+    pub auth_token: Option<Token>,
+}
+
+impl ServerConfig {
+    /// Serves `models` on `listen` with the default limits, no metrics endpoint, no TLS and no
+    /// token.
+    pub fn new(models: PathBuf, listen: SocketAddr) -> Self {
+        Self {
+            models,
+            listen,
+            metrics_listen: None,
+            engine: EngineConfig::default(),
+            batch: BatchConfig::default(),
+            drain_timeout: Duration::from_secs(20),
+            max_concurrent_streams: DEFAULT_MAX_STREAMS,
+            reload_interval: None,
+            max_connection_age: None,
+            admission: Default::default(),
+            transport: TransportLimits::default(),
+            keepalive_interval: None,
+            tls: None,
+            auth_token: None,
+        }
+    }
+}
+
+/// Concurrent calls per connection by default: more wait in the client's queue (HTTP/2 flow),
+/// they are not refused.
+pub const DEFAULT_MAX_STREAMS: u32 = 128;
+
+/// The PEM files of the server's TLS identity.
+#[derive(Debug, Clone)]
+pub struct TlsFiles {
+    /// The certificate chain.
+    pub cert: PathBuf,
+    /// The private key.
+    pub key: PathBuf,
+}
+
+impl TlsFiles {
+    /// The TLS configuration of these files, the handshake bounded by `handshake_timeout`.
+    fn config(&self, handshake_timeout: Duration) -> Result<ServerTlsConfig, ServeError> {
+        let read = |path: &PathBuf| {
+            std::fs::read(path).map_err(|source| ServeError::Tls {
+                path: path.display().to_string(),
+                message: source.to_string(),
+            })
+        };
+        let (cert, key) = (read(&self.cert)?, read(&self.key)?);
+        Ok(ServerTlsConfig::new()
+            .identity(Identity::from_pem(cert, key))
+            .timeout(handshake_timeout))
+    }
 }
 
 /// A fingerprint of every file under the models directory: relative path, length and
@@ -200,6 +263,14 @@ pub enum ServeError {
     /// Transport failure.
     #[error("gRPC transport: {0}")]
     Transport(#[from] tonic::transport::Error),
+    /// The TLS certificate or key cannot be read or used.
+    #[error("TLS: {path}: {message}")]
+    Tls {
+        /// The file (or both, for a pair that does not fit).
+        path: String,
+        /// Why.
+        message: String,
+    },
     /// The reflection service could not be built from the file descriptor sets.
     #[error("reflection: {0}")]
     Reflection(#[from] tonic_reflection::server::Error),
@@ -348,17 +419,27 @@ pub async fn run(
     .max_decoding_message_size(config.engine.image_limits.max_bytes + (1 << 20));
     let loader = spawn_loader(&config, state, health.clone(), hup);
     let (stop_accepting, stopped) = tokio::sync::oneshot::channel::<()>();
-    // TCP_NODELAY on every accepted connection: with Nagle's algorithm a response waits for the
-    // client's delayed ACK (~40 ms on Linux); tonic sets it only on listeners it binds itself.
-    let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
-    let mut builder = Server::builder()
-        .max_concurrent_streams(config.max_concurrent_streams)
-        .layer(super::observe::ObserveLayer::default());
-    if let Some(age) = config.max_connection_age {
+    // Connections bounded in number and time, TCP_NODELAY on each (with Nagle's algorithm a
+    // response waits for the client's delayed ACK, ~40 ms on Linux).
+    let incoming = BoundedIncoming::new(listener, config.transport);
+    let mut builder = Server::builder();
+    if let Some(tls) = &config.tls {
         builder = builder
-            .max_connection_age(age)
-            .max_connection_age_grace(config.drain_timeout);
+            .tls_config(tls.config(config.transport.handshake_timeout)?)
+            .map_err(|e| ServeError::Tls {
+                path: format!("{} and {}", tls.cert.display(), tls.key.display()),
+                message: e.to_string(),
+            })?;
     }
+    let mut builder = builder
+        .max_concurrent_streams(config.max_concurrent_streams)
+        .http2_keepalive_interval(config.keepalive_interval)
+        .http2_keepalive_timeout(Some(Duration::from_secs(20)))
+        // Headers are small here (a request id, a token); 16 KiB bounds what one call may send.
+        .http2_max_header_list_size(16 << 10)
+        .layer(super::observe::ObserveLayer::default())
+        .layer(AuthLayer::new(config.auth_token.clone()))
+        .layer(BodyLimitLayer::new(&config.transport));
     let server = builder
         .add_service(health_service)
         .add_service(reflection)

@@ -37,6 +37,8 @@ pub enum Reason {
     Cancelled,
     /// A request message that does not decode (INVALID_ARGUMENT).
     MalformedMessage,
+    /// A request body that did not arrive within the body timeout (DEADLINE_EXCEEDED).
+    BodyTimeout,
 }
 
 impl Reason {
@@ -53,6 +55,7 @@ impl Reason {
             Reason::NotFound => "NOT_FOUND",
             Reason::Cancelled => "CANCELLED",
             Reason::MalformedMessage => "MALFORMED_MESSAGE",
+            Reason::BodyTimeout => "BODY_TIMEOUT",
         }
     }
 }
