@@ -133,7 +133,24 @@ struct Cli {
     auth_token_file: Option<PathBuf>,
 }
 
+/// Allocations of 1 MiB and more (request bodies, images, distributions) are mapped from the OS
+/// and unmapped when freed. glibc's default raises this threshold to the largest block freed so
+/// far, after which a burst of large buffers (say, 24 unfinished 8 MiB bodies) stays in the
+/// process's heap after it is dropped: measured 110 → 281 → 211 MiB against 110 → 281 → ~110
+/// with the threshold fixed (tests/transport.rs).
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+fn return_large_buffers_to_the_os() {
+    // SAFETY: mallopt only sets an allocator parameter; called before any thread starts.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 1 << 20);
+    }
+}
+
+#[cfg(not(all(target_os = "linux", target_env = "gnu")))]
+fn return_large_buffers_to_the_os() {}
+
 fn main() -> Result<()> {
+    return_large_buffers_to_the_os();
     let cli = Cli::parse();
     tracing_subscriber::fmt()
         .with_env_filter(
