@@ -268,3 +268,59 @@ fn tls_with_a_self_signed_certificate_and_a_token_work_end_to_end_through_the_cl
         .unwrap();
     assert!(!out.status.success());
 }
+
+/// Sends one Predict call of raw `body` bytes on a fresh HTTP/2 connection and returns the
+/// answer's headers and trailers merged (a refusal comes trailers-only, in the headers).
+async fn raw_predict(server: &Server, body: Vec<u8>) -> http::HeaderMap {
+    let tcp = tokio::net::TcpStream::connect(address(server))
+        .await
+        .unwrap();
+    let (h2, connection) = h2::client::handshake(tcp).await.unwrap();
+    tokio::spawn(connection);
+    let mut h2 = h2.ready().await.unwrap();
+    let request = http::Request::post(format!(
+        "http://{}/alignist.v1.Alignist/Predict",
+        address(server)
+    ))
+    .header("content-type", "application/grpc")
+    .header("te", "trailers")
+    .body(())
+    .unwrap();
+    let (response, mut send) = h2.send_request(request, false).unwrap();
+    send.send_data(Bytes::from(body), true).unwrap();
+    let response = response.await.unwrap();
+    let mut headers = response.headers().clone();
+    let mut body = response.into_body();
+    while let Some(data) = body.data().await {
+        let _ = data;
+    }
+    if let Ok(Some(trailers)) = body.trailers().await {
+        headers.extend(trailers);
+    }
+    headers
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn malformed_and_oversized_messages_get_named_codes() {
+    let server = start_server(&[]);
+    wait_serving(channel(&server).await).await;
+    // A message of 3 bytes that is not protobuf (field 31, wire type 7).
+    let headers = raw_predict(&server, vec![0, 0, 0, 0, 3, 0xff, 0xff, 0xff]).await;
+    assert_eq!(headers["grpc-status"], "3", "{headers:?}");
+    assert!(headers.contains_key("grpc-status-details-bin"));
+    assert!(headers.contains_key("x-request-id"));
+    // A message declaring 1 GiB: refused before any of it is read.
+    let mut declared = vec![0u8; 5];
+    declared[1..5].copy_from_slice(&(1u32 << 30).to_be_bytes());
+    let headers = raw_predict(&server, declared).await;
+    assert_eq!(headers["grpc-status"], "8", "{headers:?}");
+    assert!(headers.contains_key("grpc-status-details-bin"));
+    let metrics = http_get(&server.metrics).await;
+    assert!(
+        metric(
+            &metrics,
+            "alignist_requests_total",
+            &["code=\"INVALID_ARGUMENT\"", "method=\"Predict\""]
+        ) >= 1.0
+    );
+}

@@ -88,10 +88,16 @@ where
                     return Err(error);
                 }
             };
+            let status = Status::from_header_map(response.headers());
+            // The codec's refusals, named as the handlers' are.
+            let named = status.as_ref().and_then(super::status::codec_status);
+            if let Some(named) = &named {
+                response = named.clone().into_http();
+            }
             if let Some(value) = id_header {
                 response.headers_mut().insert(REQUEST_ID, value);
             }
-            match Status::from_header_map(response.headers()) {
+            match named.or(status) {
                 Some(status) => {
                     call.finish(&status);
                     Ok(response)

@@ -152,3 +152,39 @@ pub fn batch_status(error: BatchError) -> Status {
         }
     }
 }
+
+/// The named status of an error the gRPC codec raised before any handler ran, or `None` for
+/// the statuses of handlers. tonic answers a message that does not decode with INTERNAL and no
+/// details, and one over the size limit with OUT_OF_RANGE: here they become INVALID_ARGUMENT
+/// (`MALFORMED_MESSAGE`) and RESOURCE_EXHAUSTED (`TOO_LARGE`), as in DEPLOY.md's table.
+pub fn codec_status(status: &Status) -> Option<Status> {
+    let message = status.message();
+    match status.code() {
+        Code::Internal
+            if message.starts_with("failed to decode Protobuf message")
+                || message.starts_with("Unexpected EOF decoding stream")
+                || message.starts_with("protocol error: received message with") =>
+        {
+            Some(refused(
+                Code::InvalidArgument,
+                Reason::MalformedMessage,
+                format!("the request message does not decode: {message}"),
+                None,
+            ))
+        }
+        Code::OutOfRange if message.contains("decoded message length too large") => {
+            let mut details = ErrorDetails::new();
+            details.set_error_info(
+                Reason::TooLarge.name(),
+                DOMAIN,
+                std::collections::HashMap::<String, String>::new(),
+            );
+            Some(Status::with_error_details(
+                Code::ResourceExhausted,
+                format!("the request message is over the size limit: {message}"),
+                details,
+            ))
+        }
+        _ => None,
+    }
+}
