@@ -392,3 +392,36 @@ async fn a_cancelled_distribution_with_depth_gives_its_cores_back_within_a_secon
     let metrics = http_get(&server.metrics).await;
     assert!(metric(&metrics, "alignist_abandoned_work_total", &[]) >= 1.0);
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_refused_reload_of_the_only_bundle_is_listed_and_the_previous_one_serves() {
+    let models = copy_models();
+    let server = start_server_on(models.path(), &["--reload-interval-s", "1"]);
+    let ch = channel(&server).await;
+    wait_serving(ch.clone()).await;
+    // The only bundle is replaced by one whose network no server could hold.
+    let path = models.path().join("tiny/manifest.json");
+    let mut manifest: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
+    manifest["network"]["layers"] = 100_000_000.into();
+    std::fs::write(&path, serde_json::to_vec_pretty(&manifest).unwrap()).unwrap();
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    let failure = loop {
+        let (names, failed) = listed(&server).await;
+        assert_eq!(names, ["tiny"], "the previous model must keep serving");
+        if let Some(f) = failed.into_iter().next() {
+            break f;
+        }
+        assert!(std::time::Instant::now() < deadline, "the refusal is never listed");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    };
+    assert_eq!(failure.name, "tiny");
+    assert!(failure.serving_previous, "{failure:?}");
+    assert!(failure.error.contains("network.layers"), "{}", failure.error);
+    let answer = AlignistClient::new(ch.clone())
+        .predict(predict_request(8, 1, 1))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(answer.top.len(), 1);
+}

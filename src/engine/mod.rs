@@ -1122,6 +1122,31 @@ impl Engine {
     /// listed by [`Engine::failures`] while the others load. An error only when the directory
     /// cannot be read, holds no bundle, or no bundle loads (naming each failure).
     pub fn load_dir(dir: &Path, config: EngineConfig) -> Result<Engine, EngineError> {
+        let engine = Self::load_bundles(dir, config)?;
+        if engine.models.is_empty() {
+            return Err(engine.none_loads(dir));
+        }
+        Ok(engine)
+    }
+
+    /// The error of a directory where no bundle loads, listing each one's refusal.
+    pub fn none_loads(&self, dir: &Path) -> EngineError {
+        let list: Vec<String> = self
+            .failed
+            .iter()
+            .map(|(n, e)| format!("{n}: {e}"))
+            .collect();
+        EngineError::Models(format!(
+            "{}: no bundle loads ({})",
+            dir.display(),
+            list.join("; ")
+        ))
+    }
+
+    /// Every bundle of `dir` that loads, and the refusal of each one that does not, even when
+    /// none loads (a reload then keeps serving the previous models, with their refusals listed).
+    /// Errs only when `dir` cannot be read or holds no bundle folder.
+    pub fn load_bundles(dir: &Path, config: EngineConfig) -> Result<Engine, EngineError> {
         let entries = std::fs::read_dir(dir).map_err(|source| EngineError::Io {
             path: dir.to_path_buf(),
             source,
@@ -1158,14 +1183,6 @@ impl Engine {
                     failed.insert(name, e.to_string().replace(&inside, ""));
                 }
             }
-        }
-        if models.is_empty() {
-            let list: Vec<String> = failed.iter().map(|(n, e)| format!("{n}: {e}")).collect();
-            return Err(EngineError::Models(format!(
-                "{}: no bundle loads ({})",
-                dir.display(),
-                list.join("; ")
-            )));
         }
         Ok(Engine { models, failed })
     }

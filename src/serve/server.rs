@@ -192,7 +192,9 @@ async fn watch_models(
 
 /// Loads the models of `models` off the async threads and starts their workers: the one loading
 /// routine of start-up (`previous` = `None`) and of reloads, where a bundle that fails to load
-/// now keeps serving as it was ([`Served::reloaded`]).
+/// now keeps serving as it was ([`Served::reloaded`]), its refusal listed. A reload prepares the
+/// bundles (depth fusion's tables: tens of seconds of CPU for a large model) on one thread of
+/// low priority, so that the calls being served keep the cores.
 async fn load_served(
     models: PathBuf,
     engine_config: EngineConfig,
@@ -200,18 +202,66 @@ async fn load_served(
     previous: Option<std::sync::Arc<Served>>,
 ) -> Result<Served, ServeError> {
     let path = models.display().to_string();
-    let engine = tokio::task::spawn_blocking(move || Engine::load_dir(&models, engine_config))
-        .await
-        .map_err(|e| ServeError::Loader {
-            path: path.clone(),
-            source: e,
-        })?
-        .map_err(|source| ServeError::Models {
+    let reload = previous.is_some();
+    let dir = models.clone();
+    let engine = tokio::task::spawn_blocking(move || match reload {
+        false => Engine::load_dir(&dir, engine_config),
+        true => match background_pool() {
+            Some(pool) => pool.install(|| Engine::load_bundles(&dir, engine_config)),
+            None => Engine::load_bundles(&dir, engine_config),
+        },
+    })
+    .await
+    .map_err(|e| ServeError::Loader {
+        path: path.clone(),
+        source: e,
+    })?
+    .map_err(|source| ServeError::Models {
+        path: path.clone(),
+        source,
+    })?;
+    let served = Served::reloaded(engine, previous.as_deref(), batch).map_err(|source| {
+        ServeError::Workers {
             path: path.clone(),
             source,
-        })?;
-    Served::reloaded(engine, previous.as_deref(), batch)
-        .map_err(|source| ServeError::Workers { path, source })
+        }
+    })?;
+    if served.engine.models().next().is_none() {
+        return Err(ServeError::Models {
+            source: served.engine.none_loads(&models),
+            path,
+        });
+    }
+    Ok(served)
+}
+
+/// One thread at low priority (nice 10) for reloads' preparation: rayon work started inside
+/// [`rayon::ThreadPool::install`] stays on it. `None` if it cannot be started (then reloads use
+/// the shared pool).
+fn background_pool() -> Option<&'static rayon::ThreadPool> {
+    static POOL: std::sync::OnceLock<Option<rayon::ThreadPool>> = std::sync::OnceLock::new();
+    POOL.get_or_init(|| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .thread_name(|_| "alignist-reload".into())
+            .start_handler(|_| lower_this_threads_priority())
+            .build()
+            .map_err(|e| warn!("no low-priority reload thread ({e}); reloads share the cores"))
+            .ok()
+    })
+    .as_ref()
+}
+
+/// Nice 10 for the calling thread (Linux schedules threads, so the rest of the process keeps
+/// its priority).
+fn lower_this_threads_priority() {
+    #[cfg(target_os = "linux")]
+    // SAFETY: setpriority changes the calling thread's nice value, nothing else.
+    unsafe {
+        if libc::setpriority(libc::PRIO_PROCESS, 0, 10) != 0 {
+            warn!("could not lower the reload thread's priority");
+        }
+    }
 }
 
 /// Errors that stop the server.
