@@ -218,7 +218,11 @@ fn tls_with_a_self_signed_certificate_and_a_token_work_end_to_end_through_the_cl
     std::fs::write(&wrong, "not-the-token-0123456789abcdef").unwrap();
     let cert = fixture("server.pem");
     let key = fixture("server.key");
+    let health_port = free_port();
+    let health_listen = format!("127.0.0.1:{health_port}");
     let server = start_server(&[
+        "--health-listen",
+        &health_listen,
         "--tls-cert",
         cert.to_str().unwrap(),
         "--tls-key",
@@ -258,6 +262,18 @@ fn tls_with_a_self_signed_certificate_and_a_token_work_end_to_end_through_the_cl
         let stderr = String::from_utf8_lossy(&out.stderr);
         assert!(stderr.contains("Unauthenticated"), "{token:?}: {stderr}");
     }
+    // Probes that cannot speak TLS ask the plaintext health port, which serves nothing else.
+    let plain_health = format!("http://{health_listen}");
+    let probe = |args: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_alignist"))
+            .args(["--server", &plain_health, "--timeout-s", "5"])
+            .args(args)
+            .output()
+            .unwrap()
+    };
+    let out = probe(&["health"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(!probe(&["models"]).status.success());
     // Plaintext to the TLS port does not get an answer.
     let plain = format!("http://127.0.0.1:{port}");
     let out = Command::new(env!("CARGO_BIN_EXE_alignist"))

@@ -131,6 +131,10 @@ struct Cli {
     /// `authorization: Bearer TOKEN` (UNAUTHENTICATED otherwise). Use it with TLS.
     #[arg(long, env = "ALIGNIST_AUTH_TOKEN_FILE")]
     auth_token_file: Option<PathBuf>,
+    /// A second address, plaintext, serving only the health checks (grpc.health.v1), for
+    /// probes that cannot speak TLS (Kubernetes' gRPC probes); "off" (the default) for none.
+    #[arg(long, env = "ALIGNIST_HEALTH_LISTEN", default_value = "off")]
+    health_listen: String,
 }
 
 /// Allocations of 1 MiB and more (request bodies, images, distributions) are mapped from the OS
@@ -199,6 +203,13 @@ fn main() -> Result<()> {
                 .with_context(|| format!("--metrics-listen '{s}' is not an address or 'off'"))?,
         ),
     };
+    let health_listen = match cli.health_listen.as_str() {
+        "off" | "" => None,
+        s => Some(
+            s.parse::<SocketAddr>()
+                .with_context(|| format!("--health-listen '{s}' is not an address or 'off'"))?,
+        ),
+    };
     let config = ServerConfig {
         models: cli.models,
         listen: cli.listen,
@@ -252,6 +263,7 @@ fn main() -> Result<()> {
             .zip(cli.tls_key)
             .map(|(cert, key)| TlsFiles { cert, key }),
         auth_token,
+        health_listen,
     };
     if cli.max_in_flight_mib << 20 < cli.max_image_bytes {
         bail!(

@@ -51,6 +51,9 @@ pub struct ServerConfig {
     pub tls: Option<TlsFiles>,
     /// The bearer token every call but the health checks must carry (`None`: no token).
     pub auth_token: Option<Token>,
+    /// A second, plaintext address that serves only `grpc.health.v1` (`None`: none): for
+    /// probes that cannot speak TLS, such as Kubernetes' gRPC probes.
+    pub health_listen: Option<SocketAddr>,
 }
 
 impl ServerConfig {
@@ -72,6 +75,7 @@ impl ServerConfig {
             keepalive_interval: None,
             tls: None,
             auth_token: None,
+            health_listen: None,
         }
     }
 }
@@ -467,6 +471,21 @@ pub async fn run(
         config.admission,
     ))
     .max_decoding_message_size(config.engine.image_limits.max_bytes + (1 << 20));
+    if let Some(addr) = config.health_listen {
+        let listener = TcpListener::bind(addr)
+            .await
+            .map_err(|source| ServeError::Bind { addr, source })?;
+        info!(%addr, "plaintext health checks listening");
+        let health_only = Server::builder()
+            .add_service(health_service.clone())
+            .serve_with_incoming(BoundedIncoming::new(listener, config.transport));
+        // It lives as long as the process: a draining server still answers NOT_SERVING there.
+        tokio::spawn(async move {
+            if let Err(e) = health_only.await {
+                error!("plaintext health checks stopped: {e}");
+            }
+        });
+    }
     let loader = spawn_loader(&config, state, health.clone(), hup);
     let (stop_accepting, stopped) = tokio::sync::oneshot::channel::<()>();
     // Connections bounded in number and time, TCP_NODELAY on each (with Nagle's algorithm a
