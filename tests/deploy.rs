@@ -110,3 +110,39 @@ fn the_disruption_budget_selects_the_deployments_pods_as_kustomize_renders_them(
     let readiness = &deployment[deployment.find("readinessProbe").unwrap()..];
     assert!(readiness[..200].contains("service: alignist.v1.Alignist"));
 }
+
+#[test]
+fn deployments_serve_tls_with_a_token_and_probe_the_plaintext_health_port() {
+    let d = read("deploy/k8s/deployment.yaml");
+    for key in [
+        "ALIGNIST_TLS_CERT",
+        "ALIGNIST_TLS_KEY",
+        "ALIGNIST_AUTH_TOKEN_FILE",
+        "secretName: alignist-tls",
+        "secretName: alignist-token",
+        "fsGroup: 10001",
+    ] {
+        assert!(d.contains(key), "deployment.yaml lacks {key}");
+    }
+    // Every probe asks the port the health-only listener binds.
+    let at = d.find("ALIGNIST_HEALTH_LISTEN").unwrap();
+    let health_port = number_after(&d[at..], "value: \"0.0.0.0:");
+    for probe in ["startupProbe", "readinessProbe", "livenessProbe"] {
+        let at = d.find(probe).unwrap();
+        assert_eq!(number_after(&d[at..], "port"), health_port, "{probe}");
+    }
+    let f = read("deploy/Dockerfile");
+    let at = f.find("ALIGNIST_HEALTH_LISTEN").unwrap();
+    let port = number_after(&f[at..], "=127.0.0.1:");
+    assert!(f.contains(&format!("\"http://127.0.0.1:{port}\"")));
+    let compose = read("deploy/docker-compose.yml");
+    for key in [
+        "ALIGNIST_TLS_CERT: /run/secrets/tls_cert",
+        "ALIGNIST_TLS_KEY: /run/secrets/tls_key",
+        "ALIGNIST_AUTH_TOKEN_FILE: /run/secrets/auth_token",
+        "file: ./secrets/server.pem",
+    ] {
+        assert!(compose.contains(key), "docker-compose.yml lacks {key}");
+    }
+    assert!(read("deploy/make-secrets.sh").contains("deploy/secrets"));
+}
