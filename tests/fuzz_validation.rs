@@ -1,6 +1,9 @@
 //! Property tests (the fuzz target, since cargo-fuzz needs nightly): request images — random
 //! bytes, mutated PNG/JPEG, raw sizes, crop boxes — and request options through the engine's
 //! validation never panic, and every answer is either a correct-size crop or a named error.
+//! Request messages too: valid `FrameRequest` encodings, mutated and cut, either fail to decode
+//! or go through the frame path's validation (intrinsics, boxes, image) to crops or named
+//! errors.
 //! `PROPTEST_CASES=N` sets the number of cases (the closing note reports a long run).
 
 mod common;
@@ -146,6 +149,97 @@ proptest! {
             Err(EngineError::InvalidArgument { field, .. }) | Err(EngineError::ResourceExhausted { field, .. }) => {
                 prop_assert_eq!(field, "depth.xyz");
             }
+            Err(e) => prop_assert!(false, "{e}"),
+        }
+    }
+}
+
+/// A valid PredictFrame request, encoded: a 48 × 40 PNG, intrinsics, two boxes.
+fn frame_message() -> Vec<u8> {
+    use alignist::serve::proto::{Detection, FrameRequest, ImageInput, Intrinsics, PixelBox};
+    use prost::Message;
+    FrameRequest {
+        model: "tiny".into(),
+        image: Some(ImageInput {
+            data: png(48, 40, 7),
+            ..Default::default()
+        }),
+        intrinsics: Some(Intrinsics {
+            fx: 50.0,
+            fy: 50.0,
+            cx: 24.0,
+            cy: 20.0,
+        }),
+        detections: vec![
+            Detection {
+                bbox: Some(PixelBox {
+                    x: 4.5,
+                    y: 3.0,
+                    width: 20.0,
+                    height: 18.25,
+                }),
+                ..Default::default()
+            },
+            Detection {
+                bbox: Some(PixelBox {
+                    x: -10.0,
+                    y: 20.0,
+                    width: 30.0,
+                    height: 30.0,
+                }),
+                object: "cube".into(),
+                ..Default::default()
+            },
+        ],
+        top_k: 3,
+        ..Default::default()
+    }
+    .encode_to_vec()
+}
+
+proptest! {
+    #[test]
+    fn mutated_frame_messages_decode_or_fail_and_validate_to_crops_or_named_errors(
+        flips in proptest::collection::vec((any::<usize>(), any::<u8>()), 0..12),
+        cut in proptest::option::of(any::<usize>()),
+        tail in proptest::collection::vec(any::<u8>(), 0..16)) {
+        use alignist::engine::{Intrinsics, prepare_frame};
+        use alignist::serve::proto::FrameRequest;
+        use prost::Message;
+        let mut bytes = frame_message();
+        let n = bytes.len();
+        for (at, value) in flips {
+            bytes[at % n] = value;
+        }
+        if let Some(cut) = cut {
+            bytes.truncate(cut % (n + 1));
+        }
+        bytes.extend(tail);
+        let Ok(request) = FrameRequest::decode(&bytes[..]) else {
+            return Ok(());
+        };
+        let intrinsics = request.intrinsics.map(|i| Intrinsics { fx: i.fx, fy: i.fy, cx: i.cx, cy: i.cy });
+        let image = request.image.unwrap_or_default();
+        let raw_size = (image.width > 0 && image.height > 0).then_some((image.width, image.height));
+        let boxes: Vec<CropBox> = request
+            .detections
+            .iter()
+            .filter_map(|d| {
+                d.bbox.map(|b| CropBox { x: b.x, y: b.y, width: b.width, height: b.height })
+                    .or(d.r#box.map(|c| CropBox::pixels(c.x, c.y, c.width, c.height)))
+            })
+            .collect();
+        let Some(intrinsics) = intrinsics else { return Ok(()); };
+        let limits = ImageLimits { max_bytes: 1 << 20, max_pixels: 1 << 20 };
+        let request = ImageRequest { data: &image.data, raw_size, crop: None };
+        match prepare_frame(&request, &intrinsics, &boxes, 16, &limits) {
+            Ok(crops) => {
+                prop_assert_eq!(crops.len(), boxes.len());
+                for c in &crops {
+                    prop_assert_eq!(c.rgb.len(), 16 * 16 * 3);
+                }
+            }
+            Err(EngineError::InvalidArgument { .. }) | Err(EngineError::ResourceExhausted { .. }) => {}
             Err(e) => prop_assert!(false, "{e}"),
         }
     }
