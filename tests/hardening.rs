@@ -412,12 +412,19 @@ async fn a_refused_reload_of_the_only_bundle_is_listed_and_the_previous_one_serv
         if let Some(f) = failed.into_iter().next() {
             break f;
         }
-        assert!(std::time::Instant::now() < deadline, "the refusal is never listed");
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the refusal is never listed"
+        );
         tokio::time::sleep(Duration::from_millis(200)).await;
     };
     assert_eq!(failure.name, "tiny");
     assert!(failure.serving_previous, "{failure:?}");
-    assert!(failure.error.contains("network.layers"), "{}", failure.error);
+    assert!(
+        failure.error.contains("network.layers"),
+        "{}",
+        failure.error
+    );
     let answer = AlignistClient::new(ch.clone())
         .predict(predict_request(8, 1, 1))
         .await

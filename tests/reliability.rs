@@ -81,7 +81,11 @@ async fn models_swap_under_load_without_a_failed_call_and_a_corrupt_one_is_refus
         ..Default::default()
     };
     let load = tokio::spawn(run_load(
-        vec![ch.clone()],
+        vec![
+            alignist::client::connect(&server.grpc, Duration::from_secs(60))
+                .await
+                .unwrap(),
+        ],
         request.clone(),
         1500,
         8,

@@ -98,7 +98,11 @@ async fn unfinished_bodies_are_dropped_after_the_body_timeout_and_their_memory_f
     assert_eq!(answer.top.len(), 1);
     let metrics = http_get(&server.metrics).await;
     assert_eq!(
-        metric(&metrics, "alignist_refused_total", &["reason=\"body_timeout\""]),
+        metric(
+            &metrics,
+            "alignist_refused_total",
+            &["reason=\"body_timeout\""]
+        ),
         24.0
     );
 }
@@ -124,7 +128,11 @@ async fn eleven_hundred_silent_sockets_do_not_stop_a_health_check() {
     let sockets = 1100;
     // The server under the usual container limit of 1 024 open files, with the default
     // connection cap (512) and handshake timeout (10 s); this process needs more.
-    assert_eq!(allow_open_files(1024), 1024, "cannot set the open-files limit");
+    assert_eq!(
+        allow_open_files(1024),
+        1024,
+        "cannot set the open-files limit"
+    );
     let server = start_server(&[]);
     assert!(
         allow_open_files(sockets + 200) >= sockets + 200,
@@ -181,7 +189,10 @@ async fn a_silent_connection_is_closed_after_the_handshake_timeout() {
         }
     })
     .await;
-    assert!(closed.is_ok(), "a silent connection was held past its handshake timeout");
+    assert!(
+        closed.is_ok(),
+        "a silent connection was held past its handshake timeout"
+    );
     let metrics = http_get(&server.metrics).await;
     assert!(
         metric(
@@ -272,7 +283,11 @@ fn tls_with_a_self_signed_certificate_and_a_token_work_end_to_end_through_the_cl
             .unwrap()
     };
     let out = probe(&["health"]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     assert!(!probe(&["models"]).status.success());
     // Plaintext to the TLS port does not get an answer.
     let plain = format!("http://127.0.0.1:{port}");
