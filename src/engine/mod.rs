@@ -431,6 +431,9 @@ impl DepthInput<'_> {
     }
 }
 
+/// The angle within which top cells are grouped into one mode, unless a call gives its own.
+pub const DEFAULT_MODE_ANGLE_DEG: f64 = 15.0;
+
 /// What a prediction asks for beyond the image.
 #[derive(Debug, Clone, Default)]
 pub struct PredictOptions {
@@ -438,7 +441,7 @@ pub struct PredictOptions {
     pub top_k: usize,
     /// Finest search level (`None`: the default).
     pub level: Option<u8>,
-    /// Mode grouping angle in degrees (`None`: 15°).
+    /// Mode grouping angle in degrees (`None`: [`DEFAULT_MODE_ANGLE_DEG`]).
     pub mode_angle_deg: Option<f64>,
     /// Set when the caller went away: the search stops at its next level or chunk.
     pub cancel: Cancel,
@@ -841,7 +844,10 @@ impl Model {
             Ok::<_, EngineError>(logits)
         })?;
         let grid = &self.grids[level as usize];
-        let angle = options.mode_angle_deg.unwrap_or(15.0).to_radians();
+        let angle = options
+            .mode_angle_deg
+            .unwrap_or(DEFAULT_MODE_ANGLE_DEG)
+            .to_radians();
         Ok(results
             .into_iter()
             .zip(depth.iter().zip(&fusion.fitted))

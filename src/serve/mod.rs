@@ -1034,7 +1034,7 @@ pub fn model_info(model: &Model) -> ModelInfo {
         }),
         network_sha256: m
             .files
-            .get("network.safetensors")
+            .get(crate::bundle::model::NETWORK_FILE)
             .map(|f| f.sha256.clone())
             .unwrap_or_default(),
     }

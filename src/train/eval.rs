@@ -47,6 +47,10 @@ pub struct EvalReport {
     pub chance_ar30: Vec<(String, f64)>,
 }
 
+/// The finest level evaluated or scored in full: level 5 already has 2 359 296 cells (level 6,
+/// [`crate::so3::MAX_LEVEL`], eight times more, is only searched).
+pub const MAX_EVAL_LEVEL: u8 = 5;
+
 /// Evaluates `network` on `images` at grid `level`.
 pub fn evaluate(
     network: &Network,

@@ -309,8 +309,12 @@ pub(crate) fn eval_cmd(args: &EvalArgs) -> Result<()> {
     use alignist::train::data::eval_images;
     use alignist::train::eval::evaluate;
 
-    if args.level > 5 {
-        bail!("--level {} is above 5", args.level);
+    if args.level > alignist::train::eval::MAX_EVAL_LEVEL {
+        bail!(
+            "--level {} is above {}",
+            args.level,
+            alignist::train::eval::MAX_EVAL_LEVEL
+        );
     }
     let bundle = ModelBundle::load(&args.model)
         .with_context(|| format!("loading --model {}", args.model.display()))?;

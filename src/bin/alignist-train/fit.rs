@@ -238,8 +238,12 @@ impl FitArgs {
                 self.image_size
             );
         }
-        if self.eval_level > 5 {
-            bail!("--eval-level {} is above 5", self.eval_level);
+        if self.eval_level > alignist::train::eval::MAX_EVAL_LEVEL {
+            bail!(
+                "--eval-level {} is above {}",
+                self.eval_level,
+                alignist::train::eval::MAX_EVAL_LEVEL
+            );
         }
         for (flag, v) in [
             ("--steps", self.steps),

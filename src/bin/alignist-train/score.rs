@@ -77,7 +77,7 @@ pub(crate) fn score_cmd(args: &ScoreArgs) -> Result<()> {
     use alignist::so3::{SymmetryGroup, equivalents, haar_rotation};
     use rand::SeedableRng;
 
-    if args.level > 5 {
+    if args.level > alignist::train::eval::MAX_EVAL_LEVEL {
         bail!(
             "--level {} is above 5 (level 5 already has 2 359 296 cells)",
             args.level
