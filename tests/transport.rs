@@ -24,6 +24,80 @@ fn address(server: &Server) -> String {
     server.grpc.trim_start_matches("http://").to_string()
 }
 
+/// A Predict call on `h2` whose message declares `declared` bytes and sends `sent` of them,
+/// never finishing: its answer and its open body.
+async fn unfinished_predict(
+    h2: h2::client::SendRequest<Bytes>,
+    server: &Server,
+    declared: u32,
+    sent: usize,
+) -> (
+    h2::client::SendRequest<Bytes>,
+    (h2::client::ResponseFuture, h2::SendStream<Bytes>),
+) {
+    let mut h2 = h2.ready().await.unwrap();
+    let request = http::Request::post(format!(
+        "http://{}/alignist.v1.Alignist/Predict",
+        address(server)
+    ))
+    .header("content-type", "application/grpc")
+    .header("te", "trailers")
+    .body(())
+    .unwrap();
+    let (response, mut body) = h2.send_request(request, false).unwrap();
+    let mut data = vec![0u8; 5 + sent];
+    data[1..5].copy_from_slice(&declared.to_be_bytes());
+    body.send_data(Bytes::from(data), false).unwrap();
+    (h2, (response, body))
+}
+
+/// The `grpc-status` of an answer's headers.
+fn grpc_status(response: &http::Response<h2::RecvStream>) -> Option<String> {
+    response
+        .headers()
+        .get("grpc-status")
+        .map(|v| v.to_str().unwrap().to_string())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn unfinished_bodies_over_the_receive_budget_are_refused_at_once() {
+    let server = start_server(&["--max-receiving-mib", "8", "--body-timeout-s", "20"]);
+    wait_serving(channel(&server).await).await;
+    let tcp = tokio::net::TcpStream::connect(address(&server))
+        .await
+        .unwrap();
+    let (h2, connection) = h2::client::handshake(tcp).await.unwrap();
+    tokio::spawn(connection);
+    // 6 MiB of a first body are held; 6 MiB more of a second do not fit in 8 MiB.
+    let (h2, (mut first, _first_body)) = unfinished_predict(h2, &server, 7 << 20, 6 << 20).await;
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let (_h2, (second, _second_body)) = unfinished_predict(h2, &server, 7 << 20, 6 << 20).await;
+    let answer = tokio::time::timeout(Duration::from_secs(5), second)
+        .await
+        .expect("the call over the budget was not refused at once")
+        .unwrap();
+    assert_eq!(
+        grpc_status(&answer).as_deref(),
+        Some("8"),
+        "{:?}",
+        answer.headers()
+    );
+    // The first is still waiting for its body (no answer yet).
+    assert!(
+        tokio::time::timeout(Duration::from_millis(300), &mut first)
+            .await
+            .is_err()
+    );
+    let metrics = http_get(&server.metrics).await;
+    assert!(
+        metric(
+            &metrics,
+            "alignist_refused_total",
+            &["reason=\"receive_budget\""]
+        ) >= 1.0
+    );
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn unfinished_bodies_are_dropped_after_the_body_timeout_and_their_memory_freed() {
     let server = start_server(&["--body-timeout-s", "3"]);
@@ -45,20 +119,9 @@ async fn unfinished_bodies_are_dropped_after_the_body_timeout_and_their_memory_f
     let mut calls = Vec::new();
     let started = Instant::now();
     for _ in 0..24 {
-        h2 = h2.ready().await.unwrap();
-        let request = http::Request::post(format!(
-            "http://{}/alignist.v1.Alignist/Predict",
-            address(&server)
-        ))
-        .header("content-type", "application/grpc")
-        .header("te", "trailers")
-        .body(())
-        .unwrap();
-        let (response, mut body) = h2.send_request(request, false).unwrap();
-        let mut data = vec![0u8; 5 + (7 << 20)];
-        data[1..5].copy_from_slice(&(8u32 << 20).to_be_bytes());
-        body.send_data(Bytes::from(data), false).unwrap();
-        calls.push((response, body));
+        let call;
+        (h2, call) = unfinished_predict(h2, &server, 8 << 20, 7 << 20).await;
+        calls.push(call);
     }
     // The server takes the bytes in (its memory grows) ...
     let mut peak = baseline;
@@ -76,11 +139,12 @@ async fn unfinished_bodies_are_dropped_after_the_body_timeout_and_their_memory_f
             .await
             .expect("no answer after the body timeout")
             .unwrap();
-        let code = answer
-            .headers()
-            .get("grpc-status")
-            .map(|v| v.to_str().unwrap().to_string());
-        assert_eq!(code.as_deref(), Some("4"), "{:?}", answer.headers());
+        assert_eq!(
+            grpc_status(&answer).as_deref(),
+            Some("4"),
+            "{:?}",
+            answer.headers()
+        );
     }
     assert!(started.elapsed() >= Duration::from_secs(3));
     tokio::time::sleep(Duration::from_millis(500)).await;
