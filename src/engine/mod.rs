@@ -4,6 +4,7 @@
 
 pub mod cancel;
 pub mod depth;
+pub mod frame;
 pub mod fusion;
 pub mod image;
 pub mod search;
@@ -20,6 +21,7 @@ pub use self::image::{
 };
 pub use cancel::{Cancel, CancelOnDrop};
 pub use depth::{BackProjected, DepthMap, DepthRequest, back_project, decode_depth, decode_mask};
+pub use frame::{CropDepth, DetectionDepth};
 pub use fusion::{CameraPoints, DepthFusion, ViewTable};
 pub use search::{CellProbability, Mode, SearchResult, coarse_to_fine_many, group_modes};
 

@@ -24,7 +24,7 @@ struct HeadJob {
     features: Vec<f32>,
     options: PredictOptions,
     /// The depth points, when depth was given.
-    depth: Option<super::CropDepth>,
+    depth: Option<crate::engine::CropDepth>,
     reply: oneshot::Sender<Result<Prediction, Status>>,
 }
 
@@ -68,7 +68,7 @@ impl HeadStage {
         &self,
         features: Vec<f32>,
         mut options: PredictOptions,
-        depth: Option<super::CropDepth>,
+        depth: Option<crate::engine::CropDepth>,
     ) -> Result<Prediction, Status> {
         let (reply, answer) = oneshot::channel();
         options.cancel = Cancel::new();

@@ -22,7 +22,8 @@ use tonic::{Request, Response, Status};
 pub use batcher::{BatchConfig, BatchError, Batcher};
 
 use crate::engine::{
-    Cancel, CropBox, DepthInput, Engine, ImageRequest, Model, PredictOptions, SeenPoints,
+    Cancel, CropBox, CropDepth, DetectionDepth, Engine, ImageRequest, Model, PredictOptions,
+    SeenPoints,
 };
 
 /// Generated protobuf types and the service's file descriptor set (for reflection).
@@ -193,26 +194,6 @@ async fn blocking<T: Send + 'static>(
     })?;
     guard.disarm();
     result
-}
-
-/// The depth of one crop: the object its points belong to (its index in the model) and the
-/// points, in the crop camera's frame.
-#[derive(Debug, Clone)]
-pub struct CropDepth {
-    /// The object's index in the model.
-    pub object: usize,
-    /// The points.
-    pub points: SeenPoints,
-}
-
-impl CropDepth {
-    /// The engine's depth input for this crop, of `model`.
-    pub fn input<'a>(&'a self, model: &'a Model) -> DepthInput<'a> {
-        DepthInput {
-            object: &model.objects[self.object],
-            points: &self.points,
-        }
-    }
 }
 
 /// The validated parts common to Predict and PredictDistribution.
@@ -757,10 +738,8 @@ fn objects_for_depth(model: &Model, detections: &[proto::Detection]) -> Result<V
         .collect()
 }
 
-/// The depth points of every detection of a frame request, from its depth image: the valid
-/// pixels inside its box (and mask), back-projected with the frame's intrinsics, in the
-/// normalised units of its object and the frame of its crop's virtual camera (`R_rayᵀ·p`), where
-/// the engine's rotations live.
+/// The depth points of every detection of a frame request ([`Model::frame_depth`]): the
+/// request's depth image and detections, converted.
 #[allow(clippy::too_many_arguments)]
 fn frame_depth(
     model: &Model,
@@ -772,7 +751,6 @@ fn frame_depth(
     objects: &[usize],
     rays: &[nalgebra::Rotation3<f64>],
 ) -> Result<Vec<Option<CropDepth>>, Status> {
-    use crate::engine::{DepthRequest, back_project, decode_depth, decode_mask};
     let raw_size = match (depth.width, depth.height) {
         (0, 0) => None,
         (w, h) if w > 0 && h > 0 => Some((w, h)),
@@ -786,59 +764,25 @@ fn frame_depth(
             ));
         }
     };
-    let request = DepthRequest {
+    let request = crate::engine::DepthRequest {
         data: &depth.data,
         raw_size,
         scale: depth.scale,
     };
-    let map = decode_depth(&request, &model.config().image_limits).map_err(status_of)?;
-    if (map.width, map.height) != image_size {
-        return Err(invalid_field(
-            "depth.data",
-            format!(
-                "is {}×{}, not the image's {}×{}: the depth image must be registered to the \
-                 colour image",
-                map.width, map.height, image_size.0, image_size.1
-            ),
-        ));
-    }
-    detections
+    let detections: Vec<DetectionDepth> = detections
         .iter()
         .enumerate()
-        .map(|(i, d)| {
-            let mask = match d.mask.is_empty() {
-                true => None,
-                false => Some(
-                    decode_mask(
-                        &d.mask,
-                        map.width,
-                        map.height,
-                        &model.config().image_limits,
-                        &format!("detections[{i}].mask"),
-                    )
-                    .map_err(status_of)?,
-                ),
-            };
-            let points = back_project(
-                &map,
-                intrinsics,
-                &boxes[i],
-                mask.as_deref(),
-                model.config().depth_image_points,
-                &format!("detections[{i}].box"),
-            )
-            .map_err(status_of)?;
-            let seen = model.objects[objects[i]]
-                .fusion
-                .camera_points(&points, "depth.scale")
-                .map_err(status_of)?;
-            let to_virtual = rays[i].inverse().cast::<f32>();
-            Ok(Some(CropDepth {
-                object: objects[i],
-                points: SeenPoints::Camera(seen.turned(&to_virtual)),
-            }))
+        .map(|(i, d)| DetectionDepth {
+            bbox: &boxes[i],
+            mask: (!d.mask.is_empty()).then_some(&d.mask[..]),
+            object: objects[i],
+            ray: &rays[i],
         })
-        .collect()
+        .collect();
+    let depths = model
+        .frame_depth(&request, image_size, intrinsics, &detections)
+        .map_err(status_of)?;
+    Ok(depths.into_iter().map(Some).collect())
 }
 
 type ChunkStream = Pin<Box<dyn Stream<Item = Result<DistributionChunk, Status>> + Send>>;
