@@ -447,6 +447,11 @@ pub async fn run(
     if let Some(addr) = config.metrics_listen {
         install_metrics(addr)?;
     }
+    // The TLS files are read before the port is bound: a wrong path fails before "listening".
+    let tls = match &config.tls {
+        Some(files) => Some((files.config(config.transport.handshake_timeout)?, files)),
+        None => None,
+    };
     let listener = bind(config.listen).await?;
     let (health, health_service) = tonic_health::server::health_reporter();
     health.set_service_status("", ServingStatus::Serving).await;
@@ -492,13 +497,11 @@ pub async fn run(
     // response waits for the client's delayed ACK, ~40 ms on Linux).
     let incoming = BoundedIncoming::new(listener, config.transport);
     let mut builder = Server::builder();
-    if let Some(tls) = &config.tls {
-        builder = builder
-            .tls_config(tls.config(config.transport.handshake_timeout)?)
-            .map_err(|e| ServeError::Tls {
-                path: format!("{} and {}", tls.cert.display(), tls.key.display()),
-                message: e.to_string(),
-            })?;
+    if let Some((tls, files)) = tls {
+        builder = builder.tls_config(tls).map_err(|e| ServeError::Tls {
+            path: format!("{} and {}", files.cert.display(), files.key.display()),
+            message: e.to_string(),
+        })?;
     }
     let mut builder = builder
         .max_concurrent_streams(config.max_concurrent_streams)
