@@ -24,6 +24,28 @@ fn address(server: &Server) -> String {
     server.grpc.trim_start_matches("http://").to_string()
 }
 
+/// A raw HTTP/2 connection to `server` (its driver spawned).
+async fn h2_connection(server: &Server) -> h2::client::SendRequest<Bytes> {
+    let tcp = tokio::net::TcpStream::connect(address(server))
+        .await
+        .unwrap();
+    let (h2, connection) = h2::client::handshake(tcp).await.unwrap();
+    tokio::spawn(connection);
+    h2
+}
+
+/// The headers of a gRPC Predict call.
+fn predict_headers(server: &Server) -> http::Request<()> {
+    http::Request::post(format!(
+        "http://{}/alignist.v1.Alignist/Predict",
+        address(server)
+    ))
+    .header("content-type", "application/grpc")
+    .header("te", "trailers")
+    .body(())
+    .unwrap()
+}
+
 /// A Predict call on `h2` whose message declares `declared` bytes and sends `sent` of them,
 /// never finishing: its answer and its open body.
 async fn unfinished_predict(
@@ -36,15 +58,7 @@ async fn unfinished_predict(
     (h2::client::ResponseFuture, h2::SendStream<Bytes>),
 ) {
     let mut h2 = h2.ready().await.unwrap();
-    let request = http::Request::post(format!(
-        "http://{}/alignist.v1.Alignist/Predict",
-        address(server)
-    ))
-    .header("content-type", "application/grpc")
-    .header("te", "trailers")
-    .body(())
-    .unwrap();
-    let (response, mut body) = h2.send_request(request, false).unwrap();
+    let (response, mut body) = h2.send_request(predict_headers(server), false).unwrap();
     let mut data = vec![0u8; 5 + sent];
     data[1..5].copy_from_slice(&declared.to_be_bytes());
     body.send_data(Bytes::from(data), false).unwrap();
@@ -63,11 +77,7 @@ fn grpc_status(response: &http::Response<h2::RecvStream>) -> Option<String> {
 async fn unfinished_bodies_over_the_receive_budget_are_refused_at_once() {
     let server = start_server(&["--max-receiving-mib", "8", "--body-timeout-s", "20"]);
     wait_serving(channel(&server).await).await;
-    let tcp = tokio::net::TcpStream::connect(address(&server))
-        .await
-        .unwrap();
-    let (h2, connection) = h2::client::handshake(tcp).await.unwrap();
-    tokio::spawn(connection);
+    let h2 = h2_connection(&server).await;
     // 6 MiB of a first body are held; 6 MiB more of a second do not fit in 8 MiB.
     let (h2, (mut first, _first_body)) = unfinished_predict(h2, &server, 7 << 20, 6 << 20).await;
     tokio::time::sleep(Duration::from_millis(500)).await;
@@ -111,11 +121,7 @@ async fn unfinished_bodies_are_dropped_after_the_body_timeout_and_their_memory_f
 
     // 24 Predict calls on one connection, each declaring an 8 MiB message and sending 7 MiB of
     // it, never finishing.
-    let tcp = tokio::net::TcpStream::connect(address(&server))
-        .await
-        .unwrap();
-    let (mut h2, connection) = h2::client::handshake(tcp).await.unwrap();
-    tokio::spawn(connection);
+    let mut h2 = h2_connection(&server).await;
     let mut calls = Vec::new();
     let started = Instant::now();
     for _ in 0..24 {
@@ -367,21 +373,8 @@ fn tls_with_a_self_signed_certificate_and_a_token_work_end_to_end_through_the_cl
 /// Sends one Predict call of raw `body` bytes on a fresh HTTP/2 connection and returns the
 /// answer's headers and trailers merged (a refusal comes trailers-only, in the headers).
 async fn raw_predict(server: &Server, body: Vec<u8>) -> http::HeaderMap {
-    let tcp = tokio::net::TcpStream::connect(address(server))
-        .await
-        .unwrap();
-    let (h2, connection) = h2::client::handshake(tcp).await.unwrap();
-    tokio::spawn(connection);
-    let mut h2 = h2.ready().await.unwrap();
-    let request = http::Request::post(format!(
-        "http://{}/alignist.v1.Alignist/Predict",
-        address(server)
-    ))
-    .header("content-type", "application/grpc")
-    .header("te", "trailers")
-    .body(())
-    .unwrap();
-    let (response, mut send) = h2.send_request(request, false).unwrap();
+    let mut h2 = h2_connection(server).await.ready().await.unwrap();
+    let (response, mut send) = h2.send_request(predict_headers(server), false).unwrap();
     send.send_data(Bytes::from(body), true).unwrap();
     let response = response.await.unwrap();
     let mut headers = response.headers().clone();
