@@ -91,7 +91,7 @@ impl ConnState {
 struct Registry {
     open: AtomicUsize,
     pending: Mutex<VecDeque<Weak<ConnState>>>,
-    /// Seconds since [`Registry::epoch`] of the last "connection cap" log line.
+    /// The second since [`Registry::epoch`] (plus one) of the last "connection cap" log line.
     last_log: AtomicU64,
     epoch: Option<Instant>,
 }
@@ -114,9 +114,9 @@ impl Registry {
 
     /// Logs the refusal at most once a second.
     fn log_refusal(&self, max: usize) {
-        let now = self.epoch.map_or(0, |e| e.elapsed().as_secs());
-        let last = self.last_log.swap(now, Ordering::Relaxed);
-        if last != now || now == 0 {
+        // The second since the epoch, plus one: 0 means "never logged".
+        let second = self.epoch.map_or(0, |e| e.elapsed().as_secs()) + 1;
+        if self.last_log.swap(second, Ordering::Relaxed) != second {
             warn!(
                 max_connections = max,
                 "connection refused: the server holds its most connections"
