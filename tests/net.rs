@@ -143,18 +143,44 @@ fn spread_rotations(rows: usize, offset: f64) -> Vec<[f32; 9]> {
         .collect()
 }
 
-/// The fused inference head against the burn head it is read from: both branches, for row counts
-/// around the tile size (odd, one under, at and over a tile boundary, several tiles).
+/// The fused inference head against the burn head it is read from, on each set of kernels (the
+/// widest this core has, AVX2, matrixmultiply): both branches, for row counts around the
+/// kernels' row blocks (6, 12) and the tile size (odd, one under, at and over a tile boundary,
+/// several tiles).
 fn assert_fused_matches(
     head: &alignist::net::DualHead,
     image_dim: usize,
     encoding: &RotationEncoding,
     d: &Device,
 ) {
-    use alignist::net::FusedHead;
-    let fused = FusedHead::new(head);
+    use alignist::net::{FusedHead, Kernels, Precision, Rows};
+    for kernels in [Kernels::Widest, Kernels::Avx2, Kernels::Portable] {
+        let fused = FusedHead::with_kernels(head, kernels);
+        eprintln!("{kernels}: {}", fused.kernel_paths());
+        assert_fused_matches_on(&fused, head, image_dim, encoding, d);
+        // From encodings (the finer levels of a search), the kernels project inside the tiles.
+        let rotations = spread_rotations(300, 0.5);
+        let enc = encoding.encode(&rotations);
+        let features: Vec<f32> = (0..image_dim).map(|i| (i % 5) as f32 / 5.0).collect();
+        let image = fused.image_term(&features);
+        let projected = fused.branch_scores(&image, &fused.project_rotations(&enc));
+        let encoded = fused.branch_scores_in(Precision::F32, &image, Rows::Encoded(&enc));
+        for (p, e) in projected.0.iter().zip(&encoded.0) {
+            assert!((p - e).abs() <= 1e-4 * p.abs().max(1.0), "{kernels}: {p} against {e}");
+        }
+    }
+}
+
+/// [`assert_fused_matches`] for one set of kernels.
+fn assert_fused_matches_on(
+    fused: &alignist::net::FusedHead,
+    head: &alignist::net::DualHead,
+    image_dim: usize,
+    encoding: &RotationEncoding,
+    d: &Device,
+) {
     let tile = alignist::net::fused::TILE_ROWS;
-    for (case, rows) in [1, 7, tile - 1, tile, tile + 1, 2 * tile + 3, 1001]
+    for (case, rows) in [1, 7, 11, 12, 13, tile - 1, tile, tile + 1, 2 * tile + 3, 1001]
         .into_iter()
         .enumerate()
     {
@@ -179,7 +205,8 @@ fn assert_fused_matches(
             for (i, (g, w)) in got.iter().zip(want.iter()).enumerate() {
                 assert!(
                     (g - w).abs() <= 1e-4 * w.abs().max(scale),
-                    "{name} branch, {rows} rows, row {i}: fused {g} against burn {w}"
+                    "{} {name} branch, {rows} rows, row {i}: fused {g} against burn {w}",
+                    fused.kernel_paths()
                 );
             }
         }
@@ -286,6 +313,16 @@ fn the_manifests_levels_cap_what_the_engine_serves() {
         model.predict(&features, &above, None),
         Err(EngineError::InvalidArgument { .. })
     ));
+}
+
+#[test]
+fn kernel_names_round_trip_and_bad_ones_are_refused() {
+    use alignist::net::Kernels;
+    for k in [Kernels::Widest, Kernels::Avx2, Kernels::Portable] {
+        assert_eq!(k.name().parse::<Kernels>(), Ok(k));
+    }
+    let err = "avx1024".parse::<Kernels>().unwrap_err();
+    assert!(err.contains("avx1024") && err.contains("portable"), "{err}");
 }
 
 #[test]

@@ -5,6 +5,7 @@
 //! sits above the engine, the transport and the client (it uses all three).
 
 pub mod depth;
+pub mod peak;
 pub mod search;
 
 use std::path::Path;

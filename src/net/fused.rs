@@ -12,6 +12,7 @@ use rayon::prelude::*;
 
 use super::DualHead;
 use super::bf16::{Bf16Head, round_bf16};
+use super::native::{F32Avx2, F32Avx512, Kernels, NativeHead};
 
 /// Rows of one tile: measured fastest among 64–512 (`examples/probe_gemm.rs`), and a tile's
 /// activations (2 × 256 rows × 256 × 4 B = 512 KiB) stay in a core's L2.
@@ -166,6 +167,43 @@ struct FusedBranch {
     output_bias: f32,
 }
 
+/// The head on one of the project's f32 kernels.
+#[derive(Debug, Clone)]
+enum F32Native {
+    Avx512(NativeHead<F32Avx512>),
+    Avx2(NativeHead<F32Avx2>),
+}
+
+impl F32Native {
+    /// The widest f32 kernel `kernels` allows and the core has, if any.
+    fn new(head: &FusedHead, kernels: Kernels) -> Option<F32Native> {
+        let avx512 = kernels
+            .allows_avx512()
+            .then(|| NativeHead::new(head).map(F32Native::Avx512))
+            .flatten();
+        avx512.or_else(|| {
+            kernels
+                .allows_own()
+                .then(|| NativeHead::new(head).map(F32Native::Avx2))
+                .flatten()
+        })
+    }
+
+    fn name(&self) -> &'static str {
+        match self {
+            F32Native::Avx512(_) => "AVX-512F kernel",
+            F32Native::Avx2(_) => "AVX2 kernel",
+        }
+    }
+
+    fn branch_scores(&self, image_term: &[f32], rows: Rows<'_>) -> (Vec<f32>, Vec<f32>) {
+        match self {
+            F32Native::Avx512(h) => h.branch_scores(image_term, rows),
+            F32Native::Avx2(h) => h.branch_scores(image_term, rows),
+        }
+    }
+}
+
 /// The fused inference head.
 #[derive(Debug, Clone)]
 pub struct FusedHead {
@@ -177,6 +215,9 @@ pub struct FusedHead {
     round_inputs: bool,
     /// The same head in bfloat16 (`None` in the emulation itself).
     bf16: Option<Box<Bf16Head>>,
+    /// The same head on the f32 512-bit kernel, where the core has it and the kernels allowed
+    /// (`None` in the emulation).
+    f32_native: Option<Box<F32Native>>,
 }
 
 /// A tile's scratch: the branch input and two activation buffers.
@@ -187,8 +228,13 @@ struct Scratch {
 }
 
 impl FusedHead {
-    /// Reads `head`'s weights.
+    /// Reads `head`'s weights, for the kernels [`Kernels::from_env`] allows.
     pub fn new(head: &DualHead) -> FusedHead {
+        FusedHead::with_kernels(head, Kernels::from_env())
+    }
+
+    /// Reads `head`'s weights, for `kernels`.
+    pub fn with_kernels(head: &DualHead, kernels: Kernels) -> FusedHead {
         let branch = |b: &super::head::Branch| {
             let (hidden, output) = b.layers();
             let output = Dense::of(output);
@@ -207,8 +253,10 @@ impl FusedHead {
             branches: [branch(shape), branch(feature)],
             round_inputs: false,
             bf16: None,
+            f32_native: None,
         };
-        head.bf16 = Some(Box::new(Bf16Head::new(&head)));
+        head.bf16 = Some(Box::new(Bf16Head::new(&head, kernels)));
+        head.f32_native = F32Native::new(&head, kernels).map(Box::new);
         head
     }
 
@@ -231,6 +279,7 @@ impl FusedHead {
             branches: [branch(&self.branches[0]), branch(&self.branches[1])],
             round_inputs: true,
             bf16: None,
+            f32_native: None,
             ..self.clone()
         }
     }
@@ -251,6 +300,26 @@ impl FusedHead {
     /// on the f32 GEMM, at the f32 rate).
     pub fn bf16_native(&self) -> bool {
         self.bf16.as_ref().is_some_and(|b| b.is_native())
+    }
+
+    /// Whether [`Precision::F32`] runs on one of the project's kernels (else on matrixmultiply's).
+    pub fn f32_native(&self) -> bool {
+        self.f32_native.is_some()
+    }
+
+    /// The kernel each precision runs on, in words (for logs and the bench).
+    pub fn kernel_paths(&self) -> String {
+        format!(
+            "f32: {}, bf16: {}",
+            self.f32_native
+                .as_ref()
+                .map_or("matrixmultiply (portable)", |k| k.name()),
+            if self.bf16_native() {
+                "AVX-512 BF16 kernel"
+            } else {
+                "emulated on the f32 GEMM"
+            }
+        )
     }
 
     /// Width of the hidden layers.
@@ -291,6 +360,9 @@ impl FusedHead {
     /// `projected` (`[n, width]`, [`FusedHead::project_rotations`]), for one image's
     /// [`FusedHead::image_term`].
     pub fn branch_scores(&self, image_term: &[f32], projected: &[f32]) -> (Vec<f32>, Vec<f32>) {
+        if let Some(native) = &self.f32_native {
+            return native.branch_scores(image_term, Rows::Projected(projected));
+        }
         let w = self.width;
         by_tiles(
             projected,
@@ -320,9 +392,10 @@ impl FusedHead {
                 let rounded: Vec<f32> = encodings.iter().copied().map(round_bf16).collect();
                 self.branch_scores(image_term, &self.project_rotations(&rounded))
             }
-            (_, _, Rows::Encoded(encodings)) => {
-                self.branch_scores(image_term, &self.project_rotations(encodings))
-            }
+            (_, _, Rows::Encoded(encodings)) => match &self.f32_native {
+                Some(native) => native.branch_scores(image_term, rows),
+                None => self.branch_scores(image_term, &self.project_rotations(encodings)),
+            },
         }
     }
 

@@ -6,12 +6,14 @@ pub mod encoder;
 pub mod fused;
 pub mod head;
 pub mod loss;
+pub mod native;
 pub mod network;
 
 pub use encoder::{Encoder, EncoderConfig, ResNetLayout};
 pub use fused::{FusedHead, Precision, Rows};
 pub use head::{BranchScores, DualHead, HeadConfig};
 pub use loss::{gkl_loss, ipdf_loss, l1_measure_loss};
+pub use native::Kernels;
 pub use network::{
     NETWORK_LIMITS, Network, NetworkConfig, NetworkLimits, ProjectedGrid, check_range,
     images_tensor,

@@ -1,0 +1,677 @@
+//! The head's own GEMM kernels and the tile driver they share. A kernel multiplies row blocks of
+//! a tile's activations by weights packed once into column panels, and applies bias and ReLU as
+//! each block leaves the registers (or, after a branch's last hidden layer, the `width → 1` dot
+//! product), so no intermediate leaves the tile. Three kernels use the driver:
+//!
+//! - [`F32Avx512`]: f32 on 512-bit FMAs (AVX-512F), blocks of 12 rows × 32 columns: the 32 KiB
+//!   panel of a 256-wide layer and the block's 12 rows stay in L1 (measured fastest of 4×64,
+//!   6×64, 12×32, 14×32, 8×48 with `examples/probe_kernels.rs`).
+//! - [`F32Avx2`]: f32 on 256-bit FMAs (AVX2 + FMA), blocks of 6 rows × 16 columns.
+//! - [`Bf16Kernel`](super::bf16): `VDPBF16PS` on AVX-512 BF16 cores.
+//!
+//! The portable path is matrixmultiply's GEMM, for cores with neither (or when asked for).
+//!
+//! Weights are packed as `[panel][group][NR][GROUP]`: `GROUP` consecutive inputs per 32-bit lane
+//! (2 for bfloat16 pairs, 1 for f32), `NR` columns per panel.
+
+use std::marker::PhantomData;
+
+use super::fused::{Dense, FusedHead, Rows, TILE_ROWS, by_tiles};
+
+/// The widest kernels a head may use; each falls back to the next narrower one the core has.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Kernels {
+    /// The widest the core has: AVX-512 (f32, and bfloat16 with AVX-512 BF16), else AVX2.
+    #[default]
+    Widest,
+    /// At most 256-bit f32 FMAs; bfloat16 emulated.
+    Avx2,
+    /// matrixmultiply's GEMM only; bfloat16 emulated.
+    Portable,
+}
+
+impl Kernels {
+    /// The environment variable that caps the kernels (`ALIGNIST_KERNELS=avx2`).
+    pub const ENV: &'static str = "ALIGNIST_KERNELS";
+
+    /// The name used by flags and the environment (`widest`, `avx2`, `portable`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Kernels::Widest => "widest",
+            Kernels::Avx2 => "avx2",
+            Kernels::Portable => "portable",
+        }
+    }
+
+    /// The kernels `ALIGNIST_KERNELS` names ([`Kernels::Widest`] when it is unset, or, with a
+    /// warning, when it names none).
+    pub fn from_env() -> Kernels {
+        match std::env::var(Self::ENV) {
+            Ok(name) => name.parse().unwrap_or_else(|e| {
+                tracing::warn!("{}: {e}; using the widest kernels", Self::ENV);
+                Kernels::Widest
+            }),
+            Err(_) => Kernels::Widest,
+        }
+    }
+
+    /// Whether the 512-bit kernels may run.
+    pub fn allows_avx512(self) -> bool {
+        self == Kernels::Widest
+    }
+
+    /// Whether the project's own kernels may run.
+    pub fn allows_own(self) -> bool {
+        self != Kernels::Portable
+    }
+}
+
+impl std::fmt::Display for Kernels {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for Kernels {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "widest" => Ok(Kernels::Widest),
+            "avx2" => Ok(Kernels::Avx2),
+            "portable" => Ok(Kernels::Portable),
+            other => Err(format!(
+                "unknown kernels `{other}` (widest, avx2 or portable)"
+            )),
+        }
+    }
+}
+
+/// A GEMM kernel of the driver: its element type and its block shape.
+pub(super) trait Kernel: Send + Sync {
+    /// What packed weights and activations hold.
+    type Elem: Copy + Default + Send + Sync + std::fmt::Debug;
+    /// Consecutive inputs per 32-bit lane.
+    const GROUP: usize;
+    /// Rows of the register block.
+    const MR: usize;
+    /// Columns of the register block and of a packed panel (even).
+    const NR: usize;
+    /// Whether this core has the kernel's instructions.
+    fn available() -> bool;
+    /// An f32 as the kernel's element.
+    fn convert(x: f32) -> Self::Elem;
+    /// `relu(input · W + bias)` for `rows` (a multiple of [`Kernel::MR`]) rows of `input` (rows
+    /// of `stride`), through `epilogue`; `pack` is the kernel's scratch, kept between calls.
+    ///
+    /// # Safety
+    /// [`Kernel::available`] holds; `layer` was packed with [`Kernel::NR`]; `bias` holds
+    /// `layer.panels × NR` values; `input` holds `rows × stride` values with `stride ≥ GROUP ×
+    /// layer.groups`; a `Store` output holds `rows` rows of its stride, which is at least
+    /// `layer.panels × NR`; a `Dot`'s `dots` hold `rows` values and its weights
+    /// `layer.panels × NR`.
+    unsafe fn gemm(
+        layer: &Packed<Self::Elem>,
+        bias: &[f32],
+        input: &[Self::Elem],
+        stride: usize,
+        rows: usize,
+        epilogue: Epilogue<'_, Self::Elem>,
+        pack: &mut Vec<Self::Elem>,
+    );
+}
+
+/// One layer's weights as column panels.
+#[derive(Debug, Clone)]
+pub(super) struct Packed<E> {
+    /// Input groups (inputs rounded up to a multiple of the group).
+    pub(super) groups: usize,
+    /// Column panels of `NR` (outputs rounded up).
+    pub(super) panels: usize,
+    /// `[panel][group][NR][GROUP]`, zero past the inputs and outputs.
+    pub(super) weight: Vec<E>,
+    /// `[panels × NR]`, zero past the outputs.
+    pub(super) bias: Vec<f32>,
+}
+
+impl<E: Copy + Default> Packed<E> {
+    /// `dense` in panels of `nr` columns, taking `padded_inputs` inputs (≥ its own, a multiple
+    /// of `group`; the extra ones weigh zero), each weight converted by `convert`.
+    fn of(
+        dense: &Dense,
+        padded_inputs: usize,
+        (group, nr): (usize, usize),
+        convert: fn(f32) -> E,
+    ) -> Packed<E> {
+        let groups = padded_inputs / group;
+        let panels = dense.outputs.div_ceil(nr);
+        let mut weight = vec![E::default(); panels * groups * nr * group];
+        for panel in 0..panels {
+            for g in 0..groups {
+                for c in 0..nr {
+                    for t in 0..group {
+                        let (i, o) = (group * g + t, panel * nr + c);
+                        if i < dense.inputs && o < dense.outputs {
+                            weight[((panel * groups + g) * nr + c) * group + t] =
+                                convert(dense.weight[i * dense.outputs + o]);
+                        }
+                    }
+                }
+            }
+        }
+        let mut bias = dense.bias.clone();
+        bias.resize(panels * nr, 0.0);
+        Packed {
+            groups,
+            panels,
+            weight,
+            bias,
+        }
+    }
+}
+
+/// What leaves a GEMM's register block.
+pub(super) enum Epilogue<'a, E> {
+    /// `relu(acc + b)` as rows of `stride`.
+    Store { out: &'a mut [E], stride: usize },
+    /// `Σ_j relu(acc + b)_j · w_j` added to `dots[row]`.
+    Dot {
+        weights: &'a [f32],
+        dots: &'a mut [f32],
+    },
+}
+
+/// One branch, packed.
+#[derive(Debug, Clone)]
+struct NativeBranch<E> {
+    hidden: Vec<Packed<E>>,
+    /// The output weights, zero-padded to the padded width.
+    output: Vec<f32>,
+    output_bias: f32,
+}
+
+/// The head on one of the project's kernels.
+#[derive(Debug, Clone)]
+pub(super) struct NativeHead<K: Kernel> {
+    width: usize,
+    /// Width rounded up to the kernel's [`Kernel::NR`]: the stride of every activation row.
+    padded: usize,
+    /// The rotation half of the first layer (its bias included).
+    rotation: Packed<K::Elem>,
+    /// Length of a rotation's encoding.
+    encoding: usize,
+    branches: [NativeBranch<K::Elem>; 2],
+    kernel: PhantomData<K>,
+}
+
+/// One task's buffers: encodings, the shared input, two activation buffers, and the output dot
+/// products.
+struct Scratch<E> {
+    pack: Vec<E>,
+    e: Vec<E>,
+    x: Vec<E>,
+    a: Vec<E>,
+    b: Vec<E>,
+    dots: Vec<f32>,
+}
+
+impl<K: Kernel> NativeHead<K> {
+    /// Packs `head`'s weights (as they are: a bfloat16 head reads them rounded), or `None` when
+    /// this core lacks the kernel's instructions or a branch has no hidden layer.
+    pub(super) fn new(head: &FusedHead) -> Option<NativeHead<K>> {
+        if !K::available() {
+            return None;
+        }
+        let width = head.width();
+        let padded = width.div_ceil(K::NR) * K::NR;
+        let branch = |(hidden, output, output_bias): (&[Dense], &[f32], f32)| {
+            if hidden.is_empty()
+                || hidden
+                    .iter()
+                    .any(|d| d.inputs != width || d.outputs != width)
+            {
+                return None;
+            }
+            let mut output = output.to_vec();
+            output.resize(padded, 0.0);
+            Some(NativeBranch {
+                hidden: hidden
+                    .iter()
+                    .map(|d| Packed::of(d, padded, (K::GROUP, K::NR), K::convert))
+                    .collect(),
+                output,
+                output_bias,
+            })
+        };
+        let [shape, feature] = head.branch_layers();
+        let rotation = head.rotation_layer();
+        let rotation_inputs = rotation.inputs.next_multiple_of(K::GROUP);
+        Some(NativeHead {
+            width,
+            padded,
+            rotation: Packed::of(rotation, rotation_inputs, (K::GROUP, K::NR), K::convert),
+            encoding: rotation.inputs,
+            branches: [branch(shape)?, branch(feature)?],
+            kernel: PhantomData,
+        })
+    }
+
+    /// Both branches' log-weights of `rows`. From encodings, the rotation half of the first
+    /// layer runs inside the tiles too (no projection pass).
+    pub(super) fn branch_scores(&self, image_term: &[f32], rows: Rows<'_>) -> (Vec<f32>, Vec<f32>) {
+        let (given, per_row) = match rows {
+            Rows::Projected(p) => (p, self.width),
+            Rows::Encoded(e) => (e, self.encoding),
+        };
+        // The first layer's bias with the image's term in it, for encoded rows.
+        let mut first_bias = self.rotation.bias.clone();
+        for (b, i) in first_bias.iter_mut().zip(image_term) {
+            *b += i;
+        }
+        let blocked = TILE_ROWS.div_ceil(K::MR) * K::MR;
+        by_tiles(
+            given,
+            per_row,
+            || Scratch {
+                pack: Vec::new(),
+                e: vec![K::Elem::default(); blocked * K::GROUP * self.rotation.groups],
+                x: vec![K::Elem::default(); blocked * self.padded],
+                a: vec![K::Elem::default(); blocked * self.padded],
+                b: vec![K::Elem::default(); blocked * self.padded],
+                dots: vec![0.0; blocked],
+            },
+            |scratch, given, out| {
+                let tile = match rows {
+                    Rows::Projected(_) => Rows::Projected(given),
+                    Rows::Encoded(_) => Rows::Encoded(given),
+                };
+                self.tile(image_term, &first_bias, tile, scratch, out);
+            },
+        )
+    }
+
+    /// One tile of rows: the shared input `relu(P_R + W_I·f + b)`, then each branch.
+    fn tile(
+        &self,
+        image_term: &[f32],
+        first_bias: &[f32],
+        given: Rows<'_>,
+        scratch: &mut Scratch<K::Elem>,
+        out: [&mut [f32]; 2],
+    ) {
+        let stride = self.padded;
+        let rows = out[0].len();
+        let blocked = rows.div_ceil(K::MR) * K::MR;
+        let Scratch {
+            pack,
+            e,
+            x,
+            a,
+            b,
+            dots,
+        } = scratch;
+        match given {
+            Rows::Projected(projected) => {
+                x[..blocked * stride].fill(K::Elem::default());
+                let w = self.width;
+                for (xr, pr) in x.chunks_exact_mut(stride).zip(projected.chunks_exact(w)) {
+                    for ((xv, &p), &i) in xr.iter_mut().zip(pr).zip(image_term) {
+                        *xv = K::convert((p + i).max(0.0));
+                    }
+                }
+            }
+            Rows::Encoded(encodings) => {
+                let e_stride = K::GROUP * self.rotation.groups;
+                e[..blocked * e_stride].fill(K::Elem::default());
+                for (er, enc) in e
+                    .chunks_exact_mut(e_stride)
+                    .zip(encodings.chunks_exact(self.encoding))
+                {
+                    for (ev, &v) in er.iter_mut().zip(enc) {
+                        *ev = K::convert(v);
+                    }
+                }
+                let epilogue = Epilogue::Store { out: x, stride };
+                // SAFETY: `K::available()` held when this head was built and its layers were
+                // packed with `K::NR`; `e` holds `blocked` rows of `e_stride` = GROUP × groups,
+                // `x` `blocked` rows of `stride` ≥ the layer's panels × NR, and `first_bias` as
+                // many values.
+                unsafe {
+                    K::gemm(
+                        &self.rotation,
+                        first_bias,
+                        e,
+                        e_stride,
+                        blocked,
+                        epilogue,
+                        pack,
+                    )
+                };
+            }
+        }
+        for (branch, out) in self.branches.iter().zip(out) {
+            let last = branch.hidden.len() - 1;
+            let dots = &mut dots[..blocked];
+            dots.fill(branch.output_bias);
+            for (l, layer) in branch.hidden.iter().enumerate() {
+                // Layer l reads x (l = 0), a (odd l) or b, and writes the other of a and b.
+                let (input, output) = match l {
+                    0 => (&x[..], &mut a[..]),
+                    l if l % 2 == 1 => (&a[..], &mut b[..]),
+                    _ => (&b[..], &mut a[..]),
+                };
+                let epilogue = if l == last {
+                    Epilogue::Dot {
+                        weights: &branch.output,
+                        dots: &mut *dots,
+                    }
+                } else {
+                    Epilogue::Store {
+                        out: output,
+                        stride,
+                    }
+                };
+                // SAFETY: as above; `input` holds `blocked` rows of `stride` = GROUP × the
+                // layer's groups, and the epilogue's buffers hold `blocked` rows.
+                unsafe { K::gemm(layer, &layer.bias, input, stride, blocked, epilogue, pack) };
+            }
+            out.copy_from_slice(&dots[..rows]);
+        }
+    }
+}
+
+/// Whether this core has AVX-512F (the f32 kernel's 512-bit FMAs).
+pub fn avx512f_available() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::is_x86_feature_detected!("avx512f")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// The first `k` columns of `rows` (a multiple of `MR`) rows of `input` (rows of `stride`), as
+/// blocks of `MR` rows, each `[column][row]`: a block's broadcasts then read one stream, and
+/// the blocks follow each other as the kernel reads them.
+fn pack_blocks<'a, const MR: usize>(
+    input: &[f32],
+    rows: usize,
+    stride: usize,
+    k: usize,
+    blocks: &'a mut Vec<f32>,
+) -> &'a [f32] {
+    // Every value is written below: growing is the only zeroing.
+    blocks.resize(rows * k, 0.0);
+    for (b, block) in blocks.chunks_exact_mut(MR * k).enumerate() {
+        for (r, row) in input[b * MR * stride..].chunks(stride).take(MR).enumerate() {
+            for (i, &v) in row[..k].iter().enumerate() {
+                block[i * MR + r] = v;
+            }
+        }
+    }
+    blocks
+}
+
+/// f32 on 512-bit FMAs, in register blocks of 12 rows × 2 vectors.
+pub type F32Avx512 = F32Kernel<12, 2>;
+
+/// Whether this core has AVX2 and FMA (the 256-bit f32 kernel).
+pub fn avx2_available() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// f32 on 256-bit FMAs: blocks of 6 rows × 2 eight-lane vectors (12 accumulators, 2 weight
+/// vectors and a broadcast in the 16 ymm registers).
+#[derive(Debug, Clone, Copy)]
+pub struct F32Avx2;
+
+impl Kernel for F32Avx2 {
+    type Elem = f32;
+    const GROUP: usize = 1;
+    const MR: usize = 6;
+    const NR: usize = 16;
+
+    fn available() -> bool {
+        avx2_available()
+    }
+
+    fn convert(x: f32) -> f32 {
+        x
+    }
+
+    unsafe fn gemm(
+        layer: &Packed<f32>,
+        bias: &[f32],
+        input: &[f32],
+        stride: usize,
+        rows: usize,
+        epilogue: Epilogue<'_, f32>,
+        pack: &mut Vec<f32>,
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: the caller's contract is `gemm_f32_avx2`'s.
+        unsafe {
+            gemm_f32_avx2(layer, bias, input, stride, rows, epilogue, pack)
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            let _ = (layer, bias, input, stride, rows, epilogue, pack);
+            unreachable!("the f32 kernel is only built on x86_64")
+        }
+    }
+}
+
+/// [`Kernel::gemm`] for f32 on AVX2: blocks of 6 rows × 16 columns.
+///
+/// # Safety
+/// As [`Kernel::gemm`], with AVX2 and FMA.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn gemm_f32_avx2(
+    layer: &Packed<f32>,
+    bias: &[f32],
+    input: &[f32],
+    stride: usize,
+    rows: usize,
+    epilogue: Epilogue<'_, f32>,
+    pack: &mut Vec<f32>,
+) {
+    use std::arch::x86_64::*;
+    const MR: usize = 6;
+    const NV: usize = 2;
+    let nr = 8 * NV;
+    debug_assert!(
+        rows.is_multiple_of(MR)
+            && input.len() >= rows * stride
+            && stride >= layer.groups
+            && bias.len() >= layer.panels * nr
+    );
+    let k = layer.groups;
+    let mut epilogue = epilogue;
+    let blocks = pack_blocks::<MR>(input, rows, stride, k, pack);
+    for panel in 0..layer.panels {
+        for r0 in (0..rows).step_by(MR) {
+            // SAFETY (all pointer reads and writes below): within the bounds stated above.
+            unsafe {
+                let weights = layer.weight.as_ptr().add(panel * k * nr);
+                let bias: [__m256; NV] =
+                    std::array::from_fn(|c| _mm256_loadu_ps(bias.as_ptr().add(panel * nr + 8 * c)));
+                let mut acc = [[_mm256_setzero_ps(); NV]; MR];
+                let block = blocks.as_ptr().add(r0 * k);
+                for i in 0..k {
+                    let w = weights.add(i * nr);
+                    let a = block.add(i * MR);
+                    let b: [__m256; NV] = std::array::from_fn(|c| _mm256_loadu_ps(w.add(8 * c)));
+                    for (r, acc) in acc.iter_mut().enumerate() {
+                        let x = _mm256_set1_ps(*a.add(r));
+                        for c in 0..NV {
+                            acc[c] = _mm256_fmadd_ps(x, b[c], acc[c]);
+                        }
+                    }
+                }
+                let zero = _mm256_setzero_ps();
+                for (r, acc) in acc.iter().enumerate() {
+                    let row = r0 + r;
+                    let h: [__m256; NV] = std::array::from_fn(|c| {
+                        _mm256_max_ps(_mm256_add_ps(acc[c], bias[c]), zero)
+                    });
+                    match &mut epilogue {
+                        Epilogue::Store { out, stride } => {
+                            let o = out.as_mut_ptr().add(row * *stride + panel * nr);
+                            for (c, h) in h.iter().enumerate() {
+                                _mm256_storeu_ps(o.add(8 * c), *h);
+                            }
+                        }
+                        Epilogue::Dot { weights, dots } => {
+                            let w = weights.as_ptr().add(panel * nr);
+                            let mut sum = _mm256_mul_ps(h[0], _mm256_loadu_ps(w));
+                            sum = _mm256_fmadd_ps(h[1], _mm256_loadu_ps(w.add(8)), sum);
+                            let mut lanes = [0f32; 8];
+                            _mm256_storeu_ps(lanes.as_mut_ptr(), sum);
+                            dots[row] += lanes.iter().sum::<f32>();
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// f32 on 512-bit FMAs, in register blocks of `MR` rows × `NV` 16-lane vectors.
+#[derive(Debug, Clone, Copy)]
+pub struct F32Kernel<const MR: usize, const NV: usize>;
+
+impl<const MR: usize, const NV: usize> Kernel for F32Kernel<MR, NV> {
+    type Elem = f32;
+    const GROUP: usize = 1;
+    const MR: usize = MR;
+    const NR: usize = 16 * NV;
+
+    fn available() -> bool {
+        avx512f_available()
+    }
+
+    fn convert(x: f32) -> f32 {
+        x
+    }
+
+    unsafe fn gemm(
+        layer: &Packed<f32>,
+        bias: &[f32],
+        input: &[f32],
+        stride: usize,
+        rows: usize,
+        epilogue: Epilogue<'_, f32>,
+        pack: &mut Vec<f32>,
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: the caller's contract is `gemm_f32`'s.
+        unsafe {
+            gemm_f32::<MR, NV>(layer, bias, input, stride, rows, epilogue, pack)
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            let _ = (layer, bias, input, stride, rows, epilogue, pack);
+            unreachable!("the f32 kernel is only built on x86_64")
+        }
+    }
+}
+
+/// `Σ_j h_j · w_j` over a block row's vectors (the `width → 1` output layer).
+///
+/// # Safety
+/// The core has AVX-512F; `w` points at `16 × NV` floats.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+pub(super) unsafe fn dot_row<const NV: usize>(
+    h: &[std::arch::x86_64::__m512; NV],
+    w: *const f32,
+) -> f32 {
+    use std::arch::x86_64::*;
+    // SAFETY: `w` holds 16 × NV floats.
+    unsafe {
+        let mut sum = _mm512_mul_ps(h[0], _mm512_loadu_ps(w));
+        for (c, h) in h.iter().enumerate().skip(1) {
+            sum = _mm512_fmadd_ps(*h, _mm512_loadu_ps(w.add(16 * c)), sum);
+        }
+        _mm512_reduce_add_ps(sum)
+    }
+}
+
+/// [`Kernel::gemm`] for f32, in blocks of `MR` rows × `NV` vectors.
+///
+/// # Safety
+/// As [`Kernel::gemm`], with AVX-512F.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn gemm_f32<const MR: usize, const NV: usize>(
+    layer: &Packed<f32>,
+    bias: &[f32],
+    input: &[f32],
+    stride: usize,
+    rows: usize,
+    epilogue: Epilogue<'_, f32>,
+    pack: &mut Vec<f32>,
+) {
+    use std::arch::x86_64::*;
+    let nr = 16 * NV;
+    debug_assert!(
+        rows.is_multiple_of(MR)
+            && input.len() >= rows * stride
+            && stride >= layer.groups
+            && bias.len() >= layer.panels * nr
+    );
+    let k = layer.groups;
+    let mut epilogue = epilogue;
+    let blocks = pack_blocks::<MR>(input, rows, stride, k, pack);
+    for panel in 0..layer.panels {
+        for r0 in (0..rows).step_by(MR) {
+            // SAFETY (all pointer reads and writes below): within the bounds stated above.
+            unsafe {
+                let weights = layer.weight.as_ptr().add(panel * k * nr);
+                let bias: [__m512; NV] = std::array::from_fn(|c| {
+                    _mm512_loadu_ps(bias.as_ptr().add(panel * nr + 16 * c))
+                });
+                let mut acc = [[_mm512_setzero_ps(); NV]; MR];
+                let block = blocks.as_ptr().add(r0 * k);
+                for i in 0..k {
+                    let w = weights.add(i * nr);
+                    let a = block.add(i * MR);
+                    let b: [__m512; NV] = std::array::from_fn(|c| _mm512_loadu_ps(w.add(16 * c)));
+                    for (r, acc) in acc.iter_mut().enumerate() {
+                        let x = _mm512_set1_ps(*a.add(r));
+                        for c in 0..NV {
+                            acc[c] = _mm512_fmadd_ps(x, b[c], acc[c]);
+                        }
+                    }
+                }
+                let zero = _mm512_setzero_ps();
+                for (r, acc) in acc.iter().enumerate() {
+                    let row = r0 + r;
+                    let h: [__m512; NV] = std::array::from_fn(|c| {
+                        _mm512_max_ps(_mm512_add_ps(acc[c], bias[c]), zero)
+                    });
+                    match &mut epilogue {
+                        Epilogue::Store { out, stride } => {
+                            let o = out.as_mut_ptr().add(row * *stride + panel * nr);
+                            for (c, h) in h.iter().enumerate() {
+                                _mm512_storeu_ps(o.add(16 * c), *h);
+                            }
+                        }
+                        Epilogue::Dot { weights, dots } => {
+                            dots[row] += dot_row(&h, weights.as_ptr().add(panel * nr));
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
