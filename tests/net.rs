@@ -166,7 +166,10 @@ fn assert_fused_matches(
         let projected = fused.branch_scores(&image, &fused.project_rotations(&enc));
         let encoded = fused.branch_scores_in(Precision::F32, &image, Rows::Encoded(&enc));
         for (p, e) in projected.0.iter().zip(&encoded.0) {
-            assert!((p - e).abs() <= 1e-4 * p.abs().max(1.0), "{kernels}: {p} against {e}");
+            assert!(
+                (p - e).abs() <= 1e-4 * p.abs().max(1.0),
+                "{kernels}: {p} against {e}"
+            );
         }
     }
 }
@@ -180,9 +183,20 @@ fn assert_fused_matches_on(
     d: &Device,
 ) {
     let tile = alignist::net::fused::TILE_ROWS;
-    for (case, rows) in [1, 7, 11, 12, 13, tile - 1, tile, tile + 1, 2 * tile + 3, 1001]
-        .into_iter()
-        .enumerate()
+    for (case, rows) in [
+        1,
+        7,
+        11,
+        12,
+        13,
+        tile - 1,
+        tile,
+        tile + 1,
+        2 * tile + 3,
+        1001,
+    ]
+    .into_iter()
+    .enumerate()
     {
         let rotations = spread_rotations(rows, case as f64);
         let features: Vec<f32> = (0..image_dim)

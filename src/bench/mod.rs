@@ -85,7 +85,12 @@ pub fn matmul_peak_gflops(tile: usize) -> f64 {
 /// Runs every measurement on the bundle at `bundle` with rendered RGB8 crops of its input size
 /// (several objects, for the search study; `objects[i]` names crop `i`'s) and prints the
 /// figures.
-pub fn bench(bundle: &Path, crops: &[Vec<u8>], objects: &[String]) -> anyhow::Result<()> {
+pub fn bench(
+    bundle: &Path,
+    crops: &[Vec<u8>],
+    objects: &[String],
+    write_study: bool,
+) -> anyhow::Result<()> {
     anyhow::ensure!(!crops.is_empty(), "the bench needs at least one image");
     anyhow::ensure!(
         objects.len() == crops.len(),
@@ -93,7 +98,11 @@ pub fn bench(bundle: &Path, crops: &[Vec<u8>], objects: &[String]) -> anyhow::Re
         objects.len(),
         crops.len()
     );
-    let engine_config = EngineConfig::default();
+    // As a server with its default flags: the search calibrated on this CPU.
+    let engine_config = EngineConfig {
+        search_budget_ms: Some(crate::engine::calibrate::DEFAULT_SEARCH_BUDGET_MS),
+        ..EngineConfig::default()
+    };
     let model = Arc::new(Engine::load_model(bundle, engine_config)?);
     let size = model.input_size();
     println!(
@@ -104,11 +113,35 @@ pub fn bench(bundle: &Path, crops: &[Vec<u8>], objects: &[String]) -> anyhow::Re
         rayon::current_num_threads(),
         crops.len()
     );
-    let peak = matmul_peak_gflops(crate::net::fused::TILE_ROWS);
+    let library = matmul_peak_gflops(crate::net::fused::TILE_ROWS);
     println!(
-        "matmul peak of the head's library (matrixmultiply, 4096×256·256×256 f32 in tiles of {} rows over the cores): {peak:.1} GFLOP/s",
+        "matmul peak of matrixmultiply (4096×256·256×256 f32 in tiles of {} rows over the cores): {library:.1} GFLOP/s",
         crate::net::fused::TILE_ROWS
     );
+    let widest = peak::fma_peak(true);
+    let narrow = peak::fma_peak(false);
+    println!(
+        "FMA peak of this CPU (probe): {}-bit {:.1} GFLOP/s, 256-bit {:.1} GFLOP/s; kernels: {}",
+        widest.bits,
+        widest.gflops,
+        narrow.gflops,
+        model.kernel_paths()
+    );
+    let peak = widest.gflops;
+    match model.calibration() {
+        Some(c) => println!(
+            "calibration ({:.0} ms): {} — agreement {}, predicted {:.1} ms, measured {:.1} ms, budget {} ms; {}",
+            c.took_ms,
+            c.chosen,
+            c.agreement
+                .map_or("not studied".into(), |a| format!("{a:.3}")),
+            c.predicted_ms,
+            c.measured_ms,
+            c.budget_ms,
+            c.reason
+        ),
+        None => println!("calibration: none"),
+    }
     let one = model.features(&[&crops[0]]);
     let flops = head_flops_per_rotation(&model);
     let mut ours_ms = Vec::new();
@@ -121,7 +154,7 @@ pub fn bench(bundle: &Path, crops: &[Vec<u8>], objects: &[String]) -> anyhow::Re
         let rate = grid_len as f64 / s;
         let gflops = rate * flops / 1e9;
         println!(
-            "full grid level {level} ({grid_len} rotations): {:.1} ms, {:.2} M rotations/s, {gflops:.1} GFLOP/s, head: {:.0} % of peak",
+            "full grid level {level} ({grid_len} rotations): {:.1} ms, {:.2} M rotations/s, {gflops:.1} GFLOP/s, head: {:.0} % of the FMA peak",
             s * 1e3,
             rate / 1e6,
             100.0 * gflops / peak
@@ -149,7 +182,17 @@ pub fn bench(bundle: &Path, crops: &[Vec<u8>], objects: &[String]) -> anyhow::Re
     }
     // The coarse-to-fine search against the exhaustive level-5 argmax.
     let figures = search::study(&model, crops, &search::candidates(), 5, 10)?;
-    search::print(&figures, &engine_config.search(), objects);
+    search::print(&figures, &model.config().search(), objects);
+    if write_study {
+        let command = std::env::args().collect::<Vec<_>>().join(" ");
+        search::record(&figures, 5, crops.len(), command).save(bundle)?;
+        println!(
+            "search study written to {}",
+            bundle
+                .join(crate::bundle::study::SEARCH_STUDY_FILE)
+                .display()
+        );
+    }
     let options = PredictOptions {
         top_k: 10,
         level: Some(5),

@@ -7,6 +7,7 @@
 
 use std::time::Instant;
 
+use crate::bundle::study::{SearchStudy, StudiedSearch};
 use crate::client::load::quantile;
 use crate::engine::{EngineError, Model, PredictOptions, SearchParams};
 use crate::net::Precision;
@@ -76,6 +77,11 @@ pub fn candidates() -> Vec<SearchParams> {
         out.push(bf16(flat(2, keep, None)));
     }
     out.push(bf16(flat(2, 768, Some(0.999))));
+    // The f32 twins of the wide halving searches, for cores without native bfloat16.
+    for keep in [768, 1024] {
+        out.push(tapered(2, keep, 0.5));
+    }
+    out.push(tapered(1, 1024, 0.5));
     for keep in [512, 768, 1024] {
         out.push(bf16(tapered(2, keep, 0.5)));
     }
@@ -161,6 +167,27 @@ pub fn study(
             disagreements: std::mem::take(&mut disagreements[s]),
         })
         .collect())
+}
+
+/// The study as the record a bundle carries ([`SearchStudy`]), for `images` images to `level`.
+pub fn record(figures: &[SearchFigures], level: u8, images: usize, command: String) -> SearchStudy {
+    SearchStudy {
+        level,
+        images,
+        command,
+        searches: figures
+            .iter()
+            .map(|f| StudiedSearch {
+                start_level: f.params.start_level,
+                keep: f.params.keep,
+                keep_mass: f.params.keep_mass,
+                keep_taper: f.params.keep_taper,
+                coarse_precision: f.params.coarse_precision.name().into(),
+                agreement: f.agreement,
+                found_maximum: f.found_maximum,
+            })
+            .collect(),
+    }
 }
 
 /// Prints the study as a table, then the default search's figures and its disagreements by

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use alignist::engine::{EngineConfig, ImageLimits};
-use alignist::net::Precision;
+use alignist::net::{Kernels, Precision};
 use alignist::serve::BatchConfig;
 use alignist::serve::auth::Token;
 use alignist::serve::server::{DEFAULT_MAX_STREAMS, ServerConfig, TlsFiles, run, shutdown_signal};
@@ -48,23 +48,39 @@ struct Cli {
     /// Most requests queued per model before UNAVAILABLE.
     #[arg(long, env = "ALIGNIST_QUEUE", default_value_t = BatchConfig::default().queue_capacity)]
     queue: usize,
-    /// Level a Predict search scores in full first (at most --max-level).
-    #[arg(long, env = "ALIGNIST_SEARCH_START_LEVEL", default_value_t = EngineConfig::default().search_start_level)]
-    search_start_level: u8,
+    /// Latency budget of the default Predict search (top-10 to level 5, encoder included), in
+    /// milliseconds: at load, each model's search is chosen on this CPU among the searches its
+    /// bundle's study (`search-study.json`) found to reach --search-agreement, the most agreeing
+    /// one predicted within the budget (or, when none fits, the fastest, with a warning).
+    /// Setting any --search-* flag below serves that search instead; 0 turns calibration off.
+    #[arg(long, env = "ALIGNIST_SEARCH_BUDGET_MS", default_value_t = alignist::engine::calibrate::DEFAULT_SEARCH_BUDGET_MS)]
+    search_budget_ms: f64,
+    /// Agreement with the exhaustive level-5 argmax, in the bundle's study, that a calibrated
+    /// search must have reached (0–1).
+    #[arg(long, env = "ALIGNIST_SEARCH_AGREEMENT", default_value_t = EngineConfig::default().search_agreement)]
+    search_agreement: f64,
+    /// Widest head kernels used: `widest` (AVX-512 where the core has it, else AVX2), `avx2`,
+    /// or `portable` (matrixmultiply's GEMM; bfloat16 emulated).
+    #[arg(long, env = "ALIGNIST_KERNELS", default_value_t = Kernels::Widest)]
+    kernels: Kernels,
+    /// Level a Predict search scores in full first (at most --max-level). Default: calibrated,
+    /// else 2.
+    #[arg(long, env = "ALIGNIST_SEARCH_START_LEVEL")]
+    search_start_level: Option<u8>,
     /// Cells a Predict search refines at its first refinement (then times --search-keep-taper at
-    /// each finer level). Chosen with the taper and the coarse precision by the search study of
-    /// `alignist-train bench`; 128 at every level in f32 was the default before, 512 earlier.
-    #[arg(long, env = "ALIGNIST_SEARCH_KEEP", default_value_t = EngineConfig::default().keep)]
-    search_keep: usize,
+    /// each finer level). Default: calibrated, else 1024.
+    #[arg(long, env = "ALIGNIST_SEARCH_KEEP")]
+    search_keep: Option<usize>,
     /// Each finer level of a Predict search keeps this many times as many cells as the one
-    /// before (1: --search-keep at every level; 0.5: --search-keep, then half, …).
-    #[arg(long, env = "ALIGNIST_SEARCH_KEEP_TAPER", default_value_t = EngineConfig::default().keep_taper)]
-    search_keep_taper: f64,
+    /// before (1: --search-keep at every level; 0.5: --search-keep, then half, …). Default:
+    /// calibrated, else 0.5.
+    #[arg(long, env = "ALIGNIST_SEARCH_KEEP_TAPER")]
+    search_keep_taper: Option<f64>,
     /// Arithmetic of a Predict search's levels before the finest, which is always f32: `bf16`
     /// ranks the cells to refine at about 2.6 times the f32 rate where the core has AVX-512
-    /// BF16 (emulated at the f32 rate elsewhere); `f32` is the search before bfloat16.
-    #[arg(long, env = "ALIGNIST_SEARCH_COARSE_PRECISION", default_value_t = EngineConfig::default().coarse_precision)]
-    search_coarse_precision: Precision,
+    /// BF16 (emulated, slower than f32, elsewhere). Default: calibrated, else bf16.
+    #[arg(long, env = "ALIGNIST_SEARCH_COARSE_PRECISION")]
+    search_coarse_precision: Option<Precision>,
     /// Head worker threads per model, each running one Predict search at a time (default: one
     /// per core).
     #[arg(long, env = "ALIGNIST_HEAD_WORKERS")]
@@ -210,6 +226,24 @@ fn main() -> Result<()> {
                 .with_context(|| format!("--health-listen '{s}' is not an address or 'off'"))?,
         ),
     };
+    let defaults = EngineConfig::default();
+    // Explicit search flags serve that search; otherwise a positive budget calibrates it.
+    let search_set = cli.search_start_level.is_some()
+        || cli.search_keep.is_some()
+        || cli.search_keep_taper.is_some()
+        || cli.search_coarse_precision.is_some();
+    anyhow::ensure!(
+        cli.search_budget_ms.is_finite() && cli.search_budget_ms >= 0.0,
+        "--search-budget-ms {} must be a number of milliseconds ≥ 0",
+        cli.search_budget_ms
+    );
+    anyhow::ensure!(
+        (0.0..=1.0).contains(&cli.search_agreement),
+        "--search-agreement {} must be in 0–1",
+        cli.search_agreement
+    );
+    let search_budget_ms =
+        (!search_set && cli.search_budget_ms > 0.0).then_some(cli.search_budget_ms);
     let config = ServerConfig {
         models: cli.models,
         listen: cli.listen,
@@ -217,10 +251,17 @@ fn main() -> Result<()> {
         engine: EngineConfig {
             max_full_level: cli.max_level,
             search_max_level: cli.max_search_level,
-            search_start_level: cli.search_start_level,
-            keep: cli.search_keep,
-            keep_taper: cli.search_keep_taper,
-            coarse_precision: cli.search_coarse_precision,
+            search_start_level: cli
+                .search_start_level
+                .unwrap_or(defaults.search_start_level),
+            keep: cli.search_keep.unwrap_or(defaults.keep),
+            keep_taper: cli.search_keep_taper.unwrap_or(defaults.keep_taper),
+            coarse_precision: cli
+                .search_coarse_precision
+                .unwrap_or(defaults.coarse_precision),
+            search_budget_ms,
+            search_agreement: cli.search_agreement,
+            kernels: cli.kernels,
             // A lower search maximum lowers the default search with it.
             search_default_level: EngineConfig::default()
                 .search_default_level

@@ -3,6 +3,7 @@
 
 pub mod experts;
 pub mod model;
+pub mod study;
 
 use std::fs;
 use std::io::Write;

@@ -444,6 +444,39 @@ pub fn models_table(list: &ListModelsResponse) -> String {
             t.accuracy_at_30,
             t.median_error_deg
         );
+        if let Some(q) = &m.search {
+            let calibrated = if q.chosen_by == "calibration" {
+                format!(
+                    " (calibrated: agreement {:.3}, predicted {:.1} ms, measured {:.1} ms, budget {} ms{}; {})",
+                    q.agreement,
+                    q.predicted_ms,
+                    q.measured_ms,
+                    q.budget_ms,
+                    if q.within_budget { "" } else { ", over budget" },
+                    q.reason
+                )
+            } else {
+                " (configured)".into()
+            };
+            let _ = writeln!(
+                s,
+                "  search: start {}, keep {}{}{}, coarse {}{calibrated}; kernels {}",
+                q.start_level,
+                q.keep,
+                if q.keep_taper == 1.0 {
+                    String::new()
+                } else {
+                    format!(" ×{}/level", q.keep_taper)
+                },
+                if q.keep_mass > 0.0 {
+                    format!(" ({} of the mass)", q.keep_mass)
+                } else {
+                    String::new()
+                },
+                q.coarse_precision,
+                q.kernels
+            );
+        }
         for o in &m.objects {
             let axis = o
                 .symmetry_axis

@@ -2,6 +2,7 @@
 //! modes and RGB-D fusion. No transport here: the gRPC service (src/serve) is a thin layer over
 //! [`Engine`], and everything below is testable without a socket.
 
+pub mod calibrate;
 pub mod cancel;
 pub mod depth;
 pub mod frame;
@@ -107,7 +108,7 @@ pub const MAX_TOP_K: usize = 16_384;
 
 /// The keep tapers a search accepts ([`SearchParams::keep_taper`]): from an eighth to eight times
 /// as many cells per finer level.
-pub const KEEP_TAPER: std::ops::RangeInclusive<f64> = 0.125..=8.0;
+pub use crate::bundle::study::KEEP_TAPER;
 
 /// How the engine serves.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -136,6 +137,15 @@ pub struct EngineConfig {
     pub max_depth_points: usize,
     /// Depth pixels of a depth image used per detection (evenly spaced in the box).
     pub depth_image_points: usize,
+    /// With `Some(ms)`, the search is chosen at load on this CPU ([`calibrate`]) among the
+    /// bundle's studied searches: the most agreeing one predicted within `ms`; with `None`, the
+    /// search above is served as it is.
+    pub search_budget_ms: Option<f64>,
+    /// The agreement with the exhaustive argmax a calibrated search must have reached in the
+    /// bundle's study.
+    pub search_agreement: f64,
+    /// The widest head kernels the model may use.
+    pub kernels: crate::net::Kernels,
 }
 
 /// How a coarse-to-fine search runs: the level it scores in full, and the cells it refines.
@@ -154,6 +164,21 @@ pub struct SearchParams {
     /// The arithmetic of every level but the finest, which is scored in f32: bfloat16 ranks
     /// the cells to refine at about 2.6 times the f32 rate.
     pub coarse_precision: Precision,
+}
+
+impl std::fmt::Display for SearchParams {
+    /// `start 2, keep 1024 ×0.5/level, coarse bf16` (a keep by mass: `keep 0.999 mass ≤512`).
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "start {}, keep ", self.start_level)?;
+        match self.keep_mass {
+            Some(m) => write!(f, "{m} mass ≤{}", self.keep)?,
+            None => write!(f, "{}", self.keep)?,
+        }
+        if self.keep_taper != 1.0 {
+            write!(f, " ×{}/level", self.keep_taper)?;
+        }
+        write!(f, ", coarse {}", self.coarse_precision)
+    }
 }
 
 impl EngineConfig {
@@ -272,6 +297,9 @@ impl Default for EngineConfig {
             image_limits: ImageLimits::default(),
             max_depth_points: 10_000,
             depth_image_points: 256,
+            search_budget_ms: None,
+            search_agreement: 0.99,
+            kernels: crate::net::Kernels::from_env(),
         }
     }
 }
@@ -311,6 +339,8 @@ pub struct Model {
     grids: Vec<GridLevel>,
     projected: Vec<ProjectedGrid>,
     config: EngineConfig,
+    /// The load-time calibration that chose the search, when there was one.
+    calibration: Option<calibrate::Calibration>,
 }
 
 /// The full distribution of one image at one level.
@@ -470,7 +500,10 @@ impl Model {
         let grids = (0..=top)
             .map(GridLevel::new)
             .collect::<Result<Vec<_>, _>>()?;
-        let fused = Arc::new(FusedHead::new(&bundle.network.head));
+        let fused = Arc::new(FusedHead::with_kernels(
+            &bundle.network.head,
+            config.kernels,
+        ));
         let projected = (0..=config.max_full_level)
             .map(|l| ProjectedGrid::with_head(fused.clone(), &bundle.manifest.network.encoding, l))
             .collect::<Result<Vec<_>, _>>()?;
@@ -499,7 +532,63 @@ impl Model {
             grids,
             projected,
             config,
+            calibration: None,
         })
+    }
+
+    /// The search this model serves chosen on this CPU ([`calibrate::calibrate`]) among the
+    /// searches of the bundle's study at `folder`, to the default search level, when the
+    /// configuration has a budget; logged and kept in [`Model::calibration`].
+    fn calibrated(mut self, folder: &Path) -> Result<Model, EngineError> {
+        let Some(budget) = self.config.search_budget_ms else {
+            return Ok(self);
+        };
+        let study = crate::bundle::study::SearchStudy::load(folder)?;
+        let c = calibrate::calibrate(
+            &self,
+            study.as_ref(),
+            &self.config.search(),
+            self.config.search_agreement,
+            budget,
+            self.config.search_default_level,
+        )?;
+        tracing::info!(
+            model = %self.name,
+            search = %c.chosen,
+            agreement = ?c.agreement,
+            predicted_ms = c.predicted_ms,
+            measured_ms = c.measured_ms,
+            budget_ms = budget,
+            within_budget = c.within_budget,
+            calibration_ms = c.took_ms,
+            kernels = %self.fused.kernel_paths(),
+            "search calibrated: {}",
+            c.reason
+        );
+        if !c.within_budget {
+            tracing::warn!(
+                model = %self.name,
+                "no search that reaches the agreement target fits {budget} ms on this CPU: serving the fastest ({:.1} ms predicted)",
+                c.predicted_ms
+            );
+        }
+        self.config.search_start_level = c.chosen.start_level;
+        self.config.keep = c.chosen.keep;
+        self.config.keep_mass = c.chosen.keep_mass;
+        self.config.keep_taper = c.chosen.keep_taper;
+        self.config.coarse_precision = c.chosen.coarse_precision;
+        self.calibration = Some(c);
+        Ok(self)
+    }
+
+    /// The load-time calibration of this model's search, when it had one.
+    pub fn calibration(&self) -> Option<&calibrate::Calibration> {
+        self.calibration.as_ref()
+    }
+
+    /// The kernel each precision runs on, in words.
+    pub fn kernel_paths(&self) -> String {
+        self.fused.kernel_paths()
     }
 
     /// The network's configuration (input size, encoding, …).
@@ -1214,7 +1303,7 @@ impl Engine {
             .unwrap_or_default()
             .to_string();
         let bundle = ModelBundle::load(folder)?;
-        let model = Model::from_bundle(&name, folder, bundle, config)?;
+        let model = Model::from_bundle(&name, folder, bundle, config)?.calibrated(folder)?;
         // Depth fusion is ready before the first request: the SDF grids and view tables are
         // built here, while the bundle loads (a server lists the model only after).
         let started = std::time::Instant::now();

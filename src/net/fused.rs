@@ -19,7 +19,7 @@ use super::native::{F32Avx2, F32Avx512, Kernels, NativeHead};
 pub const TILE_ROWS: usize = 256;
 
 /// The arithmetic a head is scored in.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
 pub enum Precision {
     /// f32 throughout: the burn network's scores within 1e-4.
     #[default]

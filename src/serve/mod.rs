@@ -118,6 +118,17 @@ impl ServiceState {
         for m in served.engine.models() {
             metrics::gauge!("alignist_model_info", "model" => m.name.clone(), "sha256" => m.version().to_string())
                 .set(1.0);
+            if let Some(c) = m.calibration() {
+                let model = m.name.clone();
+                metrics::gauge!("alignist_search_predicted_ms", "model" => model.clone())
+                    .set(c.predicted_ms);
+                metrics::gauge!("alignist_search_measured_ms", "model" => model.clone())
+                    .set(c.measured_ms);
+                metrics::gauge!("alignist_search_keep", "model" => model.clone())
+                    .set(c.chosen.keep as f64);
+                metrics::gauge!("alignist_search_within_budget", "model" => model)
+                    .set(if c.within_budget { 1.0 } else { 0.0 });
+            }
         }
         *slot = Some(Arc::new(served));
     }
@@ -981,5 +992,32 @@ pub fn model_info(model: &Model) -> ModelInfo {
             .get(crate::bundle::model::NETWORK_FILE)
             .map(|f| f.sha256.clone())
             .unwrap_or_default(),
+        search: Some(search_info(model)),
+    }
+}
+
+/// The default search a model serves, and how it was chosen.
+fn search_info(model: &Model) -> SearchInfo {
+    let search = model.config().search();
+    let c = model.calibration();
+    SearchInfo {
+        start_level: search.start_level as u32,
+        keep: search.keep as u32,
+        keep_taper: search.keep_taper,
+        keep_mass: search.keep_mass.unwrap_or(0.0),
+        coarse_precision: search.coarse_precision.name().into(),
+        chosen_by: if c.is_some() {
+            "calibration"
+        } else {
+            "configuration"
+        }
+        .into(),
+        agreement: c.and_then(|c| c.agreement).unwrap_or(f64::NAN),
+        predicted_ms: c.map_or(f64::NAN, |c| c.predicted_ms),
+        measured_ms: c.map_or(f64::NAN, |c| c.measured_ms),
+        budget_ms: c.map_or(f64::NAN, |c| c.budget_ms),
+        within_budget: c.is_some_and(|c| c.within_budget),
+        reason: c.map(|c| c.reason.clone()).unwrap_or_default(),
+        kernels: model.kernel_paths(),
     }
 }

@@ -13,6 +13,10 @@ pub(crate) struct BenchArgs {
     /// study scores every cell of level 5 for each (~6 s an image on 2 cores).
     #[arg(long, default_value_t = 50)]
     images: usize,
+    /// Write the search study into the bundle (`search-study.json`): the agreement of each
+    /// studied search, which a server's calibration reads to choose among them.
+    #[arg(long, conflicts_with_all = ["training", "depth"])]
+    write_study: bool,
     /// Measure the training step instead (IPDF and Alignist, with their profiles), on a small
     /// set the benchmark makes itself.
     #[arg(long)]
@@ -66,7 +70,7 @@ pub(crate) fn bench_cmd(args: &BenchArgs) -> Result<()> {
         .map(|im| (im.object, im.rgb))
         .unzip();
     drop(loaded);
-    alignist::bench::bench(&args.model, &crops, &objects)
+    alignist::bench::bench(&args.model, &crops, &objects, args.write_study)
 }
 
 fn bench_training(args: &BenchArgs) -> Result<()> {

@@ -1,0 +1,145 @@
+//! The search study a bundle may carry (`search-study.json`, written by `alignist-train bench
+//! --write-study`): for each coarse-to-fine search studied, how often its top-1 agreed with the
+//! exhaustive argmax of the finest level on held-out renders. Agreement is the model's, not the
+//! CPU's: a server's calibration reads it to know which searches it may choose, and times them on
+//! its own CPU.
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use super::BundleError;
+use crate::net::Precision;
+
+/// The keep tapers a search accepts: from an eighth to eight times as many cells per finer
+/// level (the engine's [`crate::engine::KEEP_TAPER`]).
+pub const KEEP_TAPER: std::ops::RangeInclusive<f64> = 0.125..=8.0;
+
+/// The study's file in a bundle folder.
+pub const SEARCH_STUDY_FILE: &str = "search-study.json";
+
+/// One studied search and what it scored.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StudiedSearch {
+    /// Level scored in full first.
+    pub start_level: u8,
+    /// Most cells kept at the first refinement.
+    pub keep: usize,
+    /// Keep the cells holding this fraction of a level's mass (at most `keep`).
+    pub keep_mass: Option<f64>,
+    /// Each finer level keeps this many times as many cells.
+    pub keep_taper: f64,
+    /// Arithmetic of the levels before the finest (`f32`, `bf16`).
+    pub coarse_precision: String,
+    /// Fraction of images whose top-1 is the exhaustive argmax's cell or a neighbour.
+    pub agreement: f64,
+    /// Fraction of images whose top-1 scores within 0.01 of the exhaustive maximum.
+    pub found_maximum: f64,
+}
+
+/// A bundle's search study.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SearchStudy {
+    /// The finest level, scored exhaustively for the reference argmax.
+    pub level: u8,
+    /// Held-out images studied.
+    pub images: usize,
+    /// The command that wrote the study.
+    pub command: String,
+    /// Every search studied.
+    pub searches: Vec<StudiedSearch>,
+}
+
+impl StudiedSearch {
+    /// The coarse precision, parsed.
+    pub fn precision(&self) -> Result<Precision, String> {
+        self.coarse_precision.parse()
+    }
+}
+
+impl SearchStudy {
+    /// The study in `folder`, `None` when the bundle has none; an unreadable or out-of-range
+    /// one is an error naming the file and the field.
+    pub fn load(folder: &Path) -> Result<Option<SearchStudy>, BundleError> {
+        let path = folder.join(SEARCH_STUDY_FILE);
+        let shown = path.display().to_string();
+        let text = match std::fs::read_to_string(&path) {
+            Ok(text) => text,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(source) => {
+                return Err(BundleError::Io {
+                    path: shown,
+                    source,
+                });
+            }
+        };
+        let study: SearchStudy =
+            serde_json::from_str(&text).map_err(|source| BundleError::Json {
+                path: shown.clone(),
+                source,
+            })?;
+        study.check().map_err(|message| BundleError::Manifest {
+            path: shown,
+            message,
+        })?;
+        Ok(Some(study))
+    }
+
+    /// Writes the study into `folder`.
+    pub fn save(&self, folder: &Path) -> Result<(), BundleError> {
+        let path = folder.join(SEARCH_STUDY_FILE);
+        let text = serde_json::to_string_pretty(self).map_err(|source| BundleError::Json {
+            path: path.display().to_string(),
+            source,
+        })?;
+        std::fs::write(&path, text + "\n").map_err(|source| BundleError::Io {
+            path: path.display().to_string(),
+            source,
+        })
+    }
+
+    /// The values' ranges, naming the field of the first one out of range.
+    fn check(&self) -> Result<(), String> {
+        if self.images == 0 {
+            return Err("images: must be positive".into());
+        }
+        for (i, s) in self.searches.iter().enumerate() {
+            let field = |name: &str| format!("searches[{i}].{name}");
+            if s.start_level >= self.level {
+                return Err(format!(
+                    "{}: {} must be below the study's level {}",
+                    field("start_level"),
+                    s.start_level,
+                    self.level
+                ));
+            }
+            if s.keep == 0 {
+                return Err(format!("{}: must be positive", field("keep")));
+            }
+            if let Some(m) = s.keep_mass
+                && !(m > 0.0 && m <= 1.0)
+            {
+                return Err(format!("{}: {m} must be in (0, 1]", field("keep_mass")));
+            }
+            if !KEEP_TAPER.contains(&s.keep_taper) {
+                return Err(format!(
+                    "{}: {} must be in {:?}",
+                    field("keep_taper"),
+                    s.keep_taper,
+                    KEEP_TAPER
+                ));
+            }
+            s.precision()
+                .map_err(|e| format!("{}: {e}", field("coarse_precision")))?;
+            for (name, v) in [
+                ("agreement", s.agreement),
+                ("found_maximum", s.found_maximum),
+            ] {
+                if !(0.0..=1.0).contains(&v) {
+                    return Err(format!("{}: {v} must be in [0, 1]", field(name)));
+                }
+            }
+        }
+        Ok(())
+    }
+}

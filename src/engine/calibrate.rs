@@ -1,0 +1,299 @@
+//! Calibration at load: the search a model serves, chosen on the CPU it runs on. A search's
+//! agreement with the exhaustive argmax is the model's (the bundle's search study measured it,
+//! [`SearchStudy`]); its latency is the CPU's. The calibration times what a search is made of on
+//! this CPU — the encoder, a start level in full, and rows of the head in each precision (min of
+//! a few runs each) — predicts each studied search's latency from the rows it scores (a fixed
+//! number per level), and picks, among the searches whose agreement reaches the target, the most
+//! agreeing one predicted within the budget (ties: the fastest); when none fits, the fastest of
+//! them, flagged as over budget. It never picks a search below the target. Without a study it
+//! keeps the configured search's shape and only chooses its coarse precision (bfloat16 ranks
+//! cells like f32, up to rounding, so the f32 twin is taken to agree at least as well). The
+//! chosen search is then run for real and its latency reported beside the prediction.
+
+use std::collections::BTreeMap;
+use std::time::Instant;
+
+use super::search::Keep;
+use super::{EngineError, Model, PredictOptions, SearchParams};
+use crate::bundle::study::SearchStudy;
+use crate::net::Precision;
+
+/// The default latency budget of a search (the server's `--search-budget-ms`), in milliseconds.
+pub const DEFAULT_SEARCH_BUDGET_MS: f64 = 25.0;
+
+/// Timed runs of each measurement (the minimum is kept).
+const RUNS: usize = 2;
+
+/// Rows of the head timed per precision, many and few (a level's fixed cost).
+const TIMED_ROWS: usize = 2048;
+const SMALL_ROWS: usize = 64;
+
+/// Top-k of the searches the calibration times (the bench's and a typical Predict's).
+const TOP_K: usize = 10;
+
+/// What a calibration chose, and why.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Calibration {
+    /// The search chosen.
+    pub chosen: SearchParams,
+    /// Its agreement in the bundle's study (`None` without a study).
+    pub agreement: Option<f64>,
+    /// Its predicted latency (encoder included), in milliseconds.
+    pub predicted_ms: f64,
+    /// Its latency measured once chosen (median of three runs), in milliseconds.
+    pub measured_ms: f64,
+    /// The latency budget.
+    pub budget_ms: f64,
+    /// Whether the prediction is within the budget.
+    pub within_budget: bool,
+    /// Searches that reached the agreement target (those the calibration chose among).
+    pub eligible: usize,
+    /// How long the calibration took, in milliseconds.
+    pub took_ms: f64,
+    /// Why this search, in words.
+    pub reason: String,
+}
+
+/// The measured costs a prediction is made of, in milliseconds.
+struct Rates {
+    encoder: f64,
+    /// Per start level and precision: scoring the level in full from its projections.
+    start: BTreeMap<(u8, Precision), f64>,
+    /// Per precision: a level's fixed cost and one row's, from encodings (a line through the
+    /// times of [`SMALL_ROWS`] and [`TIMED_ROWS`] rows).
+    row: BTreeMap<Precision, (f64, f64)>,
+}
+
+impl Rates {
+    /// The predicted latency of `search` to `level`.
+    fn predict(&self, model: &Model, search: &SearchParams, level: u8) -> f64 {
+        let mut ms = self.encoder;
+        for (l, rows, precision) in rows_per_level(model, search, level) {
+            ms += if l == search.start_level.min(level) {
+                self.start[&(l, precision)]
+            } else {
+                let (fixed, per_row) = self.row[&precision];
+                fixed + rows as f64 * per_row
+            };
+        }
+        ms
+    }
+}
+
+/// The levels `search` scores to `level` with a top-[`TOP_K`], each with the rows it scores (at
+/// most: a keep by mass may keep fewer) and its precision.
+pub fn rows_per_level(
+    model: &Model,
+    search: &SearchParams,
+    level: u8,
+) -> Vec<(u8, usize, Precision)> {
+    let start = search.start_level.min(level);
+    let precision = |l: u8| {
+        if l == level {
+            Precision::F32
+        } else {
+            search.coarse_precision
+        }
+    };
+    let min = TOP_K.div_ceil(8);
+    let keep = Keep {
+        max: search.keep.max(min),
+        min,
+        mass: search.keep_mass,
+        taper: search.keep_taper,
+    };
+    let mut out = Vec::new();
+    let mut cells = model.grid(start).map_or(0, |g| g.len());
+    out.push((start, cells, precision(start)));
+    for l in start + 1..=level {
+        let kept = keep.max_at((l - start - 1) as usize).min(cells);
+        cells = 8 * kept;
+        out.push((l, cells, precision(l)));
+    }
+    out
+}
+
+/// Median of `runs` timed calls of `f`, in milliseconds (after one untimed call), or the minimum
+/// with `min`.
+fn time_ms(runs: usize, min: bool, mut f: impl FnMut()) -> f64 {
+    f();
+    let mut t: Vec<f64> = (0..runs)
+        .map(|_| {
+            let s = Instant::now();
+            f();
+            s.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
+    t.sort_by(f64::total_cmp);
+    if min { t[0] } else { t[t.len() / 2] }
+}
+
+/// A search the calibration may choose, with its studied agreement.
+#[derive(Debug, Clone, Copy)]
+struct Candidate {
+    params: SearchParams,
+    agreement: Option<f64>,
+}
+
+/// The searches to choose among: the study's that reach `target` (within this model's levels),
+/// or, without a study, `configured` in both precisions.
+fn candidates(
+    model: &Model,
+    study: Option<&SearchStudy>,
+    configured: &SearchParams,
+    target: f64,
+) -> Vec<Candidate> {
+    match study {
+        Some(study) => study
+            .searches
+            .iter()
+            .filter(|s| s.agreement >= target && s.start_level <= model.config.max_full_level)
+            .filter_map(|s| {
+                Some(Candidate {
+                    params: SearchParams {
+                        start_level: s.start_level,
+                        keep: s.keep,
+                        keep_mass: s.keep_mass,
+                        keep_taper: s.keep_taper,
+                        coarse_precision: s.precision().ok()?,
+                    },
+                    agreement: Some(s.agreement),
+                })
+            })
+            .collect(),
+        None => [Precision::F32, Precision::Bf16]
+            .map(|coarse_precision| Candidate {
+                params: SearchParams {
+                    coarse_precision,
+                    ..*configured
+                },
+                agreement: None,
+            })
+            .to_vec(),
+    }
+}
+
+/// Chooses the search `model` serves to `level` on this CPU (see the module's doc).
+pub fn calibrate(
+    model: &Model,
+    study: Option<&SearchStudy>,
+    configured: &SearchParams,
+    target: f64,
+    budget_ms: f64,
+    level: u8,
+) -> Result<Calibration, EngineError> {
+    let started = Instant::now();
+    let candidates = candidates(model, study, configured, target);
+    if candidates.is_empty() {
+        return Err(EngineError::InvalidArgument {
+            field: "search study".into(),
+            message: format!(
+                "no studied search of this model reaches the agreement target {target} (lower --search-agreement or set the search with flags)"
+            ),
+        });
+    }
+    let size = model.input_size() as usize;
+    let grey = vec![128u8; size * size * 3];
+    let features = model.features(&[&grey]);
+    let mut rates = Rates {
+        encoder: time_ms(RUNS, true, || {
+            let _ = model.features(&[&grey]);
+        }),
+        start: BTreeMap::new(),
+        row: BTreeMap::new(),
+    };
+    let grid = model
+        .grid(level)
+        .ok_or_else(|| EngineError::InvalidArgument {
+            field: "level".into(),
+            message: format!("{level} is above this model's grids"),
+        })?;
+    let step = (grid.len() / TIMED_ROWS).max(1) as u64;
+    let rotations: Vec<[f32; 9]> = (0..TIMED_ROWS as u64)
+        .map(|i| crate::so3::to_row_major_f32(&grid.rotation((i * step) % grid.len() as u64)))
+        .collect();
+    for c in &candidates {
+        for (l, _, precision) in rows_per_level(model, &c.params, level) {
+            if l == c.params.start_level.min(level) {
+                rates.start.entry((l, precision)).or_insert_with(|| {
+                    time_ms(RUNS, true, || {
+                        let _ =
+                            model.projected[l as usize].log_weights_in(precision, features.clone());
+                    })
+                });
+            } else {
+                rates.row.entry(precision).or_insert_with(|| {
+                    let time = |rows: &[[f32; 9]]| {
+                        let rows = [rows.to_vec()];
+                        time_ms(RUNS, true, || {
+                            let _ = model.score_rotations_many(&features, &rows, precision);
+                        })
+                    };
+                    let (many, few) = (time(&rotations), time(&rotations[..SMALL_ROWS]));
+                    let per_row = ((many - few) / (TIMED_ROWS - SMALL_ROWS) as f64).max(0.0);
+                    ((few - per_row * SMALL_ROWS as f64).max(0.0), per_row)
+                });
+            }
+        }
+    }
+    let predicted: Vec<f64> = candidates
+        .iter()
+        .map(|c| rates.predict(model, &c.params, level))
+        .collect();
+    let order = |a: &usize, b: &usize| predicted[*a].total_cmp(&predicted[*b]);
+    let within: Vec<usize> = (0..candidates.len())
+        .filter(|&i| predicted[i] <= budget_ms)
+        .collect();
+    let (pick, reason) = match within.iter().copied().max_by(|a, b| {
+        let agreement = |i: usize| candidates[i].agreement.unwrap_or(0.0);
+        agreement(*a)
+            .total_cmp(&agreement(*b))
+            .then_with(|| order(b, a))
+    }) {
+        Some(i) => (
+            i,
+            format!(
+                "the most agreeing of {} searches predicted within {budget_ms} ms",
+                within.len()
+            ),
+        ),
+        None => (
+            (0..candidates.len()).min_by(order).unwrap_or(0),
+            format!(
+                "no search reaching the target is predicted within {budget_ms} ms: the fastest of {}",
+                candidates.len()
+            ),
+        ),
+    };
+    let chosen = candidates[pick];
+    let options = PredictOptions {
+        top_k: TOP_K,
+        level: Some(level),
+        mode_angle_deg: None,
+        ..Default::default()
+    };
+    let mut failed = None;
+    let measured_ms = time_ms(3, false, || {
+        let f = model.features(&[&grey]);
+        if let Err(e) = model.predict_searching(&f, &options, &chosen.params, &[None]) {
+            failed = Some(e);
+        }
+    });
+    if let Some(e) = failed {
+        return Err(e);
+    }
+    Ok(Calibration {
+        chosen: chosen.params,
+        agreement: chosen.agreement,
+        predicted_ms: predicted[pick],
+        measured_ms,
+        budget_ms,
+        within_budget: predicted[pick] <= budget_ms,
+        eligible: candidates.len(),
+        took_ms: started.elapsed().as_secs_f64() * 1e3,
+        reason: match study {
+            Some(_) => reason,
+            None => format!("no search study in the bundle: the configured search, {reason}"),
+        },
+    })
+}

@@ -1,0 +1,174 @@
+//! The load-time calibration of the search (engine/calibrate.rs) on the shipped model, with
+//! studies written here: it never picks a search below the agreement target, takes the most
+//! agreeing one within the budget, the fastest one (flagged) when none fits, and makes the same
+//! choice run after run; bad study files are refused naming the field.
+
+use std::path::Path;
+
+use alignist::bundle::study::{SEARCH_STUDY_FILE, SearchStudy, StudiedSearch};
+use alignist::engine::calibrate::calibrate;
+use alignist::engine::{Engine, EngineConfig, Model};
+use alignist::net::Precision;
+
+fn shipped() -> &'static Path {
+    Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/models/symsol1"))
+}
+
+fn model() -> Model {
+    Engine::load_model(shipped(), EngineConfig::default()).unwrap()
+}
+
+fn studied(
+    start_level: u8,
+    keep: usize,
+    taper: f64,
+    precision: &str,
+    agreement: f64,
+) -> StudiedSearch {
+    StudiedSearch {
+        start_level,
+        keep,
+        keep_mass: None,
+        keep_taper: taper,
+        coarse_precision: precision.into(),
+        agreement,
+        found_maximum: agreement,
+    }
+}
+
+/// A study of four searches: a cheap one below the target, a cheap one and a costly one above
+/// it, and the costliest with the highest agreement.
+fn study() -> SearchStudy {
+    SearchStudy {
+        level: 5,
+        images: 50,
+        command: "tests/calibration.rs".into(),
+        searches: vec![
+            studied(1, 32, 1.0, "f32", 0.80),
+            studied(1, 64, 0.5, "f32", 0.99),
+            studied(2, 256, 1.0, "f32", 0.995),
+            studied(2, 1024, 1.0, "f32", 1.0),
+        ],
+    }
+}
+
+#[test]
+fn calibration_never_goes_below_the_target_and_honours_the_budget() {
+    let model = model();
+    let study = study();
+    let configured = model.config().search();
+    // A budget nothing can meet: the fastest search at or above the target, flagged.
+    let tight = calibrate(&model, Some(&study), &configured, 0.99, 0.001, 5).unwrap();
+    assert_eq!(
+        (tight.chosen.start_level, tight.chosen.keep),
+        (1, 64),
+        "{tight:?}"
+    );
+    assert!(!tight.within_budget && tight.predicted_ms > 0.001);
+    assert_eq!(tight.eligible, 3);
+    assert_eq!(tight.agreement, Some(0.99));
+    // An unlimited budget: the most agreeing search.
+    let loose = calibrate(&model, Some(&study), &configured, 0.99, 1e9, 5).unwrap();
+    assert_eq!(
+        (loose.chosen.start_level, loose.chosen.keep),
+        (2, 1024),
+        "{loose:?}"
+    );
+    assert!(loose.within_budget && loose.measured_ms > 0.0);
+    assert!(
+        tight.predicted_ms < loose.predicted_ms,
+        "{tight:?} {loose:?}"
+    );
+    // A target no studied search reaches is refused, naming the study.
+    let err = calibrate(&model, Some(&study), &configured, 1.01, 25.0, 5).unwrap_err();
+    assert!(err.to_string().contains("search study"), "{err}");
+}
+
+#[test]
+fn calibration_makes_the_same_choice_in_nine_of_ten_starts() {
+    let model = model();
+    // The real study when the bundle has one, else the study above.
+    let study = SearchStudy::load(shipped()).unwrap().unwrap_or_else(study);
+    let configured = model.config().search();
+    let choices: Vec<String> = (0..10)
+        .map(|_| {
+            calibrate(&model, Some(&study), &configured, 0.99, 25.0, 5)
+                .unwrap()
+                .chosen
+                .to_string()
+        })
+        .collect();
+    let most = choices
+        .iter()
+        .map(|c| choices.iter().filter(|d| *d == c).count())
+        .max()
+        .unwrap();
+    assert!(most >= 9, "{choices:?}");
+}
+
+#[test]
+fn without_a_study_the_configured_search_keeps_its_shape() {
+    let model = model();
+    let configured = model.config().search();
+    let c = calibrate(&model, None, &configured, 0.99, 25.0, 5).unwrap();
+    assert_eq!(c.chosen.keep, configured.keep);
+    assert_eq!(c.chosen.start_level, configured.start_level);
+    assert!(matches!(
+        c.chosen.coarse_precision,
+        Precision::F32 | Precision::Bf16
+    ));
+    assert_eq!(c.agreement, None);
+    assert!(c.reason.contains("no search study"), "{}", c.reason);
+}
+
+#[test]
+fn a_model_loaded_with_a_budget_serves_the_calibrated_search() {
+    let dir = tempfile::tempdir().unwrap();
+    let folder = dir.path().join("symsol1");
+    std::fs::create_dir(&folder).unwrap();
+    for entry in std::fs::read_dir(shipped()).unwrap() {
+        let entry = entry.unwrap();
+        if entry.file_type().unwrap().is_file() {
+            std::fs::copy(entry.path(), folder.join(entry.file_name())).unwrap();
+        } else {
+            copy_dir(&entry.path(), &folder.join(entry.file_name()));
+        }
+    }
+    study().save(&folder).unwrap();
+    let config = EngineConfig {
+        search_budget_ms: Some(1e9),
+        ..EngineConfig::default()
+    };
+    let model = Engine::load_model(&folder, config).unwrap();
+    let c = model.calibration().expect("calibrated");
+    assert_eq!(model.config().search(), c.chosen);
+    assert_eq!(c.chosen.keep, 1024);
+    // A study out of range is refused at load, naming the file and the field.
+    let mut bad = study();
+    bad.searches[2].agreement = 1.5;
+    bad.save(&folder).unwrap();
+    let err = Engine::load_model(&folder, config).err().expect("refused");
+    let text = err.to_string();
+    assert!(
+        text.contains(SEARCH_STUDY_FILE) && text.contains("searches[2].agreement"),
+        "{text}"
+    );
+    std::fs::write(folder.join(SEARCH_STUDY_FILE), "{ not json").unwrap();
+    let text = Engine::load_model(&folder, config)
+        .err()
+        .expect("refused")
+        .to_string();
+    assert!(text.contains(SEARCH_STUDY_FILE), "{text}");
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for entry in std::fs::read_dir(from).unwrap() {
+        let entry = entry.unwrap();
+        if entry.file_type().unwrap().is_dir() {
+            copy_dir(&entry.path(), &to.join(entry.file_name()));
+        } else {
+            std::fs::copy(entry.path(), to.join(entry.file_name())).unwrap();
+        }
+    }
+}
