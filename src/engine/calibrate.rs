@@ -28,6 +28,9 @@ const RUNS: usize = 2;
 const TIMED_ROWS: usize = 2048;
 const SMALL_ROWS: usize = 64;
 
+/// Predictions within this factor of the fastest count as equally fast.
+const TIE: f64 = 1.15;
+
 /// Top-k of the searches the calibration times (the bench's and a typical Predict's).
 const TOP_K: usize = 10;
 
@@ -240,16 +243,40 @@ pub fn calibrate(
         .iter()
         .map(|c| rates.predict(model, &c.params, level))
         .collect();
-    let order = |a: &usize, b: &usize| predicted[*a].total_cmp(&predicted[*b]);
+    // Timings are noisy: searches predicted within [`TIE`] of the fastest of a set count as
+    // equally fast, and the one scoring the fewest rows (then the study's order) is taken, so
+    // that the choice does not flip between starts.
+    let rows = |i: usize| -> usize {
+        rows_per_level(model, &candidates[i].params, level)
+            .iter()
+            .map(|r| r.1)
+            .sum()
+    };
+    let fastest = |set: &[usize]| -> Option<usize> {
+        let best = set
+            .iter()
+            .map(|&i| predicted[i])
+            .fold(f64::INFINITY, f64::min);
+        set.iter()
+            .copied()
+            .filter(|&i| predicted[i] <= best * TIE)
+            .min_by_key(|&i| (rows(i), i))
+    };
+    let agreement = |i: usize| candidates[i].agreement.unwrap_or(0.0);
     let within: Vec<usize> = (0..candidates.len())
         .filter(|&i| predicted[i] <= budget_ms)
         .collect();
-    let (pick, reason) = match within.iter().copied().max_by(|a, b| {
-        let agreement = |i: usize| candidates[i].agreement.unwrap_or(0.0);
-        agreement(*a)
-            .total_cmp(&agreement(*b))
-            .then_with(|| order(b, a))
-    }) {
+    let most = within
+        .iter()
+        .map(|&i| agreement(i))
+        .fold(f64::NEG_INFINITY, f64::max);
+    let most_agreeing: Vec<usize> = within
+        .iter()
+        .copied()
+        .filter(|&i| agreement(i) >= most)
+        .collect();
+    let all: Vec<usize> = (0..candidates.len()).collect();
+    let (pick, reason) = match fastest(&most_agreeing) {
         Some(i) => (
             i,
             format!(
@@ -258,7 +285,7 @@ pub fn calibrate(
             ),
         ),
         None => (
-            (0..candidates.len()).min_by(order).unwrap_or(0),
+            fastest(&all).unwrap_or(0),
             format!(
                 "no search reaching the target is predicted within {budget_ms} ms: the fastest of {}",
                 candidates.len()
