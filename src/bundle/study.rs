@@ -12,7 +12,7 @@ use super::BundleError;
 use crate::net::Precision;
 
 /// The keep tapers a search accepts: from an eighth to eight times as many cells per finer
-/// level (the engine's [`crate::engine::KEEP_TAPER`]).
+/// level (the engine re-exports it as `KEEP_TAPER`).
 pub const KEEP_TAPER: std::ops::RangeInclusive<f64> = 0.125..=8.0;
 
 /// The study's file in a bundle folder.

@@ -10,7 +10,7 @@
 //! 2 B = 32 KiB) stays in L1 while the rows of a tile stream past it [`MR`] at a time.
 
 use super::fused::{FusedHead, Precision, Rows};
-use super::native::{Epilogue, Kernel, Kernels, NativeHead, Packed};
+use super::native::{Epilogue, Kernel, Kernels, NativeHead, Packed, kernel_impl};
 
 /// Rows of the native kernel's register block.
 pub const MR: usize = 6;
@@ -99,41 +99,8 @@ pub fn native_available() -> bool {
 #[derive(Debug, Clone, Copy)]
 pub struct Bf16Kernel;
 
-impl Kernel for Bf16Kernel {
-    type Elem = u16;
-    const GROUP: usize = 2;
-    const MR: usize = MR;
-    const NR: usize = NR;
-
-    fn available() -> bool {
-        native_available()
-    }
-
-    fn convert(x: f32) -> u16 {
-        to_bf16(x)
-    }
-
-    unsafe fn gemm(
-        layer: &Packed<u16>,
-        bias: &[f32],
-        input: &[u16],
-        stride: usize,
-        rows: usize,
-        epilogue: Epilogue<'_, u16>,
-        _pack: &mut Vec<u16>,
-    ) {
-        #[cfg(target_arch = "x86_64")]
-        // SAFETY: the caller's contract is `gemm_bf16`'s.
-        unsafe {
-            gemm_bf16(layer, bias, input, stride, rows, epilogue)
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        {
-            let _ = (layer, bias, input, stride, rows, epilogue);
-            unreachable!("the native kernel is only built on x86_64")
-        }
-    }
-}
+kernel_impl!(Bf16Kernel, u16, group 2, mr MR, nr NR, available native_available,
+    convert to_bf16, gemm gemm_bf16);
 
 /// [`Kernel::gemm`] for bfloat16 pairs.
 ///
@@ -148,6 +115,7 @@ unsafe fn gemm_bf16(
     stride: usize,
     rows: usize,
     epilogue: Epilogue<'_, u16>,
+    _pack: &mut Vec<u16>,
 ) {
     use std::arch::x86_64::*;
     debug_assert!(
@@ -196,12 +164,29 @@ unsafe fn gemm_bf16(
                             }
                         }
                         Epilogue::Dot { weights, dots } => {
-                            dots[row] +=
-                                super::native::dot_row(&h, weights.as_ptr().add(panel * NR));
+                            dots[row] += dot4(&h, weights.as_ptr().add(panel * NR));
                         }
                     }
                 }
             }
         }
+    }
+}
+
+/// `Σ_j h_j · w_j` over a block row's four vectors (the `width → 1` output layer).
+///
+/// # Safety
+/// The core has AVX-512F; `w` points at 64 floats.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn dot4(h: &[std::arch::x86_64::__m512; 4], w: *const f32) -> f32 {
+    use std::arch::x86_64::*;
+    // SAFETY: `w` holds 64 floats.
+    unsafe {
+        let mut sum = _mm512_mul_ps(h[0], _mm512_loadu_ps(w));
+        for (c, h) in h.iter().enumerate().skip(1) {
+            sum = _mm512_fmadd_ps(*h, _mm512_loadu_ps(w.add(16 * c)), sum);
+        }
+        _mm512_reduce_add_ps(sum)
     }
 }

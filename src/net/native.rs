@@ -413,8 +413,135 @@ fn pack_blocks<'a, const MR: usize>(
     blocks
 }
 
-/// f32 on 512-bit FMAs, in register blocks of 12 rows × 2 vectors.
-pub type F32Avx512 = F32Kernel<12, 2>;
+/// The [`Kernel`] impl of a kernel whose `gemm` is the x86-64 function `$gemm` (taking the
+/// trait's arguments); elsewhere `available` is false and `gemm` is never called.
+macro_rules! kernel_impl {
+    ($kernel:ty, $elem:ty, group $group:expr, mr $mr:expr, nr $nr:expr,
+     available $available:path, convert $convert:path, gemm $gemm:path) => {
+        impl Kernel for $kernel {
+            type Elem = $elem;
+            const GROUP: usize = $group;
+            const MR: usize = $mr;
+            const NR: usize = $nr;
+
+            fn available() -> bool {
+                $available()
+            }
+
+            fn convert(x: f32) -> $elem {
+                $convert(x)
+            }
+
+            unsafe fn gemm(
+                layer: &Packed<$elem>,
+                bias: &[f32],
+                input: &[$elem],
+                stride: usize,
+                rows: usize,
+                epilogue: Epilogue<'_, $elem>,
+                pack: &mut Vec<$elem>,
+            ) {
+                #[cfg(target_arch = "x86_64")]
+                // SAFETY: the caller's contract is the kernel function's.
+                unsafe {
+                    $gemm(layer, bias, input, stride, rows, epilogue, pack)
+                }
+                #[cfg(not(target_arch = "x86_64"))]
+                {
+                    let _ = (layer, bias, input, stride, rows, epilogue, pack);
+                    unreachable!("the native kernels are only built on x86_64")
+                }
+            }
+        }
+    };
+}
+pub(super) use kernel_impl;
+
+/// An f32 [`Kernel::gemm`] on one vector width: blocks of `MR` rows × `NV` vectors of `LANES`
+/// lanes, the rows packed per block ([`pack_blocks`]), bias and ReLU (or the output dot
+/// product) as each block leaves the registers. `$hsum` sums a vector's lanes.
+macro_rules! f32_gemm {
+    ($(#[$doc:meta])* $name:ident, $feature:literal, $v:ty, lanes $lanes:literal, mr $mr:literal,
+     nv $nv:literal, $zero:ident, $load:ident, $store:ident, $set1:ident, $fmadd:ident,
+     $add:ident, $max:ident, $hsum:path) => {
+        $(#[$doc])*
+        ///
+        /// # Safety
+        /// As [`Kernel::gemm`], with the target features named.
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = $feature)]
+        unsafe fn $name(
+            layer: &Packed<f32>,
+            bias: &[f32],
+            input: &[f32],
+            stride: usize,
+            rows: usize,
+            epilogue: Epilogue<'_, f32>,
+            pack: &mut Vec<f32>,
+        ) {
+            use std::arch::x86_64::*;
+            const MR: usize = $mr;
+            const NV: usize = $nv;
+            let nr = $lanes * NV;
+            debug_assert!(
+                rows.is_multiple_of(MR)
+                    && input.len() >= rows * stride
+                    && stride >= layer.groups
+                    && bias.len() >= layer.panels * nr
+            );
+            let k = layer.groups;
+            let mut epilogue = epilogue;
+            let blocks = pack_blocks::<MR>(input, rows, stride, k, pack);
+            for panel in 0..layer.panels {
+                for r0 in (0..rows).step_by(MR) {
+                    // SAFETY (all pointer reads and writes below): within the bounds above.
+                    unsafe {
+                        let weights = layer.weight.as_ptr().add(panel * k * nr);
+                        let bias: [$v; NV] = std::array::from_fn(|c| {
+                            $load(bias.as_ptr().add(panel * nr + $lanes * c))
+                        });
+                        let mut acc = [[$zero(); NV]; MR];
+                        let block = blocks.as_ptr().add(r0 * k);
+                        for i in 0..k {
+                            let w = weights.add(i * nr);
+                            let a = block.add(i * MR);
+                            let b: [$v; NV] =
+                                std::array::from_fn(|c| $load(w.add($lanes * c)));
+                            for (r, acc) in acc.iter_mut().enumerate() {
+                                let x = $set1(*a.add(r));
+                                for c in 0..NV {
+                                    acc[c] = $fmadd(x, b[c], acc[c]);
+                                }
+                            }
+                        }
+                        let zero = $zero();
+                        for (r, acc) in acc.iter().enumerate() {
+                            let row = r0 + r;
+                            let h: [$v; NV] =
+                                std::array::from_fn(|c| $max($add(acc[c], bias[c]), zero));
+                            match &mut epilogue {
+                                Epilogue::Store { out, stride } => {
+                                    let o = out.as_mut_ptr().add(row * *stride + panel * nr);
+                                    for (c, h) in h.iter().enumerate() {
+                                        $store(o.add($lanes * c), *h);
+                                    }
+                                }
+                                Epilogue::Dot { weights, dots } => {
+                                    let w = weights.as_ptr().add(panel * nr);
+                                    let mut sum = $zero();
+                                    for (c, h) in h.iter().enumerate() {
+                                        sum = $fmadd(*h, $load(w.add($lanes * c)), sum);
+                                    }
+                                    dots[row] += $hsum(sum);
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    };
+}
 
 /// Whether this core has AVX2 and FMA (the 256-bit f32 kernel).
 pub fn avx2_available() -> bool {
@@ -428,250 +555,45 @@ pub fn avx2_available() -> bool {
     }
 }
 
+/// f32 on 512-bit FMAs: blocks of 12 rows × 2 sixteen-lane vectors.
+#[derive(Debug, Clone, Copy)]
+pub struct F32Avx512;
+
+kernel_impl!(F32Avx512, f32, group 1, mr 12, nr 32, available avx512f_available,
+    convert std::convert::identity, gemm gemm_f32_avx512);
+
+f32_gemm!(
+    /// [`Kernel::gemm`] for f32 on AVX-512F, blocks of 12 rows × 32 columns.
+    gemm_f32_avx512, "avx512f", __m512, lanes 16, mr 12, nv 2, _mm512_setzero_ps,
+    _mm512_loadu_ps, _mm512_storeu_ps, _mm512_set1_ps, _mm512_fmadd_ps, _mm512_add_ps,
+    _mm512_max_ps, _mm512_reduce_add_ps
+);
+
 /// f32 on 256-bit FMAs: blocks of 6 rows × 2 eight-lane vectors (12 accumulators, 2 weight
 /// vectors and a broadcast in the 16 ymm registers).
 #[derive(Debug, Clone, Copy)]
 pub struct F32Avx2;
 
-impl Kernel for F32Avx2 {
-    type Elem = f32;
-    const GROUP: usize = 1;
-    const MR: usize = 6;
-    const NR: usize = 16;
+kernel_impl!(F32Avx2, f32, group 1, mr 6, nr 16, available avx2_available,
+    convert std::convert::identity, gemm gemm_f32_avx2);
 
-    fn available() -> bool {
-        avx2_available()
-    }
+f32_gemm!(
+    /// [`Kernel::gemm`] for f32 on AVX2, blocks of 6 rows × 16 columns.
+    gemm_f32_avx2, "avx2,fma", __m256, lanes 8, mr 6, nv 2, _mm256_setzero_ps,
+    _mm256_loadu_ps, _mm256_storeu_ps, _mm256_set1_ps, _mm256_fmadd_ps, _mm256_add_ps,
+    _mm256_max_ps, hsum256
+);
 
-    fn convert(x: f32) -> f32 {
-        x
-    }
-
-    unsafe fn gemm(
-        layer: &Packed<f32>,
-        bias: &[f32],
-        input: &[f32],
-        stride: usize,
-        rows: usize,
-        epilogue: Epilogue<'_, f32>,
-        pack: &mut Vec<f32>,
-    ) {
-        #[cfg(target_arch = "x86_64")]
-        // SAFETY: the caller's contract is `gemm_f32_avx2`'s.
-        unsafe {
-            gemm_f32_avx2(layer, bias, input, stride, rows, epilogue, pack)
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        {
-            let _ = (layer, bias, input, stride, rows, epilogue, pack);
-            unreachable!("the f32 kernel is only built on x86_64")
-        }
-    }
-}
-
-/// [`Kernel::gemm`] for f32 on AVX2: blocks of 6 rows × 16 columns.
+/// The sum of a 256-bit vector's lanes.
 ///
 /// # Safety
-/// As [`Kernel::gemm`], with AVX2 and FMA.
+/// The core has AVX.
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn gemm_f32_avx2(
-    layer: &Packed<f32>,
-    bias: &[f32],
-    input: &[f32],
-    stride: usize,
-    rows: usize,
-    epilogue: Epilogue<'_, f32>,
-    pack: &mut Vec<f32>,
-) {
+#[target_feature(enable = "avx")]
+unsafe fn hsum256(v: std::arch::x86_64::__m256) -> f32 {
     use std::arch::x86_64::*;
-    const MR: usize = 6;
-    const NV: usize = 2;
-    let nr = 8 * NV;
-    debug_assert!(
-        rows.is_multiple_of(MR)
-            && input.len() >= rows * stride
-            && stride >= layer.groups
-            && bias.len() >= layer.panels * nr
-    );
-    let k = layer.groups;
-    let mut epilogue = epilogue;
-    let blocks = pack_blocks::<MR>(input, rows, stride, k, pack);
-    for panel in 0..layer.panels {
-        for r0 in (0..rows).step_by(MR) {
-            // SAFETY (all pointer reads and writes below): within the bounds stated above.
-            unsafe {
-                let weights = layer.weight.as_ptr().add(panel * k * nr);
-                let bias: [__m256; NV] =
-                    std::array::from_fn(|c| _mm256_loadu_ps(bias.as_ptr().add(panel * nr + 8 * c)));
-                let mut acc = [[_mm256_setzero_ps(); NV]; MR];
-                let block = blocks.as_ptr().add(r0 * k);
-                for i in 0..k {
-                    let w = weights.add(i * nr);
-                    let a = block.add(i * MR);
-                    let b: [__m256; NV] = std::array::from_fn(|c| _mm256_loadu_ps(w.add(8 * c)));
-                    for (r, acc) in acc.iter_mut().enumerate() {
-                        let x = _mm256_set1_ps(*a.add(r));
-                        for c in 0..NV {
-                            acc[c] = _mm256_fmadd_ps(x, b[c], acc[c]);
-                        }
-                    }
-                }
-                let zero = _mm256_setzero_ps();
-                for (r, acc) in acc.iter().enumerate() {
-                    let row = r0 + r;
-                    let h: [__m256; NV] = std::array::from_fn(|c| {
-                        _mm256_max_ps(_mm256_add_ps(acc[c], bias[c]), zero)
-                    });
-                    match &mut epilogue {
-                        Epilogue::Store { out, stride } => {
-                            let o = out.as_mut_ptr().add(row * *stride + panel * nr);
-                            for (c, h) in h.iter().enumerate() {
-                                _mm256_storeu_ps(o.add(8 * c), *h);
-                            }
-                        }
-                        Epilogue::Dot { weights, dots } => {
-                            let w = weights.as_ptr().add(panel * nr);
-                            let mut sum = _mm256_mul_ps(h[0], _mm256_loadu_ps(w));
-                            sum = _mm256_fmadd_ps(h[1], _mm256_loadu_ps(w.add(8)), sum);
-                            let mut lanes = [0f32; 8];
-                            _mm256_storeu_ps(lanes.as_mut_ptr(), sum);
-                            dots[row] += lanes.iter().sum::<f32>();
-                        }
-                    }
-                }
-            }
-        }
-    }
-}
-
-/// f32 on 512-bit FMAs, in register blocks of `MR` rows × `NV` 16-lane vectors.
-#[derive(Debug, Clone, Copy)]
-pub struct F32Kernel<const MR: usize, const NV: usize>;
-
-impl<const MR: usize, const NV: usize> Kernel for F32Kernel<MR, NV> {
-    type Elem = f32;
-    const GROUP: usize = 1;
-    const MR: usize = MR;
-    const NR: usize = 16 * NV;
-
-    fn available() -> bool {
-        avx512f_available()
-    }
-
-    fn convert(x: f32) -> f32 {
-        x
-    }
-
-    unsafe fn gemm(
-        layer: &Packed<f32>,
-        bias: &[f32],
-        input: &[f32],
-        stride: usize,
-        rows: usize,
-        epilogue: Epilogue<'_, f32>,
-        pack: &mut Vec<f32>,
-    ) {
-        #[cfg(target_arch = "x86_64")]
-        // SAFETY: the caller's contract is `gemm_f32`'s.
-        unsafe {
-            gemm_f32::<MR, NV>(layer, bias, input, stride, rows, epilogue, pack)
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        {
-            let _ = (layer, bias, input, stride, rows, epilogue, pack);
-            unreachable!("the f32 kernel is only built on x86_64")
-        }
-    }
-}
-
-/// `Σ_j h_j · w_j` over a block row's vectors (the `width → 1` output layer).
-///
-/// # Safety
-/// The core has AVX-512F; `w` points at `16 × NV` floats.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-pub(super) unsafe fn dot_row<const NV: usize>(
-    h: &[std::arch::x86_64::__m512; NV],
-    w: *const f32,
-) -> f32 {
-    use std::arch::x86_64::*;
-    // SAFETY: `w` holds 16 × NV floats.
-    unsafe {
-        let mut sum = _mm512_mul_ps(h[0], _mm512_loadu_ps(w));
-        for (c, h) in h.iter().enumerate().skip(1) {
-            sum = _mm512_fmadd_ps(*h, _mm512_loadu_ps(w.add(16 * c)), sum);
-        }
-        _mm512_reduce_add_ps(sum)
-    }
-}
-
-/// [`Kernel::gemm`] for f32, in blocks of `MR` rows × `NV` vectors.
-///
-/// # Safety
-/// As [`Kernel::gemm`], with AVX-512F.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-unsafe fn gemm_f32<const MR: usize, const NV: usize>(
-    layer: &Packed<f32>,
-    bias: &[f32],
-    input: &[f32],
-    stride: usize,
-    rows: usize,
-    epilogue: Epilogue<'_, f32>,
-    pack: &mut Vec<f32>,
-) {
-    use std::arch::x86_64::*;
-    let nr = 16 * NV;
-    debug_assert!(
-        rows.is_multiple_of(MR)
-            && input.len() >= rows * stride
-            && stride >= layer.groups
-            && bias.len() >= layer.panels * nr
-    );
-    let k = layer.groups;
-    let mut epilogue = epilogue;
-    let blocks = pack_blocks::<MR>(input, rows, stride, k, pack);
-    for panel in 0..layer.panels {
-        for r0 in (0..rows).step_by(MR) {
-            // SAFETY (all pointer reads and writes below): within the bounds stated above.
-            unsafe {
-                let weights = layer.weight.as_ptr().add(panel * k * nr);
-                let bias: [__m512; NV] = std::array::from_fn(|c| {
-                    _mm512_loadu_ps(bias.as_ptr().add(panel * nr + 16 * c))
-                });
-                let mut acc = [[_mm512_setzero_ps(); NV]; MR];
-                let block = blocks.as_ptr().add(r0 * k);
-                for i in 0..k {
-                    let w = weights.add(i * nr);
-                    let a = block.add(i * MR);
-                    let b: [__m512; NV] = std::array::from_fn(|c| _mm512_loadu_ps(w.add(16 * c)));
-                    for (r, acc) in acc.iter_mut().enumerate() {
-                        let x = _mm512_set1_ps(*a.add(r));
-                        for c in 0..NV {
-                            acc[c] = _mm512_fmadd_ps(x, b[c], acc[c]);
-                        }
-                    }
-                }
-                let zero = _mm512_setzero_ps();
-                for (r, acc) in acc.iter().enumerate() {
-                    let row = r0 + r;
-                    let h: [__m512; NV] = std::array::from_fn(|c| {
-                        _mm512_max_ps(_mm512_add_ps(acc[c], bias[c]), zero)
-                    });
-                    match &mut epilogue {
-                        Epilogue::Store { out, stride } => {
-                            let o = out.as_mut_ptr().add(row * *stride + panel * nr);
-                            for (c, h) in h.iter().enumerate() {
-                                _mm512_storeu_ps(o.add(16 * c), *h);
-                            }
-                        }
-                        Epilogue::Dot { weights, dots } => {
-                            dots[row] += dot_row(&h, weights.as_ptr().add(panel * nr));
-                        }
-                    }
-                }
-            }
-        }
-    }
+    let mut lanes = [0f32; 8];
+    // SAFETY: `lanes` holds 8 floats.
+    unsafe { _mm256_storeu_ps(lanes.as_mut_ptr(), v) };
+    lanes.iter().sum()
 }
