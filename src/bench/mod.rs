@@ -288,6 +288,11 @@ fn grpc_vs_in_process(
 ) -> anyhow::Result<()> {
     let (concurrency, requests) = (8, 96);
     let in_process = in_process_throughput(&model, png, concurrency, requests)?;
+    // The server runs the search the in-process model runs (calibrated once, here).
+    let engine = EngineConfig {
+        search_budget_ms: None,
+        ..*model.config()
+    };
     drop(model);
     // The same bundle served over gRPC on an ephemeral loopback port.
     let dir = tempfile_dir()?;
@@ -295,7 +300,7 @@ fn grpc_vs_in_process(
     crate::bundle::model::copy_dir(bundle, &link)?;
     let runtime = tokio::runtime::Runtime::new()?;
     let grpc = runtime.block_on(async {
-        let (channel, stop, server) = serve_for_bench(&dir).await?;
+        let (channel, stop, server) = serve_for_bench(&dir, engine).await?;
         let figures = grpc_figures(channel, png, concurrency, requests, in_process_p50).await;
         let _ = stop.send(());
         let _ = server.await;
@@ -352,10 +357,11 @@ fn in_process_throughput(
     Ok(requests as f64 / t.elapsed().as_secs_f64())
 }
 
-/// A server over the bundles in `models` on an ephemeral loopback port, once it serves: a channel
+/// A server over the bundles in `models` with `engine`, on an ephemeral loopback port, once it serves: a channel
 /// to it, its stop signal and its task.
 async fn serve_for_bench(
     models: &Path,
+    engine: EngineConfig,
 ) -> anyhow::Result<(
     crate::client::Connection,
     tokio::sync::oneshot::Sender<()>,
@@ -368,6 +374,7 @@ async fn serve_for_bench(
     let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
     let config = ServerConfig {
         drain_timeout: Duration::from_secs(5),
+        engine,
         ..ServerConfig::new(models.to_path_buf(), listen)
     };
     let server = tokio::spawn(run(config, async {
