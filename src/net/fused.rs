@@ -7,11 +7,11 @@
 //! as a dot product. No intermediate leaves the tile, so the head runs near the library's matmul
 //! peak. The burn network stays the reference (training, tests).
 
-use burn::tensor::Tensor;
 use rayon::prelude::*;
 
 use super::DualHead;
 use super::bf16::{Bf16Head, round_bf16};
+use super::dense::Dense;
 use super::native::{F32Avx2, F32Avx512, Kernels, NativeHead};
 
 /// Rows of one tile: measured fastest among 64–512 (`examples/probe_gemm.rs`), and a tile's
@@ -85,66 +85,6 @@ pub(super) fn by_tiles<S>(
             tile(scratch, given, [shape, feature])
         });
     (shape, feature)
-}
-
-/// One linear layer, row-major `[inputs, outputs]` weights.
-#[derive(Debug, Clone)]
-pub(super) struct Dense {
-    pub(super) inputs: usize,
-    pub(super) outputs: usize,
-    pub(super) weight: Vec<f32>,
-    pub(super) bias: Vec<f32>,
-}
-
-impl Dense {
-    fn of(linear: &burn::nn::Linear) -> Dense {
-        let weight = linear.weight.val();
-        let [inputs, outputs] = weight.dims();
-        Dense {
-            inputs,
-            outputs,
-            weight: read(weight),
-            bias: linear
-                .bias
-                .as_ref()
-                .map_or_else(|| vec![0.0; outputs], |b| read(b.val())),
-        }
-    }
-
-    /// `out[r] = x[r]·W + b` for the `rows` rows of `x` (row-major), single-threaded.
-    fn apply(&self, x: &[f32], rows: usize, out: &mut [f32]) {
-        debug_assert!(x.len() >= rows * self.inputs && out.len() >= rows * self.outputs);
-        for row in out[..rows * self.outputs].chunks_exact_mut(self.outputs) {
-            row.copy_from_slice(&self.bias);
-        }
-        // SAFETY: the slices hold `rows × inputs`, `inputs × outputs` and `rows × outputs`
-        // floats (checked above), row-major with the strides given, and `out` does not alias.
-        unsafe {
-            matrixmultiply::sgemm(
-                rows,
-                self.inputs,
-                self.outputs,
-                1.0,
-                x.as_ptr(),
-                self.inputs as isize,
-                1,
-                self.weight.as_ptr(),
-                self.outputs as isize,
-                1,
-                1.0,
-                out.as_mut_ptr(),
-                self.outputs as isize,
-                1,
-            );
-        }
-    }
-}
-
-fn read<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-    t.into_data()
-        .convert::<f32>()
-        .try_to_vec::<f32>()
-        .expect("float weights")
 }
 
 fn round_all(x: &mut [f32]) {

@@ -2,9 +2,11 @@
 //! head, and the losses that train it.
 
 pub mod bf16;
+pub(crate) mod dense;
 pub mod encoder;
 pub mod fused;
 pub mod head;
+pub mod head_grad;
 pub mod loss;
 pub mod native;
 pub mod network;
@@ -12,7 +14,11 @@ pub mod network;
 pub use encoder::{Encoder, EncoderConfig, ResNetLayout};
 pub use fused::{FusedHead, Precision, Rows};
 pub use head::{BranchScores, DualHead, HeadConfig};
-pub use loss::{gkl_loss, ipdf_loss, l1_measure_loss};
+pub use head_grad::{HeadGrads, HeadPass, TrainingHead};
+pub use loss::{
+    LossGrad, gkl_loss, gkl_loss_grad, ipdf_loss, ipdf_loss_grad, l1_measure_loss,
+    l1_measure_loss_grad,
+};
 pub use native::Kernels;
 pub use network::{
     NETWORK_LIMITS, Network, NetworkConfig, NetworkLimits, ProjectedGrid, check_range,

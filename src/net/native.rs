@@ -16,7 +16,8 @@
 
 use std::marker::PhantomData;
 
-use super::fused::{Dense, FusedHead, Rows, TILE_ROWS, by_tiles};
+use super::dense::Dense;
+use super::fused::{FusedHead, Rows, TILE_ROWS, by_tiles};
 
 /// The widest kernels a head may use; each falls back to the next narrower one the core has.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]

@@ -21,8 +21,11 @@ pub use super::data::{FreshRenders, TrainingImage};
 use super::sampling::{ModeSampler, SamplingStrategy, sample_rotations};
 use crate::experts::energy::{BakedExperts, LogTargets};
 use crate::experts::modes::ModeTable;
+use crate::net::{
+    HeadPass, LossGrad, TrainingHead, gkl_loss, gkl_loss_grad, ipdf_loss, ipdf_loss_grad,
+    l1_measure_loss, l1_measure_loss_grad,
+};
 use crate::net::{Network, images_tensor};
-use crate::net::{gkl_loss, ipdf_loss, l1_measure_loss};
 use crate::so3::to_row_major_f32;
 use rayon::prelude::*;
 
@@ -71,8 +74,11 @@ pub struct StepProfile {
     pub encoder_forward: f64,
     /// Rotation encoding, head forward and the loss.
     pub head_forward: f64,
-    /// Backward through head and encoder.
+    /// burn's backward: the encoder's, and the head's on burn's head path ([`HeadPath::Burn`]).
     pub backward: f64,
+    /// The hand-written head's backward ([`HeadPath::Fused`]; 0 on burn's).
+    #[serde(default)]
+    pub head_backward: f64,
     /// The Adam step.
     pub optimiser: f64,
     /// The whole step, checkpoints included.
@@ -91,6 +97,7 @@ impl StepProfile {
             encoder_forward: self.encoder_forward * k,
             head_forward: self.head_forward * k,
             backward: self.backward * k,
+            head_backward: self.head_backward * k,
             optimiser: self.optimiser * k,
             total: self.total * k,
         }
@@ -104,7 +111,30 @@ impl StepProfile {
             + self.encoder_forward
             + self.head_forward
             + self.backward
+            + self.head_backward
             + self.optimiser
+    }
+}
+
+/// Which code runs the head's forward and backward in training. Both compute the same
+/// gradients (within float rounding: `tests/head_grad.rs`); `ALIGNIST_TRAIN_HEAD=burn` selects
+/// burn's autodiff, to measure one against the other.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum HeadPath {
+    /// The hand-written forward and backward ([`TrainingHead`]); burn runs the encoder only.
+    #[default]
+    Fused,
+    /// burn's autodiff through the whole network.
+    Burn,
+}
+
+impl HeadPath {
+    /// `ALIGNIST_TRAIN_HEAD` (`fused` or `burn`), else [`HeadPath::Fused`].
+    pub fn from_env() -> HeadPath {
+        match std::env::var("ALIGNIST_TRAIN_HEAD").as_deref() {
+            Ok("burn") => HeadPath::Burn,
+            _ => HeadPath::Fused,
+        }
     }
 }
 
@@ -319,12 +349,60 @@ fn method_loss(
     }
 }
 
+/// The loss of one batch on the hand-written head's scores and its gradient with respect to each
+/// branch's scores (`None` for a branch the method leaves out of the loss): the same losses as
+/// [`method_loss`].
+fn fused_loss(
+    config: &TrainConfig,
+    pass: &HeadPass,
+    images: usize,
+    log_sdf: &[f32],
+    log_se: &[f32],
+) -> (f64, [Option<Vec<f32>>; 2]) {
+    let [shape, feature] = pass.scores();
+    let Method::Alignist { loss, experts, .. } = &config.method else {
+        let combined: Vec<f32> = shape.iter().zip(&feature).map(|(s, f)| s + f).collect();
+        let LossGrad { loss, grad } = ipdf_loss_grad(&combined, combined.len() / images.max(1));
+        return (loss, [Some(grad.clone()), Some(grad)]);
+    };
+    let f = match loss {
+        MeasureLoss::Gkl => gkl_loss_grad,
+        MeasureLoss::L1 => l1_measure_loss_grad,
+    };
+    let shape = || f(log_sdf, &shape, images);
+    let feature = || f(log_se, &feature, images);
+    match experts {
+        ExpertBranches::Both => {
+            let (s, f) = (shape(), feature());
+            (s.loss + f.loss, [Some(s.grad), Some(f.grad)])
+        }
+        ExpertBranches::ShapeOnly => {
+            let s = shape();
+            (s.loss, [Some(s.grad), None])
+        }
+        ExpertBranches::FeatureOnly => {
+            let f = feature();
+            (f.loss, [None, Some(f.grad)])
+        }
+    }
+}
+
+/// Stops a run whose loss is no longer a number.
+fn check_finite(step: usize, loss: f64) -> Result<(), TrainError> {
+    if loss.is_finite() {
+        Ok(())
+    } else {
+        Err(TrainError::Diverged { step, loss })
+    }
+}
+
 /// What every step of a run reads: its configuration, data, mode samplers and device.
 struct Run<'a> {
     config: &'a TrainConfig,
     set: &'a TrainingSet,
     samplers: &'a [ModeSampler],
     device: &'a Device,
+    head: HeadPath,
 }
 
 impl Run<'_> {
@@ -342,6 +420,7 @@ impl Run<'_> {
             set,
             samplers,
             device,
+            ..
         } = *self;
         let seed = config
             .seed
@@ -367,19 +446,50 @@ impl Run<'_> {
         let started = Instant::now();
         let features = network.encoder.forward(images);
         profile.encoder_forward += started.elapsed().as_secs_f64();
-        let started = Instant::now();
-        let loss = method_loss(config, &network, features, &rotations, log_sdf, log_se);
-        let loss_value = loss.clone().into_scalar::<f32>() as f64;
-        profile.head_forward += started.elapsed().as_secs_f64();
-        if !loss_value.is_finite() {
-            return Err(TrainError::Diverged {
-                step,
-                loss: loss_value,
-            });
-        }
-        let started = Instant::now();
-        let grads = GradientsParams::from_grads(loss.backward(), &network);
-        profile.backward += started.elapsed().as_secs_f64();
+        let (loss_value, grads) = match self.head {
+            HeadPath::Burn => {
+                let started = Instant::now();
+                let loss = method_loss(config, &network, features, &rotations, log_sdf, log_se);
+                let loss_value = loss.clone().into_scalar::<f32>() as f64;
+                profile.head_forward += started.elapsed().as_secs_f64();
+                check_finite(step, loss_value)?;
+                let started = Instant::now();
+                let grads = GradientsParams::from_grads(loss.backward(), &network);
+                profile.backward += started.elapsed().as_secs_f64();
+                (loss_value, grads)
+            }
+            HeadPath::Fused => {
+                let started = Instant::now();
+                let head = TrainingHead::of(&network.head);
+                let dims = features.dims();
+                let flat: Vec<[f32; 9]> = rotations.iter().flatten().copied().collect();
+                let pass = head.forward(
+                    crate::net::dense::read(features.clone()),
+                    config.network.encoding.encode(&flat),
+                    rotations.len(),
+                    flat.len() / rotations.len().max(1),
+                );
+                let (loss_value, d_scores) =
+                    fused_loss(config, &pass, rotations.len(), &log_sdf, &log_se);
+                profile.head_forward += started.elapsed().as_secs_f64();
+                check_finite(step, loss_value)?;
+                let started = Instant::now();
+                let head_grads = head.backward(&pass, d_scores.each_ref().map(|d| d.as_deref()));
+                profile.head_backward += started.elapsed().as_secs_f64();
+                let started = Instant::now();
+                // The encoder's gradients: burn's backward of `Σ F ⊙ dF`, whose gradient with
+                // respect to the features `F` is the head's `dF`.
+                let d_features = Tensor::<2>::from_data(
+                    TensorData::new(head_grads.features.clone(), dims),
+                    device,
+                );
+                let surrogate = (features * d_features).sum();
+                let mut grads = GradientsParams::from_grads(surrogate.backward(), &network);
+                head_grads.register(&head, &mut grads, device);
+                profile.backward += started.elapsed().as_secs_f64();
+                (loss_value, grads)
+            }
+        };
         let started = Instant::now();
         let network = optim.step(learning_rate(config, step), network, grads);
         profile.optimiser += started.elapsed().as_secs_f64();
@@ -408,6 +518,7 @@ pub fn train(
         set,
         samplers: &samplers,
         device: &device,
+        head: HeadPath::from_env(),
     };
     let tail_from = config.steps - config.steps.div_ceil(10);
     let (mut tail_sum, mut tail_n) = (0.0, 0usize);

@@ -657,7 +657,8 @@ pub(crate) fn print_profile(p: &alignist::train::trainer::StepProfile) {
         ("targets", p.targets),
         ("encoder forward", p.encoder_forward),
         ("head forward + loss", p.head_forward),
-        ("backward", p.backward),
+        ("head backward", p.head_backward),
+        ("burn backward", p.backward),
         ("optimiser", p.optimiser),
     ] {
         println!(
