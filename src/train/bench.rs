@@ -7,6 +7,8 @@ use std::ops::ControlFlow;
 
 use serde::{Deserialize, Serialize};
 
+use std::path::Path;
+
 use super::TrainError;
 use super::config::{MeasureLoss, Method, TrainConfig};
 use super::data::FreshRenders;
@@ -14,6 +16,7 @@ use super::sampling::SamplingStrategy;
 use super::trainer::{StepProfile, TrainingSet, train};
 use crate::bundle::experts::{bake_experts, key_siren_config};
 use crate::cad::Shape;
+use crate::data::realism::{Realism, SceneAssets};
 use crate::encoding::RotationEncoding;
 use crate::experts::SirenConfig;
 use crate::experts::energy::EnergyParams;
@@ -102,11 +105,15 @@ pub fn bench_training(config: &TrainingBenchConfig) -> Result<TrainingBench, Tra
         objects: vec![baked],
         modes: vec![modes],
         images: Vec::new(),
+        // Realistic renders at 2× supersampling, as the realistic training runs make them.
         fresh: Some(FreshRenders {
+            realism: Some(SceneAssets::new(
+                std::slice::from_ref(&mesh),
+                Realism::TRAIN,
+            )),
             meshes: vec![mesh],
-            supersample: 4,
+            supersample: 2,
             pool: None,
-            realism: None,
         }),
     };
     let network = NetworkConfig::new(config.layout, RotationEncoding::Cube)
@@ -144,5 +151,51 @@ pub fn bench_training(config: &TrainingBenchConfig) -> Result<TrainingBench, Tra
         alignist,
         head_forward_flops: per_row * (config.batch * config.k) as f64,
         matmul_peak_gflops: crate::backend::matmul_gflops(&train_device, 4096, 256, 256),
+    })
+}
+
+/// The same step in PyTorch (`benches/reference_training_step.py`): ms per IPDF and per
+/// Alignist step, when `python3` has torch.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PyTorchSteps {
+    /// IPDF step.
+    pub ipdf: f64,
+    /// Alignist step.
+    pub alignist: f64,
+}
+
+/// Runs the PyTorch reference on the benchmark's batch, K, crop size and step counts; the error
+/// says why it did not run (no python3, no torch, a failure).
+pub fn pytorch_reference(config: &TrainingBenchConfig) -> Result<PyTorchSteps, String> {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("benches/reference_training_step.py");
+    let out = std::process::Command::new("python3")
+        .arg(&script)
+        .args(
+            [
+                config.batch,
+                config.k,
+                config.image_size as usize,
+                config.steps,
+                config.warmup,
+            ]
+            .map(|v| v.to_string()),
+        )
+        .output()
+        .map_err(|e| format!("python3: {e}"))?;
+    if !out.status.success() {
+        let err = String::from_utf8_lossy(&out.stderr);
+        return Err(err.lines().last().unwrap_or("failed").to_string());
+    }
+    let text = String::from_utf8_lossy(&out.stdout);
+    let ms = |name: &str| -> Result<f64, String> {
+        text.lines()
+            .find_map(|l| l.strip_prefix(name))
+            .and_then(|v| v.strip_suffix(" ms"))
+            .and_then(|v| v.trim().parse().ok())
+            .ok_or_else(|| format!("no `{name}… ms` line in its output: {text}"))
+    };
+    Ok(PyTorchSteps {
+        ipdf: ms("ipdf step: ")?,
+        alignist: ms("alignist step: ")?,
     })
 }

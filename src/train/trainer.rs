@@ -64,13 +64,17 @@ pub struct TrainReport {
 pub struct StepProfile {
     /// Steps measured.
     pub steps: usize,
-    /// Drawing or rendering the images and making their tensor.
+    /// Time a step waited for its batch. The batch (data, sampling, targets) is prepared on
+    /// another thread while the step before it computes, so only this wait is on the step's path.
+    #[serde(default)]
+    pub waiting: f64,
+    /// Drawing or rendering the images (prepared ahead).
     pub data: f64,
-    /// Drawing the K rotations per image.
+    /// Drawing the K rotations per image (prepared ahead).
     pub sampling: f64,
-    /// The experts' targets of the K rotations.
+    /// The experts' targets of the K rotations (prepared ahead).
     pub targets: f64,
-    /// Image encoder forward.
+    /// Making the images' tensor and the image encoder's forward.
     pub encoder_forward: f64,
     /// Rotation encoding, head forward and the loss.
     pub head_forward: f64,
@@ -91,6 +95,7 @@ impl StepProfile {
         let k = 1e3 / self.steps.max(1) as f64;
         StepProfile {
             steps: self.steps,
+            waiting: self.waiting * k,
             data: self.data * k,
             sampling: self.sampling * k,
             targets: self.targets * k,
@@ -103,11 +108,10 @@ impl StepProfile {
         }
     }
 
-    /// Sum of the stages (everything but `total`).
+    /// Sum of the stages on the step's path: the wait for the batch and the computing stages
+    /// (the batch's own stages run beside them).
     pub fn stages(&self) -> f64 {
-        self.data
-            + self.sampling
-            + self.targets
+        self.waiting
             + self.encoder_forward
             + self.head_forward
             + self.backward
@@ -405,21 +409,26 @@ struct Run<'a> {
     head: HeadPath,
 }
 
+/// One step's inputs, drawn from the step's own seed alone (so a batch prepared on another thread,
+/// ahead of its step, is the batch the step would have drawn itself).
+struct Batch {
+    images: Vec<TrainingImage>,
+    /// The K rotations of each image.
+    rotations: Vec<Vec<[f32; 9]>>,
+    /// The experts' log-targets, `[B, K]` (Alignist; empty for IPDF).
+    log_sdf: Vec<f32>,
+    log_se: Vec<f32>,
+    /// Time spent on data, sampling and targets.
+    profile: StepProfile,
+}
+
 impl Run<'_> {
-    /// One optimiser step at `step` (its images, rotations and targets drawn from the step's own
-    /// seed, so that a resumed run continues exactly): the network after it, and the loss.
-    fn step(
-        &self,
-        network: Network,
-        optim: &mut ModuleOptimizer,
-        step: usize,
-        profile: &mut StepProfile,
-    ) -> Result<(Network, f64), TrainError> {
+    /// The batch of `step`: its images, rotations and targets from the step's seed.
+    fn batch(&self, step: usize) -> Batch {
         let Run {
             config,
             set,
             samplers,
-            device,
             ..
         } = *self;
         let seed = config
@@ -427,73 +436,120 @@ impl Run<'_> {
             .wrapping_mul(1_000_003)
             .wrapping_add(step as u64);
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let mut profile = StepProfile::default();
         let started = Instant::now();
-        let picks = step_images(config, set, &mut rng);
-        let crops: Vec<&[u8]> = picks.iter().map(|im| im.rgb.as_slice()).collect();
-        let images = images_tensor(&crops, config.network.image_size as usize, device);
+        let images = step_images(config, set, &mut rng);
         profile.data += started.elapsed().as_secs_f64();
-        let mut rotations = Vec::with_capacity(picks.len());
-        let mut log_sdf = Vec::with_capacity(picks.len() * config.k);
-        let mut log_se = Vec::with_capacity(picks.len() * config.k);
-        for im in &picks {
-            let (mats, targets) = sample_image(config, set, im, samplers, &mut rng, profile);
+        let mut rotations = Vec::with_capacity(images.len());
+        let mut log_sdf = Vec::with_capacity(images.len() * config.k);
+        let mut log_se = Vec::with_capacity(images.len() * config.k);
+        for im in &images {
+            let (mats, targets) = sample_image(config, set, im, samplers, &mut rng, &mut profile);
             if let Some(t) = targets {
                 log_sdf.extend(t.log_a_sdf);
                 log_se.extend(t.log_a_se);
             }
             rotations.push(mats);
         }
+        Batch {
+            images,
+            rotations,
+            log_sdf,
+            log_se,
+            profile,
+        }
+    }
+
+    /// One optimiser step at `step` on its `batch`: the network after it, and the loss.
+    fn step(
+        &self,
+        network: Network,
+        optim: &mut ModuleOptimizer,
+        step: usize,
+        batch: Batch,
+        profile: &mut StepProfile,
+    ) -> Result<(Network, f64), TrainError> {
+        let (config, device) = (self.config, self.device);
         let started = Instant::now();
+        let crops: Vec<&[u8]> = batch.images.iter().map(|im| im.rgb.as_slice()).collect();
+        let images = images_tensor(&crops, config.network.image_size as usize, device);
         let features = network.encoder.forward(images);
         profile.encoder_forward += started.elapsed().as_secs_f64();
         let (loss_value, grads) = match self.head {
-            HeadPath::Burn => {
-                let started = Instant::now();
-                let loss = method_loss(config, &network, features, &rotations, log_sdf, log_se);
-                let loss_value = loss.clone().into_scalar::<f32>() as f64;
-                profile.head_forward += started.elapsed().as_secs_f64();
-                check_finite(step, loss_value)?;
-                let started = Instant::now();
-                let grads = GradientsParams::from_grads(loss.backward(), &network);
-                profile.backward += started.elapsed().as_secs_f64();
-                (loss_value, grads)
-            }
-            HeadPath::Fused => {
-                let started = Instant::now();
-                let head = TrainingHead::of(&network.head);
-                let dims = features.dims();
-                let flat: Vec<[f32; 9]> = rotations.iter().flatten().copied().collect();
-                let pass = head.forward(
-                    crate::net::dense::read(features.clone()),
-                    config.network.encoding.encode(&flat),
-                    rotations.len(),
-                    flat.len() / rotations.len().max(1),
-                );
-                let (loss_value, d_scores) =
-                    fused_loss(config, &pass, rotations.len(), &log_sdf, &log_se);
-                profile.head_forward += started.elapsed().as_secs_f64();
-                check_finite(step, loss_value)?;
-                let started = Instant::now();
-                let head_grads = head.backward(&pass, d_scores.each_ref().map(|d| d.as_deref()));
-                profile.head_backward += started.elapsed().as_secs_f64();
-                let started = Instant::now();
-                // The encoder's gradients: burn's backward of `Σ F ⊙ dF`, whose gradient with
-                // respect to the features `F` is the head's `dF`.
-                let d_features = Tensor::<2>::from_data(
-                    TensorData::new(head_grads.features.clone(), dims),
-                    device,
-                );
-                let surrogate = (features * d_features).sum();
-                let mut grads = GradientsParams::from_grads(surrogate.backward(), &network);
-                head_grads.register(&head, &mut grads, device);
-                profile.backward += started.elapsed().as_secs_f64();
-                (loss_value, grads)
-            }
+            HeadPath::Burn => self.burn_head(&network, features, batch, step, profile)?,
+            HeadPath::Fused => self.fused_head(&network, features, batch, step, profile)?,
         };
         let started = Instant::now();
         let network = optim.step(learning_rate(config, step), network, grads);
         profile.optimiser += started.elapsed().as_secs_f64();
         Ok((network, loss_value))
+    }
+
+    /// The loss and every gradient by burn's autodiff through head and encoder.
+    fn burn_head(
+        &self,
+        network: &Network,
+        features: Tensor<2>,
+        batch: Batch,
+        step: usize,
+        profile: &mut StepProfile,
+    ) -> Result<(f64, GradientsParams), TrainError> {
+        let started = Instant::now();
+        let Batch {
+            rotations,
+            log_sdf,
+            log_se,
+            ..
+        } = batch;
+        let loss = method_loss(self.config, network, features, &rotations, log_sdf, log_se);
+        let loss_value = loss.clone().into_scalar::<f32>() as f64;
+        profile.head_forward += started.elapsed().as_secs_f64();
+        check_finite(step, loss_value)?;
+        let started = Instant::now();
+        let grads = GradientsParams::from_grads(loss.backward(), network);
+        profile.backward += started.elapsed().as_secs_f64();
+        Ok((loss_value, grads))
+    }
+
+    /// The loss and the head's gradients on the hand-written head ([`TrainingHead`]); the
+    /// encoder's by burn's backward of `Σ F ⊙ dF`, whose gradient with respect to the features
+    /// `F` is the head's `dF`.
+    fn fused_head(
+        &self,
+        network: &Network,
+        features: Tensor<2>,
+        batch: Batch,
+        step: usize,
+        profile: &mut StepProfile,
+    ) -> Result<(f64, GradientsParams), TrainError> {
+        let started = Instant::now();
+        let head = TrainingHead::of(&network.head);
+        let dims = features.dims();
+        let images = batch.rotations.len();
+        let flat: Vec<[f32; 9]> = batch.rotations.into_iter().flatten().collect();
+        let pass = head.forward(
+            crate::net::dense::read(features.clone()),
+            self.config.network.encoding.encode(&flat),
+            images,
+            flat.len() / images.max(1),
+        );
+        let (loss_value, d_scores) =
+            fused_loss(self.config, &pass, images, &batch.log_sdf, &batch.log_se);
+        profile.head_forward += started.elapsed().as_secs_f64();
+        check_finite(step, loss_value)?;
+        let started = Instant::now();
+        let head_grads = head.backward(&pass, d_scores.each_ref().map(|d| d.as_deref()));
+        profile.head_backward += started.elapsed().as_secs_f64();
+        let started = Instant::now();
+        let d_features = Tensor::<2>::from_data(
+            TensorData::new(head_grads.features.clone(), dims),
+            self.device,
+        );
+        let surrogate = (features * d_features).sum();
+        let mut grads = GradientsParams::from_grads(surrogate.backward(), network);
+        head_grads.register(&head, &mut grads, self.device);
+        profile.backward += started.elapsed().as_secs_f64();
+        Ok((loss_value, grads))
     }
 }
 
@@ -511,7 +567,7 @@ pub fn train(
     let started = Instant::now();
     let device = crate::backend::device_for(crate::backend::Workload::Conv).autodiff();
     let samplers = mode_samplers(config, set)?;
-    let (mut network, mut optim, start) =
+    let (network, mut optim, start) =
         starting_point(config, set, checkpoints, resume, &samplers, &device)?;
     let run = Run {
         config,
@@ -524,32 +580,62 @@ pub fn train(
     let (mut tail_sum, mut tail_n) = (0.0, 0usize);
     let mut steps_run = 0;
     let mut profile = StepProfile::default();
-    for step in start..config.steps {
-        let step_started = Instant::now();
-        let loss_value;
-        (network, loss_value) = run.step(network, &mut optim, step, &mut profile)?;
-        if step >= tail_from {
-            tail_sum += loss_value;
-            tail_n += 1;
+    // The batch of the next step is prepared while this one computes, on a pool of its own: on
+    // the step's pool its long tasks (a render, an image's targets) would hold up each of the
+    // encoder's many short parallel ops until a worker is free; on its own threads the OS shares
+    // the cores between them. (At a lower priority they starved whenever anything else ran:
+    // the step then waited for its batch.)
+    let batch_pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(rayon::current_num_threads())
+        .thread_name(|i| format!("alignist-batch-{i}"))
+        .build()
+        .map_err(|e| TrainError::Data(format!("starting the batch threads: {e}")))?;
+    let network = std::thread::scope(|scope| -> Result<Network, TrainError> {
+        let mut network = network;
+        let (run, batch_pool) = (&run, &batch_pool);
+        let prepare = |step: usize| {
+            (step < config.steps)
+                .then(|| scope.spawn(move || batch_pool.install(|| run.batch(step))))
+        };
+        let mut pending = prepare(start);
+        for step in start..config.steps {
+            let step_started = Instant::now();
+            let batch = pending
+                .take()
+                .expect("every step's batch is prepared by the step before")
+                .join()
+                .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+            profile.waiting += step_started.elapsed().as_secs_f64();
+            profile.data += batch.profile.data;
+            profile.sampling += batch.profile.sampling;
+            profile.targets += batch.profile.targets;
+            pending = prepare(step + 1);
+            let loss_value;
+            (network, loss_value) = run.step(network, &mut optim, step, batch, &mut profile)?;
+            if step >= tail_from {
+                tail_sum += loss_value;
+                tail_n += 1;
+            }
+            let done = step + 1;
+            if let Some(dir) = checkpoints
+                && (done % config.checkpoint_every.max(1) == 0 || done == config.steps)
+            {
+                network.encoder.sync_running_stats();
+                let state = CheckpointState {
+                    step: done,
+                    config: config.clone(),
+                };
+                save_checkpoint(dir, &network, &optim, &state)?;
+            }
+            steps_run += 1;
+            profile.steps += 1;
+            profile.total += step_started.elapsed().as_secs_f64();
+            if progress(done, config.steps, loss_value).is_break() {
+                break;
+            }
         }
-        let done = step + 1;
-        if let Some(dir) = checkpoints
-            && (done % config.checkpoint_every.max(1) == 0 || done == config.steps)
-        {
-            network.encoder.sync_running_stats();
-            let state = CheckpointState {
-                step: done,
-                config: config.clone(),
-            };
-            save_checkpoint(dir, &network, &optim, &state)?;
-        }
-        steps_run += 1;
-        profile.steps += 1;
-        profile.total += step_started.elapsed().as_secs_f64();
-        if progress(done, config.steps, loss_value).is_break() {
-            break;
-        }
-    }
+        Ok(network)
+    })?;
     network.encoder.sync_running_stats();
     Ok((
         network.valid(),

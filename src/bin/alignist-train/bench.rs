@@ -74,7 +74,7 @@ pub(crate) fn bench_cmd(args: &BenchArgs) -> Result<()> {
 }
 
 fn bench_training(args: &BenchArgs) -> Result<()> {
-    use alignist::train::bench::{TrainingBenchConfig, bench_training};
+    use alignist::train::bench::{TrainingBenchConfig, bench_training, pytorch_reference};
     if args.batch == 0 || args.k < 2 || args.steps == 0 {
         bail!("--batch and --steps must be at least 1 and --k at least 2");
     }
@@ -109,5 +109,22 @@ fn bench_training(args: &BenchArgs) -> Result<()> {
         b.matmul_peak_gflops
     );
     println!("alignist/ipdf step time ratio: {:.2}", b.ratio());
+    // The tool a user would pick instead, on the same CPU, last.
+    match pytorch_reference(&config) {
+        Ok(torch) => {
+            println!(
+                "pytorch (benches/reference_training_step.py): ipdf step {:.1} ms, alignist step \
+                 {:.1} ms (its images random, its targets random: rendering and experts not \
+                 included)",
+                torch.ipdf, torch.alignist
+            );
+            println!(
+                "ipdf step / pytorch ipdf step: {:.2}; alignist step / pytorch alignist step: {:.2}",
+                b.ipdf.total / torch.ipdf,
+                b.alignist.total / torch.alignist
+            );
+        }
+        Err(why) => println!("pytorch reference not run ({why})"),
+    }
     Ok(())
 }

@@ -651,26 +651,31 @@ pub(crate) fn log_progress(log: &mut ProgressLog, step: usize, steps: usize, los
 
 pub(crate) fn print_profile(p: &alignist::train::trainer::StepProfile) {
     println!("step profile (ms per step, mean of {} steps):", p.steps);
+    let share = |v: f64| 100.0 * v / p.total.max(1e-9);
+    println!("  prepared ahead, on another thread while the step before computes:");
     for (name, v) in [
         ("data (rendering)", p.data),
         ("sampling", p.sampling),
         ("targets", p.targets),
+    ] {
+        println!("    {name:<18} {v:8.1}  {:5.1} %", share(v));
+    }
+    println!("  on the step's path:");
+    for (name, v) in [
+        ("waiting for batch", p.waiting),
         ("encoder forward", p.encoder_forward),
         ("head forward + loss", p.head_forward),
         ("head backward", p.head_backward),
         ("burn backward", p.backward),
         ("optimiser", p.optimiser),
     ] {
-        println!(
-            "  {name:<20} {v:8.1}  {:5.1} %",
-            100.0 * v / p.total.max(1e-9)
-        );
+        println!("    {name:<18} {v:8.1}  {:5.1} %", share(v));
     }
     println!(
-        "  {:<20} {:8.1}  (stages sum {:.1}; supervision = sampling + targets = {:.1} %)",
+        "  {:<20} {:8.1}  (path stages sum {:.1}; supervision = sampling + targets = {:.1} %)",
         "step",
         p.total,
         p.stages(),
-        100.0 * (p.sampling + p.targets) / p.total.max(1e-9)
+        share(p.sampling + p.targets)
     );
 }
