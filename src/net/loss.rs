@@ -38,34 +38,36 @@ pub struct LossGrad {
 /// [`gkl_loss`] (paper Eq. 5) and its gradient `∂/∂s_k = (exp(s_k) − a_k) / B`, for `images`
 /// rows of scores.
 pub fn gkl_loss_grad(log_a: &[f32], s: &[f32], images: usize) -> LossGrad {
-    let scale = 1.0 / images.max(1) as f64;
-    let mut loss = 0.0f64;
-    let grad = log_a
-        .iter()
-        .zip(s)
-        .map(|(&log_a, &s)| {
-            let (a, e) = ((log_a as f64).exp(), (s as f64).exp());
-            loss += a * (log_a as f64 - s as f64) + e - a;
-            ((e - a) * scale) as f32
-        })
-        .collect();
-    LossGrad {
-        loss: loss * scale,
-        grad,
-    }
+    measure_loss_grad(log_a, s, images, |log_a, s, a, e| {
+        (a * (log_a - s) + e - a, e - a)
+    })
 }
 
 /// [`l1_measure_loss`] and its gradient `∂/∂s_k = sign(exp(s_k) − a_k)·exp(s_k) / B`.
 pub fn l1_measure_loss_grad(log_a: &[f32], s: &[f32], images: usize) -> LossGrad {
+    measure_loss_grad(log_a, s, images, |_, _, a, e| {
+        ((e - a).abs(), (e - a).signum() * e)
+    })
+}
+
+/// A loss between measures that sums one term per rotation, averaged over `images`:
+/// `term(log a, s, a, exp s)` gives the term and its derivative in `s` (in f64).
+fn measure_loss_grad(
+    log_a: &[f32],
+    s: &[f32],
+    images: usize,
+    term: impl Fn(f64, f64, f64, f64) -> (f64, f64),
+) -> LossGrad {
     let scale = 1.0 / images.max(1) as f64;
     let mut loss = 0.0f64;
     let grad = log_a
         .iter()
         .zip(s)
         .map(|(&log_a, &s)| {
-            let (a, e) = ((log_a as f64).exp(), (s as f64).exp());
-            loss += (e - a).abs();
-            ((e - a).signum() * e * scale) as f32
+            let (log_a, s) = (log_a as f64, s as f64);
+            let (value, derivative) = term(log_a, s, log_a.exp(), s.exp());
+            loss += value;
+            (derivative * scale) as f32
         })
         .collect();
     LossGrad {
