@@ -13,7 +13,7 @@ fn main() {
     let dir = std::path::Path::new(&args[1]);
     let shape = &args[2];
     let bundle = ModelBundle::load(dir).unwrap();
-    let renders = bundle.renders(4);
+    let renders = alignist::train::data::BundleRenders::of(&bundle, 4);
     let model = Engine::load_model(dir, EngineConfig::default()).unwrap();
     let images = renders.eval_images(model.input_size(), 50, 1 << 40);
     let grid = model.grid(3).unwrap().clone();

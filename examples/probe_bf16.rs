@@ -3,7 +3,7 @@
 //! `cargo run --release --example probe_bf16 [BUNDLE] [LEVEL]`
 use std::time::Instant;
 
-use alignist::net::bf16::Bf16Head;
+use alignist::net::Bf16Head;
 use alignist::net::{FusedHead, Precision, Rows};
 use alignist::so3::GridLevel;
 

@@ -24,7 +24,7 @@ fn main() {
     let object_name = &args[2];
     let n: usize = args[3].parse().unwrap();
     let bundle = ModelBundle::load(dir).unwrap();
-    let renders = bundle.renders(4);
+    let renders = alignist::train::data::BundleRenders::of(&bundle, 4);
     let model = Engine::load_model(dir, EngineConfig::default()).unwrap();
     let images = depth_eval_images(&model, &renders, n, 1 << 40).unwrap();
     let grid = model.grid(3).unwrap().clone();

@@ -29,9 +29,11 @@ fn main() -> anyhow::Result<()> {
     };
     let repeats: usize = arg(5, "20").parse()?;
     let bundle = alignist::bundle::model::ModelBundle::load(&path)?;
-    let images = bundle
-        .renders(2)
-        .eval_images(bundle.manifest.network.image_size, 2, 7);
+    let images = alignist::train::data::BundleRenders::of(&bundle, 2).eval_images(
+        bundle.manifest.network.image_size,
+        2,
+        7,
+    );
     let model = Engine::load_model(&path, EngineConfig::default())?;
     let finest = 5u8;
     let options = PredictOptions {

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::LazyLock;
 
-use alignist::bundle::experts::{ExpertSet, ExpertsJob, train_expert_set};
+use alignist::bundle::experts::ExpertSet;
 use alignist::cad::Shape;
 use alignist::experts::feature::{FeatureTrainConfig, symmetry_ratio};
 use alignist::experts::modes::ModeTableConfig;
@@ -16,6 +16,7 @@ use alignist::experts::select::visible_points_at;
 use alignist::so3::{
     GridLevel, SymmetryGroup, equivalents, geodesic_angle, haar_rotation, to_row_major_f32,
 };
+use alignist::train::experts::{ExpertsJob, train_expert_set};
 use nalgebra::Rotation3;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;

@@ -182,7 +182,7 @@ fn assert_fused_matches_on(
     encoding: &RotationEncoding,
     d: &Device,
 ) {
-    let tile = alignist::net::fused::TILE_ROWS;
+    let tile = alignist::net::tiles::TILE_ROWS;
     for (case, rows) in [
         1,
         7,
@@ -260,9 +260,11 @@ fn the_default_search_finds_the_exhaustive_maximum_at_level_3() {
     use alignist::engine::{Engine, EngineConfig, PredictOptions};
     let path = std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/models/symsol1"));
     let bundle = alignist::bundle::model::ModelBundle::load(path).unwrap();
-    let images = bundle
-        .renders(2)
-        .eval_images(bundle.manifest.network.image_size, 4, 7);
+    let images = alignist::train::data::BundleRenders::of(&bundle, 2).eval_images(
+        bundle.manifest.network.image_size,
+        4,
+        7,
+    );
     let model = Engine::load_model(path, EngineConfig::default()).unwrap();
     let options = PredictOptions {
         top_k: 5,
@@ -364,10 +366,10 @@ fn bf16_rounding_is_to_the_nearest_even() {
 /// GEMM, which rounds the same values, and against the f32 head: row counts around the kernel's
 /// 6-row block and the tile, a width that pads to the 64-column panel, and the shipped head.
 fn assert_bf16_close(fused: &alignist::net::FusedHead, encoding: &RotationEncoding, what: &str) {
-    use alignist::net::bf16::Bf16Head;
+    use alignist::net::Bf16Head;
     use alignist::net::{Precision, Rows};
     let emulated = Bf16Head::emulated(fused);
-    let tile = alignist::net::fused::TILE_ROWS;
+    let tile = alignist::net::tiles::TILE_ROWS;
     for rows in [1, 5, 6, 7, tile - 1, tile, tile + 1, 2 * tile + 3] {
         let rotations = spread_rotations(rows, 0.0);
         let features: Vec<f32> = (0..fused.image_dim())

@@ -258,11 +258,11 @@ fn ipdf_baseline_trains_on_the_same_network() {
 
 #[test]
 fn a_few_hundred_real_steps_lower_the_loss_and_beat_uniform_on_held_out_renders() {
-    use alignist::bundle::experts::{ExpertsJob, train_expert_set};
     use alignist::experts::feature::FeatureTrainConfig;
     use alignist::experts::sdf::SdfTrainConfig;
     use alignist::so3::metrics::chance_accuracy;
     use alignist::train::eval::evaluate;
+    use alignist::train::experts::{ExpertsJob, train_expert_set};
 
     // Real (small) experts for the cube.
     let shape = Shape::Cube;

@@ -8,7 +8,6 @@ use std::time::Instant;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use crate::bundle::model::BundleRenders;
 use crate::cad::{RenderOptions, render};
 use crate::client::load::quantile;
 use crate::data::virtual_crop::{frame_camera, object_pixel_box, random_placement};
@@ -16,6 +15,7 @@ use crate::engine::{
     CropBox, DepthInput, DepthRequest, ImageRequest, Intrinsics, Model, PredictOptions, SeenPoints,
     back_project, decode_depth,
 };
+use crate::train::data::BundleRenders;
 
 /// One rendered RGB-D frame of one object.
 struct Frame {

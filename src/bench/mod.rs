@@ -113,10 +113,10 @@ pub fn bench(
         rayon::current_num_threads(),
         crops.len()
     );
-    let library = matmul_peak_gflops(crate::net::fused::TILE_ROWS);
+    let library = matmul_peak_gflops(crate::net::tiles::TILE_ROWS);
     println!(
         "matmul peak of matrixmultiply (4096×256·256×256 f32 in tiles of {} rows over the cores): {library:.1} GFLOP/s",
-        crate::net::fused::TILE_ROWS
+        crate::net::tiles::TILE_ROWS
     );
     let widest = peak::fma_peak(true);
     let narrow = peak::fma_peak(false);

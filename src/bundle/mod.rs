@@ -3,6 +3,7 @@
 
 pub mod experts;
 pub mod model;
+pub mod record;
 pub mod study;
 
 use std::fs;
@@ -12,6 +13,8 @@ use std::path::{Path, PathBuf};
 use burn::module::Module;
 use burn::store::{ModuleSnapshot, SafetensorsStore};
 use serde::{Deserialize, Serialize};
+
+pub use record::FileEntry;
 use sha2::{Digest, Sha256};
 
 /// Errors reading or writing model files; each names the file (and the field where one is
@@ -67,15 +70,6 @@ pub enum BundleError {
     /// A mesh problem.
     #[error(transparent)]
     Cad(#[from] crate::cad::CadError),
-}
-
-/// Checksum and size of one file of a bundle.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-pub struct FileEntry {
-    /// Lower-case hex sha256.
-    pub sha256: String,
-    /// Size in bytes.
-    pub bytes: u64,
 }
 
 /// sha256 of a file, lower-case hex.

@@ -7,102 +7,13 @@ use std::fs;
 use std::path::Path;
 
 use burn::tensor::Device;
-use serde::{Deserialize, Serialize};
 
 use super::experts::ExpertSet;
-use super::{BundleError, FileEntry, load_weights, save_weights, sha256_file};
-use crate::train::eval::EvalReport;
-use crate::train::{Network, NetworkConfig, TrainConfig, TrainReport};
-
-/// Format version of model manifests this build reads and writes.
-pub const MODEL_FORMAT_VERSION: u32 = 1;
-
-/// One object a bundle knows.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct BundleObject {
-    /// Name (as in requests).
-    pub name: String,
-    /// Its expert set, relative to the bundle.
-    pub experts: String,
-    /// The training data it was fitted on.
-    pub data: String,
-    /// Training images used.
-    pub train_images: usize,
-}
-
-/// How the network was trained.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Provenance {
-    /// The exact command.
-    pub command: String,
-    /// The training configuration (seed, steps, method, …).
-    pub train: TrainConfig,
-    /// What the run did.
-    pub report: TrainReport,
-}
-
-/// `manifest.json` of a model bundle.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct ModelManifest {
-    /// [`MODEL_FORMAT_VERSION`].
-    pub format_version: u32,
-    /// Bundle name.
-    pub name: String,
-    /// The network (input size, layout, encoding, head).
-    pub network: NetworkConfig,
-    /// Input normalisation: crops are RGB scaled to `[0, 1]`, object-centred (DESIGN.md §2).
-    pub input: String,
-    /// Objects, in the order the bundle was trained on them.
-    pub objects: Vec<BundleObject>,
-    /// Highest grid level served in full, and highest level of the coarse-to-fine search.
-    pub levels: GridLevels,
-    /// Training provenance.
-    pub provenance: Provenance,
-    /// Evaluation on held-out images, when it was run.
-    pub evaluation: Option<EvalReport>,
-    /// Checksums of every file except the manifest, relative to the bundle.
-    pub files: BTreeMap<String, FileEntry>,
-}
-
-/// The input convention every bundle records (`ModelManifest::input`).
-pub const INPUT_CONVENTION: &str = "RGB crop as a virtual camera looking at the centre of the \
-    object's box sees it: a square of 1.2 × the box's longer side (never stretched), side \
-    image_size, values / 255 (src/data/virtual_crop.rs)";
-
-impl ModelManifest {
-    /// The manifest of a bundle trained now (no files yet: [`ModelBundle::save`] adds them), with
-    /// the [`INPUT_CONVENTION`].
-    pub fn new(
-        name: String,
-        network: NetworkConfig,
-        objects: Vec<BundleObject>,
-        levels: GridLevels,
-        provenance: Provenance,
-        evaluation: Option<EvalReport>,
-    ) -> ModelManifest {
-        ModelManifest {
-            format_version: MODEL_FORMAT_VERSION,
-            name,
-            network,
-            input: INPUT_CONVENTION.into(),
-            objects,
-            levels,
-            provenance,
-            evaluation,
-            files: Default::default(),
-        }
-    }
-}
-
-/// Grid levels of a bundle: the server serves it up to these at most
-/// (`EngineConfig::within`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-pub struct GridLevels {
-    /// Full distributions up to this level.
-    pub full_max: u8,
-    /// Coarse-to-fine top-k up to this level.
-    pub search_max: u8,
-}
+pub use super::record::{
+    BundleObject, GridLevels, INPUT_CONVENTION, MODEL_FORMAT_VERSION, ModelManifest, Provenance,
+};
+use super::{BundleError, load_weights, save_weights, sha256_file};
+use crate::net::Network;
 
 /// A loaded bundle.
 pub struct ModelBundle {
@@ -133,50 +44,7 @@ pub fn copy_dir(from: &Path, to: &Path) -> Result<(), BundleError> {
     Ok(())
 }
 
-/// A bundle's objects as fresh renders, in object order: the renderer of their meshes, their
-/// names and their symmetries (what `eval_images` and `frame_eval_images` take).
-pub struct BundleRenders {
-    /// The renderer.
-    pub fresh: crate::train::data::FreshRenders,
-    /// Object names.
-    pub names: Vec<String>,
-    /// Each object's proper symmetries.
-    pub symmetries: Vec<Vec<nalgebra::Rotation3<f64>>>,
-}
-
-impl BundleRenders {
-    /// `per_object` fresh evaluation crops of `size` of every object, placed from `seed`.
-    pub fn eval_images(
-        &self,
-        size: u32,
-        per_object: usize,
-        seed: u64,
-    ) -> Vec<crate::train::eval::EvalImage> {
-        self.fresh
-            .eval_images(&self.names, &self.symmetries, size, per_object, seed)
-    }
-}
-
 impl ModelBundle {
-    /// Its objects as fresh renders, supersampled `supersample` times per axis.
-    pub fn renders(&self, supersample: u32) -> BundleRenders {
-        BundleRenders {
-            fresh: crate::train::data::FreshRenders {
-                meshes: self.experts.iter().map(|e| e.mesh.clone()).collect(),
-                supersample,
-                pool: None,
-                realism: None,
-            },
-            names: self
-                .manifest
-                .objects
-                .iter()
-                .map(|o| o.name.clone())
-                .collect(),
-            symmetries: self.experts.iter().map(|e| e.symmetries()).collect(),
-        }
-    }
-
     /// Writes the bundle into `dir`: the network, a copy of each object's expert set (from the
     /// folders it was loaded from), and the manifest last.
     pub fn save(

@@ -1,5 +1,5 @@
 //! The fused head in bfloat16, for the coarse levels of a search: the same layers as
-//! [`FusedHead`], with weights and every GEMM's input rounded to bfloat16 (round to nearest even)
+//! [`super::FusedHead`], with weights and every GEMM's input rounded to bfloat16 (round to nearest even)
 //! and f32 accumulation. On a core with AVX-512 BF16 the GEMMs run on `VDPBF16PS` (two
 //! multiply-adds per f32 lane, about twice the f32 FMA's rate); elsewhere the same rounding is
 //! emulated on the f32 GEMM, so a search ranks the same cells on any machine (up to the order of
@@ -9,79 +9,14 @@
 //! panels of [`NR`] columns, `[k-pair][column][2]`, so that one panel (256 inputs × 64 columns ×
 //! 2 B = 32 KiB) stays in L1 while the rows of a tile stream past it [`MR`] at a time.
 
-use super::fused::{FusedHead, Precision, Rows};
-use super::native::{Epilogue, Kernel, Kernels, NativeHead, Packed, kernel_impl};
+use super::native::{Epilogue, Kernel, Packed, kernel_impl};
 
 /// Rows of the native kernel's register block.
 pub const MR: usize = 6;
 /// Columns of the native kernel's register block (four 16-lane vectors).
 pub const NR: usize = 64;
 
-/// `x` rounded to bfloat16 (round to nearest even, as `VCVTNEPS2BF16`), as its 16 bits.
-pub fn to_bf16(x: f32) -> u16 {
-    let bits = x.to_bits();
-    if x.is_nan() {
-        return ((bits >> 16) | 0x40) as u16;
-    }
-    let round = 0x7fff + ((bits >> 16) & 1);
-    (bits.wrapping_add(round) >> 16) as u16
-}
-
-/// The f32 of a bfloat16's bits.
-pub fn from_bf16(h: u16) -> f32 {
-    f32::from_bits((h as u32) << 16)
-}
-
-/// `x` rounded to the nearest bfloat16.
-pub fn round_bf16(x: f32) -> f32 {
-    from_bf16(to_bf16(x))
-}
-
-/// The head in bfloat16: the native kernel where the core has it, the emulation elsewhere.
-#[derive(Debug, Clone)]
-pub struct Bf16Head(Path);
-
-/// The kernel a [`Bf16Head`] runs on.
-#[derive(Debug, Clone)]
-enum Path {
-    /// `VDPBF16PS` on packed weights.
-    Native(Box<NativeHead<Bf16Kernel>>),
-    /// The f32 GEMM on rounded weights, rounding each GEMM's input.
-    Emulated(Box<FusedHead>),
-}
-
-impl Bf16Head {
-    /// The native kernel when `kernels` allows it and this core has AVX-512 BF16 (and every
-    /// branch has a hidden layer), else the emulation.
-    pub fn new(head: &FusedHead, kernels: Kernels) -> Bf16Head {
-        kernels
-            .allows_avx512()
-            .then(|| NativeHead::new(head))
-            .flatten()
-            .map(|native| Bf16Head(Path::Native(Box::new(native))))
-            .unwrap_or_else(|| Bf16Head::emulated(head))
-    }
-
-    /// The emulation, on any core.
-    pub fn emulated(head: &FusedHead) -> Bf16Head {
-        Bf16Head(Path::Emulated(Box::new(head.rounded_to_bf16())))
-    }
-
-    /// Whether this is the native kernel.
-    pub fn is_native(&self) -> bool {
-        matches!(self.0, Path::Native(_))
-    }
-
-    /// Both branches' log-weights of `rows`, as [`FusedHead::branch_scores_in`]. From encodings,
-    /// the native kernel runs the rotation half of the first layer in bfloat16 too, inside the
-    /// tiles (no projection pass).
-    pub fn branch_scores(&self, image_term: &[f32], rows: Rows<'_>) -> (Vec<f32>, Vec<f32>) {
-        match &self.0 {
-            Path::Native(native) => native.branch_scores(image_term, rows),
-            Path::Emulated(head) => head.branch_scores_in(Precision::F32, image_term, rows),
-        }
-    }
-}
+pub use super::tiles::{from_bf16, round_bf16, to_bf16};
 
 /// Whether this core runs the native kernel.
 pub fn native_available() -> bool {

@@ -10,82 +10,11 @@
 use rayon::prelude::*;
 
 use super::DualHead;
-use super::bf16::{Bf16Head, round_bf16};
-use super::dense::Dense;
+use super::bf16::Bf16Kernel;
 use super::native::{F32Avx2, F32Avx512, Kernels, NativeHead};
-
-/// Rows of one tile: measured fastest among 64–512 (`examples/probe_gemm.rs`), and a tile's
-/// activations (2 × 256 rows × 256 × 4 B = 512 KiB) stay in a core's L2.
-pub const TILE_ROWS: usize = 256;
-
-/// The arithmetic a head is scored in.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
-pub enum Precision {
-    /// f32 throughout: the burn network's scores within 1e-4.
-    #[default]
-    F32,
-    /// bfloat16 weights and GEMM inputs, f32 sums ([`Bf16Head`]): about twice the rate where the
-    /// core has AVX-512 BF16, scores within about 1 % of the f32 ones.
-    Bf16,
-}
-
-impl Precision {
-    /// The name used by flags and the bench (`f32`, `bf16`).
-    pub fn name(self) -> &'static str {
-        match self {
-            Precision::F32 => "f32",
-            Precision::Bf16 => "bf16",
-        }
-    }
-}
-
-impl std::fmt::Display for Precision {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.name())
-    }
-}
-
-impl std::str::FromStr for Precision {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s {
-            "f32" => Ok(Precision::F32),
-            "bf16" => Ok(Precision::Bf16),
-            other => Err(format!("unknown precision `{other}` (f32 or bf16)")),
-        }
-    }
-}
-
-/// The rotations a head scores, as their rotation projections or as their encodings.
-#[derive(Debug, Clone, Copy)]
-pub enum Rows<'a> {
-    /// The rotation half of the first layer, `[n, width]` ([`FusedHead::project_rotations`]):
-    /// a grid's, computed once.
-    Projected(&'a [f32]),
-    /// The rotations' encodings, `[n, rotation_dim]`.
-    Encoded(&'a [f32]),
-}
-
-/// Both branches' scores of the `given.len() / per_row` rows of `given`, one tile of
-/// [`TILE_ROWS`] rows per task over the cores, each task with its scratch from `init`:
-/// `tile(scratch, rows of the tile, [shape, feature] outputs of the tile)`.
-pub(super) fn by_tiles<S>(
-    given: &[f32],
-    per_row: usize,
-    init: impl Fn() -> S + Send + Sync,
-    tile: impl Fn(&mut S, &[f32], [&mut [f32]; 2]) + Send + Sync,
-) -> (Vec<f32>, Vec<f32>) {
-    let n = given.len() / per_row;
-    let (mut shape, mut feature) = (vec![0.0; n], vec![0.0; n]);
-    shape
-        .par_chunks_mut(TILE_ROWS)
-        .zip(feature.par_chunks_mut(TILE_ROWS))
-        .zip(given.par_chunks(TILE_ROWS * per_row))
-        .for_each_init(init, |scratch, ((shape, feature), given)| {
-            tile(scratch, given, [shape, feature])
-        });
-    (shape, feature)
-}
+pub use super::tiles::{Precision, Rows, TILE_ROWS};
+use super::tiles::{by_tiles, round_bf16};
+use super::weights::HeadWeights;
 
 fn round_all(x: &mut [f32]) {
     for v in x {
@@ -99,14 +28,6 @@ fn relu(x: &mut [f32]) {
     }
 }
 
-/// One branch: hidden ReLU layers, then the `width → 1` output as a dot product.
-#[derive(Debug, Clone)]
-struct FusedBranch {
-    hidden: Vec<Dense>,
-    output: Vec<f32>,
-    output_bias: f32,
-}
-
 /// The head on one of the project's f32 kernels.
 #[derive(Debug, Clone)]
 enum F32Native {
@@ -116,7 +37,7 @@ enum F32Native {
 
 impl F32Native {
     /// The widest f32 kernel `kernels` allows and the core has, if any.
-    fn new(head: &FusedHead, kernels: Kernels) -> Option<F32Native> {
+    fn new(head: &HeadWeights, kernels: Kernels) -> Option<F32Native> {
         let avx512 = kernels
             .allows_avx512()
             .then(|| NativeHead::new(head).map(F32Native::Avx512))
@@ -147,10 +68,7 @@ impl F32Native {
 /// The fused inference head.
 #[derive(Debug, Clone)]
 pub struct FusedHead {
-    width: usize,
-    image: Dense,
-    rotation: Dense,
-    branches: [FusedBranch; 2],
+    weights: HeadWeights,
     /// Round every GEMM's input to bfloat16 (the emulation of [`Bf16Head`]).
     round_inputs: bool,
     /// The same head in bfloat16 (`None` in the emulation itself).
@@ -175,65 +93,26 @@ impl FusedHead {
 
     /// Reads `head`'s weights, for `kernels`.
     pub fn with_kernels(head: &DualHead, kernels: Kernels) -> FusedHead {
-        let branch = |b: &super::head::Branch| {
-            let (hidden, output) = b.layers();
-            let output = Dense::of(output);
-            FusedBranch {
-                hidden: hidden.iter().map(Dense::of).collect(),
-                output: output.weight,
-                output_bias: output.bias[0],
-            }
-        };
-        let (image, rotation, shape, feature) = head.parts();
-        let rotation = Dense::of(rotation);
-        let mut head = FusedHead {
-            width: rotation.outputs,
-            image: Dense::of(image),
-            rotation,
-            branches: [branch(shape), branch(feature)],
+        let weights = HeadWeights::of(head);
+        FusedHead {
+            bf16: Some(Box::new(Bf16Head::new(&weights, kernels))),
+            f32_native: F32Native::new(&weights, kernels).map(Box::new),
+            weights,
             round_inputs: false,
-            bf16: None,
-            f32_native: None,
-        };
-        head.bf16 = Some(Box::new(Bf16Head::new(&head, kernels)));
-        head.f32_native = F32Native::new(&head, kernels).map(Box::new);
-        head
+        }
     }
 
     /// This head with the branches' and the rotation layer's weights rounded to bfloat16 and each
     /// GEMM's input (encodings included) rounded too: the emulation of [`Bf16Head`] on the f32
-    /// GEMM. The image
-    /// half of the first layer stays f32, as in the native kernel, and so do projections made
-    /// beforehand by the f32 head (a search's start level).
-    pub(super) fn rounded_to_bf16(&self) -> FusedHead {
-        let round = |d: &Dense| Dense {
-            weight: d.weight.iter().copied().map(round_bf16).collect(),
-            ..d.clone()
-        };
-        let branch = |b: &FusedBranch| FusedBranch {
-            hidden: b.hidden.iter().map(round).collect(),
-            ..b.clone()
-        };
+    /// GEMM. The image half of the first layer stays f32, as in the native kernel, and so do
+    /// projections made beforehand by the f32 head (a search's start level).
+    fn rounded_to_bf16(weights: &HeadWeights) -> FusedHead {
         FusedHead {
-            rotation: round(&self.rotation),
-            branches: [branch(&self.branches[0]), branch(&self.branches[1])],
+            weights: weights.rounded_to_bf16(),
             round_inputs: true,
             bf16: None,
             f32_native: None,
-            ..self.clone()
         }
-    }
-
-    /// Each branch's hidden layers, output weights and output bias (for [`Bf16Head`]).
-    pub(super) fn branch_layers(&self) -> [(&[Dense], &[f32], f32); 2] {
-        self.branches
-            .each_ref()
-            .map(|b| (&b.hidden[..], &b.output[..], b.output_bias))
-    }
-
-    /// The rotation half of the first layer (for [`Bf16Head`]).
-    pub(super) fn rotation_layer(&self) -> &Dense {
-        &self.rotation
     }
 
     /// Whether [`Precision::Bf16`] runs on the core's bfloat16 instructions (else it is emulated
@@ -264,35 +143,36 @@ impl FusedHead {
 
     /// Width of the hidden layers.
     pub fn width(&self) -> usize {
-        self.width
+        self.weights.width
     }
 
     /// Length of the image features the head takes.
     pub fn image_dim(&self) -> usize {
-        self.image.inputs
+        self.weights.image.inputs
     }
 
     /// Length of the rotation encoding the head takes.
     pub fn rotation_dim(&self) -> usize {
-        self.rotation.inputs
+        self.weights.rotation.inputs
     }
 
     /// The image half of the first layer, `W_I·f + b_I`, for one image's features.
     pub fn image_term(&self, features: &[f32]) -> Vec<f32> {
-        let mut out = vec![0.0; self.width];
-        self.image.apply(features, 1, &mut out);
+        let mut out = vec![0.0; self.weights.width];
+        self.weights.image.apply(features, 1, &mut out);
         out
     }
 
     /// The rotation half of the first layer, `W_R·enc(R) + b_R`, of `encodings` (row-major
     /// `[n, rotation_dim]`): `[n, width]`, tiles spread over the cores.
     pub fn project_rotations(&self, encodings: &[f32]) -> Vec<f32> {
-        let e = self.rotation.inputs;
+        let e = self.weights.rotation.inputs;
         let n = encodings.len() / e;
-        let mut out = vec![0.0; n * self.width];
-        out.par_chunks_mut(TILE_ROWS * self.width)
+        let w = self.weights.width;
+        let mut out = vec![0.0; n * w];
+        out.par_chunks_mut(TILE_ROWS * w)
             .zip(encodings.par_chunks(TILE_ROWS * e))
-            .for_each(|(out, enc)| self.rotation.apply(enc, enc.len() / e, out));
+            .for_each(|(out, enc)| self.weights.rotation.apply(enc, enc.len() / e, out));
         out
     }
 
@@ -303,7 +183,7 @@ impl FusedHead {
         if let Some(native) = &self.f32_native {
             return native.branch_scores(image_term, Rows::Projected(projected));
         }
-        let w = self.width;
+        let w = self.weights.width;
         by_tiles(
             projected,
             w,
@@ -356,7 +236,7 @@ impl FusedHead {
         scratch: &mut Scratch,
         out: [&mut [f32]; 2],
     ) {
-        let w = self.width;
+        let w = self.weights.width;
         let rows = projected.len() / w;
         let Scratch { x, a, b } = scratch;
         for (xr, pr) in x.chunks_exact_mut(w).zip(projected.chunks_exact(w)) {
@@ -367,7 +247,7 @@ impl FusedHead {
         if self.round_inputs {
             round_all(&mut x[..rows * w]);
         }
-        for (branch, out) in self.branches.iter().zip(out) {
+        for (branch, out) in self.weights.branches.iter().zip(out) {
             // Ping-pong between the two activation buffers; 0 is the shared input.
             let mut current = 0;
             for (l, layer) in branch.hidden.iter().enumerate() {
@@ -397,6 +277,54 @@ impl FusedHead {
                     .sum::<f32>()
                     + branch.output_bias;
             }
+        }
+    }
+}
+
+/// The head in bfloat16: the native kernel where the core has it, the emulation elsewhere.
+#[derive(Debug, Clone)]
+pub struct Bf16Head(Path);
+
+/// The kernel a [`Bf16Head`] runs on.
+#[derive(Debug, Clone)]
+enum Path {
+    /// `VDPBF16PS` on packed weights.
+    Native(Box<NativeHead<Bf16Kernel>>),
+    /// The f32 GEMM on rounded weights, rounding each GEMM's input.
+    Emulated(Box<FusedHead>),
+}
+
+impl Bf16Head {
+    /// The native kernel when `kernels` allows it and this core has AVX-512 BF16 (and every
+    /// branch has a hidden layer), else the emulation.
+    pub(super) fn new(head: &HeadWeights, kernels: Kernels) -> Bf16Head {
+        kernels
+            .allows_avx512()
+            .then(|| NativeHead::new(head))
+            .flatten()
+            .map(|native| Bf16Head(Path::Native(Box::new(native))))
+            .unwrap_or_else(|| Bf16Head(Path::Emulated(Box::new(FusedHead::rounded_to_bf16(head)))))
+    }
+
+    /// The emulation, on any core.
+    pub fn emulated(head: &FusedHead) -> Bf16Head {
+        Bf16Head(Path::Emulated(Box::new(FusedHead::rounded_to_bf16(
+            &head.weights,
+        ))))
+    }
+
+    /// Whether this is the native kernel.
+    pub fn is_native(&self) -> bool {
+        matches!(self.0, Path::Native(_))
+    }
+
+    /// Both branches' log-weights of `rows`, as [`FusedHead::branch_scores_in`]. From encodings,
+    /// the native kernel runs the rotation half of the first layer in bfloat16 too, inside the
+    /// tiles (no projection pass).
+    pub fn branch_scores(&self, image_term: &[f32], rows: Rows<'_>) -> (Vec<f32>, Vec<f32>) {
+        match &self.0 {
+            Path::Native(native) => native.branch_scores(image_term, rows),
+            Path::Emulated(head) => head.branch_scores_in(Precision::F32, image_term, rows),
         }
     }
 }

@@ -10,9 +10,11 @@ pub mod head_grad;
 pub mod loss;
 pub mod native;
 pub mod network;
+pub mod tiles;
+mod weights;
 
 pub use encoder::{Encoder, EncoderConfig, ResNetLayout};
-pub use fused::{FusedHead, Precision, Rows};
+pub use fused::{Bf16Head, FusedHead};
 pub use head::{BranchScores, DualHead, HeadConfig};
 pub use head_grad::{HeadGrads, HeadPass, TrainingHead};
 pub use loss::{
@@ -24,3 +26,4 @@ pub use network::{
     NETWORK_LIMITS, Network, NetworkConfig, NetworkLimits, ProjectedGrid, check_range,
     images_tensor,
 };
+pub use tiles::{Precision, Rows};

@@ -17,7 +17,8 @@
 use std::marker::PhantomData;
 
 use super::dense::Dense;
-use super::fused::{FusedHead, Rows, TILE_ROWS, by_tiles};
+use super::tiles::{Rows, TILE_ROWS, by_tiles};
+use super::weights::HeadWeights;
 
 /// The widest kernels a head may use; each falls back to the next narrower one the core has.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -218,11 +219,11 @@ struct Scratch<E> {
 impl<K: Kernel> NativeHead<K> {
     /// Packs `head`'s weights (as they are: a bfloat16 head reads them rounded), or `None` when
     /// this core lacks the kernel's instructions or a branch has no hidden layer.
-    pub(super) fn new(head: &FusedHead) -> Option<NativeHead<K>> {
+    pub(super) fn new(head: &HeadWeights) -> Option<NativeHead<K>> {
         if !K::available() {
             return None;
         }
-        let width = head.width();
+        let width = head.width;
         let padded = width.div_ceil(K::NR) * K::NR;
         let branch = |(hidden, output, output_bias): (&[Dense], &[f32], f32)| {
             if hidden.is_empty()
@@ -244,7 +245,7 @@ impl<K: Kernel> NativeHead<K> {
             })
         };
         let [shape, feature] = head.branch_layers();
-        let rotation = head.rotation_layer();
+        let rotation = &head.rotation;
         let rotation_inputs = rotation.inputs.next_multiple_of(K::GROUP);
         Some(NativeHead {
             width,

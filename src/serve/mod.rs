@@ -966,8 +966,8 @@ pub fn model_info(model: &Model) -> ModelInfo {
     let m = &model.manifest;
     let eval = m.evaluation.as_ref();
     let method = match m.provenance.train.method {
-        crate::train::Method::Alignist { .. } => "alignist",
-        crate::train::Method::Ipdf => "ipdf",
+        crate::bundle::record::Method::Alignist { .. } => "alignist",
+        crate::bundle::record::Method::Ipdf => "ipdf",
     };
     ModelInfo {
         name: model.name.clone(),

@@ -7,6 +7,7 @@ use nalgebra::{Rotation3, Vector3};
 use rand::{Rng, RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+use crate::bundle::model::ModelBundle;
 use crate::cad::{Mesh, RenderOptions};
 use crate::data::realism::{Realism, SceneAssets, realistic_crop};
 use crate::data::virtual_crop::{RenderedCrop, frame_camera, random_placement, render_crop};
@@ -272,5 +273,43 @@ impl FreshRenders {
             }
         }
         out
+    }
+}
+
+/// A bundle's objects as fresh renders, in object order: the renderer of their meshes, their
+/// names and their symmetries (what `eval_images` and `frame_eval_images` take).
+pub struct BundleRenders {
+    /// The renderer.
+    pub fresh: FreshRenders,
+    /// Object names.
+    pub names: Vec<String>,
+    /// Each object's proper symmetries.
+    pub symmetries: Vec<Vec<Rotation3<f64>>>,
+}
+
+impl BundleRenders {
+    /// `bundle`'s objects as fresh renders, supersampled `supersample` times per axis.
+    pub fn of(bundle: &ModelBundle, supersample: u32) -> BundleRenders {
+        BundleRenders {
+            fresh: FreshRenders {
+                meshes: bundle.experts.iter().map(|e| e.mesh.clone()).collect(),
+                supersample,
+                pool: None,
+                realism: None,
+            },
+            names: bundle
+                .manifest
+                .objects
+                .iter()
+                .map(|o| o.name.clone())
+                .collect(),
+            symmetries: bundle.experts.iter().map(|e| e.symmetries()).collect(),
+        }
+    }
+
+    /// `per_object` fresh evaluation crops of `size` of every object, placed from `seed`.
+    pub fn eval_images(&self, size: u32, per_object: usize, seed: u64) -> Vec<EvalImage> {
+        self.fresh
+            .eval_images(&self.names, &self.symmetries, size, per_object, seed)
     }
 }

@@ -9,12 +9,12 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 use serde::{Deserialize, Serialize};
 
-use crate::bundle::model::BundleRenders;
 use crate::engine::{
     DepthInput, DepthMap, EngineError, Intrinsics, Model, PredictOptions, SeenPoints, back_project,
 };
 use crate::so3::metrics::{error_to_nearest_deg, image_metrics, ll_ceiling};
 use crate::so3::{GridLevel, equivalents};
+use crate::train::data::BundleRenders;
 
 /// How the depth of a test image is spoiled before fusion.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

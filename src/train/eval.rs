@@ -5,8 +5,8 @@
 use std::time::Instant;
 
 use nalgebra::Rotation3;
-use serde::{Deserialize, Serialize};
 
+pub use crate::bundle::record::EvalReport;
 use crate::net::{Network, NetworkConfig, ProjectedGrid, images_tensor};
 use crate::so3::So3Error;
 use crate::so3::metrics::{
@@ -22,29 +22,6 @@ pub struct EvalImage {
     pub rgb: Vec<u8>,
     /// Every equivalent ground truth.
     pub equivalents: Vec<Rotation3<f64>>,
-}
-
-/// Metrics of one evaluation, per object and over all images.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub struct EvalReport {
-    /// Grid level of the evaluation.
-    pub level: u8,
-    /// The LL a perfect distribution would reach on these images at this level (mean).
-    pub ll_ceiling: f64,
-    /// Per object.
-    pub per_object: Vec<(String, MetricsSummary)>,
-    /// All images.
-    pub overall: MetricsSummary,
-    /// Images per second (encoder + head over the full grid + metrics).
-    pub images_per_second: f64,
-    /// Over all images, the shape branch alone (`s_θ`) and the feature branch alone (`s_φ`).
-    #[serde(default)]
-    pub per_branch: Option<(MetricsSummary, MetricsSummary)>,
-    /// Per object, the AR@30 of an argmax that ignores the image (the symmetry group's chance
-    /// level). With Haar-uniform test poses the best image-independent distribution is uniform:
-    /// LL 0 and this AR@30.
-    #[serde(default)]
-    pub chance_ar30: Vec<(String, f64)>,
 }
 
 /// The finest level evaluated or scored in full: level 5 already has 2 359 296 cells (level 6,

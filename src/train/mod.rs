@@ -7,6 +7,7 @@ pub mod config;
 pub mod data;
 pub mod depth_eval;
 pub mod eval;
+pub mod experts;
 pub mod results;
 pub mod sampling;
 pub mod trainer;

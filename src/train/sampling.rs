@@ -11,45 +11,10 @@
 
 use nalgebra::Rotation3;
 use rand::{Rng, RngExt};
-use serde::{Deserialize, Serialize};
 
+pub use crate::bundle::record::{PAPER_FOCUSED_SHARE, SamplingStrategy};
 use crate::experts::modes::ModeTable;
 use crate::so3::{So3Error, haar_rotation, random_axis};
-
-/// How the K rotations of an image are drawn.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "kind", rename_all = "snake_case")]
-pub enum SamplingStrategy {
-    /// `focused` rotations from the object's mode table, the rest uniform, the GT first.
-    ModeFocused {
-        /// How many of the K are drawn near the modes (paper: 3000 of 4096).
-        focused: usize,
-        /// Cells are drawn ∝ `exp(temperature · log_weight)`: 0 = uniformly over the table.
-        #[serde(default)]
-        temperature: f64,
-    },
-    /// The GT, then uniform rotations.
-    Uniform,
-}
-
-/// The paper's share of the K rotations drawn from the mode table.
-pub const PAPER_FOCUSED_SHARE: f64 = 0.75;
-
-impl SamplingStrategy {
-    /// The paper's mix at a given K: three quarters from the mode table, drawn uniformly.
-    pub fn mode_focused(k: usize) -> Self {
-        Self::mode_focused_share(k, PAPER_FOCUSED_SHARE)
-    }
-
-    /// `⌊share·K⌋` of the K rotations from the mode table (drawn uniformly over it), the rest
-    /// uniform over SO(3).
-    pub fn mode_focused_share(k: usize, share: f64) -> Self {
-        SamplingStrategy::ModeFocused {
-            focused: (k as f64 * share).floor() as usize,
-            temperature: 0.0,
-        }
-    }
-}
 
 /// Draws cells of an object's [`ModeTable`].
 #[derive(Debug, Clone)]

@@ -12,13 +12,13 @@ use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::{Device, Tensor, TensorData};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use serde::{Deserialize, Serialize};
 
 use super::TrainError;
 use super::checkpoint::{CheckpointState, latest_checkpoint, load_checkpoint, save_checkpoint};
 pub use super::config::{ExpertBranches, MeasureLoss, Method, TrainConfig, learning_rate};
 pub use super::data::{FreshRenders, TrainingImage};
 use super::sampling::{ModeSampler, SamplingStrategy, sample_rotations};
+pub use crate::bundle::record::{StepProfile, TrainReport};
 use crate::experts::energy::{BakedExperts, LogTargets};
 use crate::experts::modes::ModeTable;
 use crate::net::{
@@ -39,85 +39,6 @@ pub struct TrainingSet {
     pub fresh: Option<FreshRenders>,
     /// The images.
     pub images: Vec<TrainingImage>,
-}
-
-/// What a run did.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct TrainReport {
-    /// Steps run in this call (a resumed run counts only its own).
-    pub steps_run: usize,
-    /// The step the run started from (0, or the checkpoint's).
-    pub resumed_from: usize,
-    /// Mean loss over the last 10 % of steps.
-    pub final_loss: f64,
-    /// Wall time of this call.
-    pub seconds: f64,
-    /// Mean milliseconds per step in each stage.
-    #[serde(default)]
-    pub profile: StepProfile,
-}
-
-/// Time per training step in each stage (seconds summed while training; milliseconds per step
-/// in [`TrainReport::profile`]). The stages run one after the other, so they add up to the step
-/// time but for the checkpoints and the loop itself (`total` is measured around the whole step).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
-pub struct StepProfile {
-    /// Steps measured.
-    pub steps: usize,
-    /// Time a step waited for its batch. The batch (data, sampling, targets) is prepared on
-    /// another thread while the step before it computes, so only this wait is on the step's path.
-    #[serde(default)]
-    pub waiting: f64,
-    /// Drawing or rendering the images (prepared ahead).
-    pub data: f64,
-    /// Drawing the K rotations per image (prepared ahead).
-    pub sampling: f64,
-    /// The experts' targets of the K rotations (prepared ahead).
-    pub targets: f64,
-    /// Making the images' tensor and the image encoder's forward.
-    pub encoder_forward: f64,
-    /// Rotation encoding, head forward and the loss.
-    pub head_forward: f64,
-    /// burn's backward: the encoder's, and the head's on burn's head path ([`HeadPath::Burn`]).
-    pub backward: f64,
-    /// The hand-written head's backward ([`HeadPath::Fused`]; 0 on burn's).
-    #[serde(default)]
-    pub head_backward: f64,
-    /// The Adam step.
-    pub optimiser: f64,
-    /// The whole step, checkpoints included.
-    pub total: f64,
-}
-
-impl StepProfile {
-    /// Seconds summed → milliseconds per step.
-    pub fn mean_ms(&self) -> StepProfile {
-        let k = 1e3 / self.steps.max(1) as f64;
-        StepProfile {
-            steps: self.steps,
-            waiting: self.waiting * k,
-            data: self.data * k,
-            sampling: self.sampling * k,
-            targets: self.targets * k,
-            encoder_forward: self.encoder_forward * k,
-            head_forward: self.head_forward * k,
-            backward: self.backward * k,
-            head_backward: self.head_backward * k,
-            optimiser: self.optimiser * k,
-            total: self.total * k,
-        }
-    }
-
-    /// Sum of the stages on the step's path: the wait for the batch and the computing stages
-    /// (the batch's own stages run beside them).
-    pub fn stages(&self) -> f64 {
-        self.waiting
-            + self.encoder_forward
-            + self.head_forward
-            + self.backward
-            + self.head_backward
-            + self.optimiser
-    }
 }
 
 /// Which code runs the head's forward and backward in training. Both compute the same

@@ -49,7 +49,7 @@ pub(crate) fn bench_cmd(args: &BenchArgs) -> Result<()> {
     let loaded = alignist::bundle::model::ModelBundle::load(&args.model)
         .with_context(|| format!("--model {}", args.model.display()))?;
     let size = loaded.manifest.network.image_size;
-    let renders = loaded.renders(4);
+    let renders = alignist::train::data::BundleRenders::of(&loaded, 4);
     if args.depth {
         let started = std::time::Instant::now();
         let model = alignist::engine::Engine::load_model(&args.model, Default::default())

@@ -111,7 +111,7 @@ pub(crate) struct EvalArgs {
 }
 
 /// `eval --fresh --depth`: image only against fused with clean and spoiled depth.
-fn depth_report(args: &EvalArgs, renders: &alignist::bundle::model::BundleRenders) -> Result<()> {
+fn depth_report(args: &EvalArgs, renders: &alignist::train::data::BundleRenders) -> Result<()> {
     use alignist::engine::{Engine, EngineConfig};
     use alignist::train::depth_eval::{DepthNoise, depth_eval_images, evaluate_depth};
     if !(args.depth_noise.is_finite() && args.depth_noise >= 0.0) {
@@ -242,7 +242,7 @@ fn frames_report(
 fn realistic_report(
     args: &EvalArgs,
     bundle: &alignist::bundle::model::ModelBundle,
-    renders: &alignist::bundle::model::BundleRenders,
+    renders: &alignist::train::data::BundleRenders,
     clean: Vec<alignist::train::eval::EvalImage>,
 ) -> Result<()> {
     use alignist::data::realism::Realism;
@@ -324,7 +324,7 @@ pub(crate) fn eval_cmd(args: &EvalArgs) -> Result<()> {
         if !(1..=8).contains(&args.supersample) {
             bail!("--supersample must be in 1 ..= 8, got {}", args.supersample);
         }
-        let renders = bundle.renders(args.supersample);
+        let renders = alignist::train::data::BundleRenders::of(&bundle, args.supersample);
         if args.depth {
             return depth_report(args, &renders);
         }

@@ -48,7 +48,7 @@ pub(crate) struct ExpertsArgs {
     #[arg(long, default_value_t = FeatureTrainConfig::default().lr_query)]
     lr_query: f64,
     /// Voxel bake resolution per axis.
-    #[arg(long, default_value_t = alignist::bundle::experts::DEFAULT_BAKE_RESOLUTION)]
+    #[arg(long, default_value_t = alignist::train::experts::DEFAULT_BAKE_RESOLUTION)]
     bake_resolution: usize,
     /// Width σ in degrees of the combined target around each mode (chooses λ_SDF and λ_SE; no
     /// symmetry is needed).
@@ -155,11 +155,11 @@ impl ExpertsArgs {
     }
 
     /// The job the flags describe, for the resolved object (its mesh must be closed).
-    fn job(&self) -> Result<alignist::bundle::experts::ExpertsJob> {
+    fn job(&self) -> Result<alignist::train::experts::ExpertsJob> {
         use alignist::experts::energy::EnergyParams;
         let (name, mesh, normalisation, symmetries) = self.object.resolve()?;
         alignist::cad::SignedDistance::new(&mesh).context("the SDF expert needs a closed mesh")?;
-        Ok(alignist::bundle::experts::ExpertsJob {
+        Ok(alignist::train::experts::ExpertsJob {
             name,
             mesh,
             normalisation,
@@ -204,7 +204,7 @@ impl ExpertsArgs {
 }
 
 pub(crate) fn experts_cmd(args: &ExpertsArgs) -> Result<()> {
-    use alignist::bundle::experts::train_expert_set;
+    use alignist::train::experts::train_expert_set;
     args.check()?;
     let job = args.job()?;
     let style = ProgressStyle::with_template("{prefix:>9} {bar:40} {pos}/{len}  {msg}  eta {eta}")

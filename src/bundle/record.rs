@@ -1,0 +1,361 @@
+//! Every record a bundle's files hold (DESIGN.md §3): the model manifest and what it embeds —
+//! the training configuration and report, the evaluation report, the checksums of the files.
+//! Plain serde data, below everything that reads or writes it (`bundle`, `train`, `engine`,
+//! `serve`); the behaviour on these types lives with its users.
+
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+use crate::net::NetworkConfig;
+use crate::so3::metrics::MetricsSummary;
+
+/// Checksum and size of one file of a bundle.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FileEntry {
+    /// Lower-case hex sha256.
+    pub sha256: String,
+    /// Size in bytes.
+    pub bytes: u64,
+}
+
+/// Format version of model manifests this build reads and writes.
+pub const MODEL_FORMAT_VERSION: u32 = 1;
+
+/// One object a bundle knows.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BundleObject {
+    /// Name (as in requests).
+    pub name: String,
+    /// Its expert set, relative to the bundle.
+    pub experts: String,
+    /// The training data it was fitted on.
+    pub data: String,
+    /// Training images used.
+    pub train_images: usize,
+}
+
+/// How the network was trained.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Provenance {
+    /// The exact command.
+    pub command: String,
+    /// The training configuration (seed, steps, method, …).
+    pub train: TrainConfig,
+    /// What the run did.
+    pub report: TrainReport,
+}
+
+/// `manifest.json` of a model bundle.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ModelManifest {
+    /// [`MODEL_FORMAT_VERSION`].
+    pub format_version: u32,
+    /// Bundle name.
+    pub name: String,
+    /// The network (input size, layout, encoding, head).
+    pub network: NetworkConfig,
+    /// Input normalisation: crops are RGB scaled to `[0, 1]`, object-centred (DESIGN.md §2).
+    pub input: String,
+    /// Objects, in the order the bundle was trained on them.
+    pub objects: Vec<BundleObject>,
+    /// Highest grid level served in full, and highest level of the coarse-to-fine search.
+    pub levels: GridLevels,
+    /// Training provenance.
+    pub provenance: Provenance,
+    /// Evaluation on held-out images, when it was run.
+    pub evaluation: Option<EvalReport>,
+    /// Checksums of every file except the manifest, relative to the bundle.
+    pub files: BTreeMap<String, FileEntry>,
+}
+
+/// The input convention every bundle records (`ModelManifest::input`).
+pub const INPUT_CONVENTION: &str = "RGB crop as a virtual camera looking at the centre of the \
+    object's box sees it: a square of 1.2 × the box's longer side (never stretched), side \
+    image_size, values / 255 (src/data/virtual_crop.rs)";
+
+impl ModelManifest {
+    /// The manifest of a bundle trained now (no files yet: [`crate::bundle::model::ModelBundle::save`] adds them), with
+    /// the [`INPUT_CONVENTION`].
+    pub fn new(
+        name: String,
+        network: NetworkConfig,
+        objects: Vec<BundleObject>,
+        levels: GridLevels,
+        provenance: Provenance,
+        evaluation: Option<EvalReport>,
+    ) -> ModelManifest {
+        ModelManifest {
+            format_version: MODEL_FORMAT_VERSION,
+            name,
+            network,
+            input: INPUT_CONVENTION.into(),
+            objects,
+            levels,
+            provenance,
+            evaluation,
+            files: Default::default(),
+        }
+    }
+}
+
+/// Grid levels of a bundle: the server serves it up to these at most
+/// (`EngineConfig::within`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct GridLevels {
+    /// Full distributions up to this level.
+    pub full_max: u8,
+    /// Coarse-to-fine top-k up to this level.
+    pub search_max: u8,
+}
+
+/// The measure loss of the Alignist objective.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MeasureLoss {
+    /// Generalised KL (paper Eq. 5).
+    Gkl,
+    /// L1 between measures (ablation).
+    L1,
+}
+
+/// Which experts' targets an Alignist run fits (the paper's ablation of the experts).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ExpertBranches {
+    /// Both: the shape branch fits the SDF expert, the feature branch the feature expert.
+    #[default]
+    Both,
+    /// Only the SDF expert; the feature branch is silenced (a constant output).
+    ShapeOnly,
+    /// Only the feature expert; the shape branch is silenced.
+    FeatureOnly,
+}
+
+/// What the network is trained to do.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum Method {
+    /// Both branches fit the experts' measures.
+    Alignist {
+        /// The loss per branch.
+        loss: MeasureLoss,
+        /// How the K rotations are drawn.
+        sampling: SamplingStrategy,
+        /// Which experts are fitted (runs recorded before this field fitted both).
+        #[serde(default)]
+        experts: ExpertBranches,
+    },
+    /// IPDF: one score (both branches summed), `−log softmax` of the GT among uniform samples.
+    Ipdf,
+}
+
+/// How to train.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainConfig {
+    /// The network.
+    pub network: NetworkConfig,
+    /// The objective.
+    pub method: Method,
+    /// Adam steps.
+    pub steps: usize,
+    /// Images per step.
+    pub batch: usize,
+    /// Rotations per image.
+    pub k: usize,
+    /// Peak learning rate.
+    pub lr: f64,
+    /// Linear warm-up steps.
+    pub warmup: usize,
+    /// Seed of everything.
+    pub seed: u64,
+    /// Steps between checkpoints.
+    pub checkpoint_every: usize,
+    /// Weights to start from instead of a seeded initialisation (a warm restart: a new schedule
+    /// from a trained model's weights). `None`: seeded initialisation.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub init: Option<InitWeights>,
+}
+
+impl Default for TrainConfig {
+    /// The defaults of `alignist-train fit`: the tiny encoder and the cube encoding on 64 px
+    /// crops, Alignist (GKL, mode-focused, both experts), 1 000 steps of 8 images × 256
+    /// rotations, peak learning rate 1e-3 after a 5 % warm-up, a checkpoint every 100 steps.
+    fn default() -> Self {
+        let (steps, k) = (1000, 256);
+        TrainConfig {
+            network: NetworkConfig::new(
+                crate::net::ResNetLayout::Tiny,
+                crate::encoding::RotationEncoding::Cube,
+            ),
+            method: Method::Alignist {
+                loss: MeasureLoss::Gkl,
+                sampling: SamplingStrategy::mode_focused(k),
+                experts: ExpertBranches::Both,
+            },
+            steps,
+            batch: 8,
+            k,
+            lr: 1e-3,
+            warmup: warmup_steps(steps),
+            seed: 0,
+            checkpoint_every: 100,
+            init: None,
+        }
+    }
+}
+
+/// The linear warm-up of a run of `steps`: 5 % of it (at least one step).
+pub fn warmup_steps(steps: usize) -> usize {
+    (steps / 20).max(1)
+}
+
+/// A trained network's weights file, named with its checksum so that a run records exactly what
+/// it started from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct InitWeights {
+    /// The weights file (a bundle's `network.safetensors`).
+    pub path: String,
+    /// Its checksum and size, checked before loading.
+    pub file: FileEntry,
+    /// The command that trained it (from its bundle's manifest), so that the chain of runs
+    /// behind a model stays on record.
+    #[serde(default)]
+    pub trained_by: String,
+}
+
+/// How the K rotations of an image are drawn.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum SamplingStrategy {
+    /// `focused` rotations from the object's mode table, the rest uniform, the GT first.
+    ModeFocused {
+        /// How many of the K are drawn near the modes (paper: 3000 of 4096).
+        focused: usize,
+        /// Cells are drawn ∝ `exp(temperature · log_weight)`: 0 = uniformly over the table.
+        #[serde(default)]
+        temperature: f64,
+    },
+    /// The GT, then uniform rotations.
+    Uniform,
+}
+
+/// The paper's share of the K rotations drawn from the mode table.
+pub const PAPER_FOCUSED_SHARE: f64 = 0.75;
+
+impl SamplingStrategy {
+    /// The paper's mix at a given K: three quarters from the mode table, drawn uniformly.
+    pub fn mode_focused(k: usize) -> Self {
+        Self::mode_focused_share(k, PAPER_FOCUSED_SHARE)
+    }
+
+    /// `⌊share·K⌋` of the K rotations from the mode table (drawn uniformly over it), the rest
+    /// uniform over SO(3).
+    pub fn mode_focused_share(k: usize, share: f64) -> Self {
+        SamplingStrategy::ModeFocused {
+            focused: (k as f64 * share).floor() as usize,
+            temperature: 0.0,
+        }
+    }
+}
+
+/// What a run did.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainReport {
+    /// Steps run in this call (a resumed run counts only its own).
+    pub steps_run: usize,
+    /// The step the run started from (0, or the checkpoint's).
+    pub resumed_from: usize,
+    /// Mean loss over the last 10 % of steps.
+    pub final_loss: f64,
+    /// Wall time of this call.
+    pub seconds: f64,
+    /// Mean milliseconds per step in each stage.
+    #[serde(default)]
+    pub profile: StepProfile,
+}
+
+/// Time per training step in each stage (seconds summed while training; milliseconds per step
+/// in [`TrainReport::profile`]). The stages run one after the other, so they add up to the step
+/// time but for the checkpoints and the loop itself (`total` is measured around the whole step).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct StepProfile {
+    /// Steps measured.
+    pub steps: usize,
+    /// Time a step waited for its batch. The batch (data, sampling, targets) is prepared on
+    /// another thread while the step before it computes, so only this wait is on the step's path.
+    #[serde(default)]
+    pub waiting: f64,
+    /// Drawing or rendering the images (prepared ahead).
+    pub data: f64,
+    /// Drawing the K rotations per image (prepared ahead).
+    pub sampling: f64,
+    /// The experts' targets of the K rotations (prepared ahead).
+    pub targets: f64,
+    /// Making the images' tensor and the image encoder's forward.
+    pub encoder_forward: f64,
+    /// Rotation encoding, head forward and the loss.
+    pub head_forward: f64,
+    /// burn's backward: the encoder's, and the head's on burn's head path ([`crate::train::trainer::HeadPath::Burn`]).
+    pub backward: f64,
+    /// The hand-written head's backward ([`crate::train::trainer::HeadPath::Fused`]; 0 on burn's).
+    #[serde(default)]
+    pub head_backward: f64,
+    /// The Adam step.
+    pub optimiser: f64,
+    /// The whole step, checkpoints included.
+    pub total: f64,
+}
+
+impl StepProfile {
+    /// Seconds summed → milliseconds per step.
+    pub fn mean_ms(&self) -> StepProfile {
+        let k = 1e3 / self.steps.max(1) as f64;
+        StepProfile {
+            steps: self.steps,
+            waiting: self.waiting * k,
+            data: self.data * k,
+            sampling: self.sampling * k,
+            targets: self.targets * k,
+            encoder_forward: self.encoder_forward * k,
+            head_forward: self.head_forward * k,
+            backward: self.backward * k,
+            head_backward: self.head_backward * k,
+            optimiser: self.optimiser * k,
+            total: self.total * k,
+        }
+    }
+
+    /// Sum of the stages on the step's path: the wait for the batch and the computing stages
+    /// (the batch's own stages run beside them).
+    pub fn stages(&self) -> f64 {
+        self.waiting
+            + self.encoder_forward
+            + self.head_forward
+            + self.backward
+            + self.head_backward
+            + self.optimiser
+    }
+}
+
+/// Metrics of one evaluation, per object and over all images.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct EvalReport {
+    /// Grid level of the evaluation.
+    pub level: u8,
+    /// The LL a perfect distribution would reach on these images at this level (mean).
+    pub ll_ceiling: f64,
+    /// Per object.
+    pub per_object: Vec<(String, MetricsSummary)>,
+    /// All images.
+    pub overall: MetricsSummary,
+    /// Images per second (encoder + head over the full grid + metrics).
+    pub images_per_second: f64,
+    /// Over all images, the shape branch alone (`s_θ`) and the feature branch alone (`s_φ`).
+    #[serde(default)]
+    pub per_branch: Option<(MetricsSummary, MetricsSummary)>,
+    /// Per object, the AR@30 of an argmax that ignores the image (the symmetry group's chance
+    /// level). With Haar-uniform test poses the best image-independent distribution is uniform:
+    /// LL 0 and this AR@30.
+    #[serde(default)]
+    pub chance_ar30: Vec<(String, f64)>,
+}

@@ -1,0 +1,99 @@
+//! What every head path shares: the tile the rotations are scored in, the rows a head takes
+//! (projections or encodings), the precisions, and bfloat16 rounding. Below the heads that use
+//! them ([`super::fused`], [`super::native`], [`super::bf16`]), so no two of those import each
+//! other both ways.
+
+use rayon::prelude::*;
+
+/// Rows of one tile: measured fastest among 64–512 (`examples/probe_gemm.rs`), and a tile's
+/// activations (2 × 256 rows × 256 × 4 B = 512 KiB) stay in a core's L2.
+pub const TILE_ROWS: usize = 256;
+
+/// The arithmetic a head is scored in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
+pub enum Precision {
+    /// f32 throughout: the burn network's scores within 1e-4.
+    #[default]
+    F32,
+    /// bfloat16 weights and GEMM inputs, f32 sums ([`super::fused::Bf16Head`]): about twice the rate where the
+    /// core has AVX-512 BF16, scores within about 1 % of the f32 ones.
+    Bf16,
+}
+
+impl Precision {
+    /// The name used by flags and the bench (`f32`, `bf16`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Precision::F32 => "f32",
+            Precision::Bf16 => "bf16",
+        }
+    }
+}
+
+impl std::fmt::Display for Precision {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for Precision {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "f32" => Ok(Precision::F32),
+            "bf16" => Ok(Precision::Bf16),
+            other => Err(format!("unknown precision `{other}` (f32 or bf16)")),
+        }
+    }
+}
+
+/// The rotations a head scores, as their rotation projections or as their encodings.
+#[derive(Debug, Clone, Copy)]
+pub enum Rows<'a> {
+    /// The rotation half of the first layer, `[n, width]` ([`super::FusedHead::project_rotations`]):
+    /// a grid's, computed once.
+    Projected(&'a [f32]),
+    /// The rotations' encodings, `[n, rotation_dim]`.
+    Encoded(&'a [f32]),
+}
+
+/// Both branches' scores of the `given.len() / per_row` rows of `given`, one tile of
+/// [`TILE_ROWS`] rows per task over the cores, each task with its scratch from `init`:
+/// `tile(scratch, rows of the tile, [shape, feature] outputs of the tile)`.
+pub(super) fn by_tiles<S>(
+    given: &[f32],
+    per_row: usize,
+    init: impl Fn() -> S + Send + Sync,
+    tile: impl Fn(&mut S, &[f32], [&mut [f32]; 2]) + Send + Sync,
+) -> (Vec<f32>, Vec<f32>) {
+    let n = given.len() / per_row;
+    let (mut shape, mut feature) = (vec![0.0; n], vec![0.0; n]);
+    shape
+        .par_chunks_mut(TILE_ROWS)
+        .zip(feature.par_chunks_mut(TILE_ROWS))
+        .zip(given.par_chunks(TILE_ROWS * per_row))
+        .for_each_init(init, |scratch, ((shape, feature), given)| {
+            tile(scratch, given, [shape, feature])
+        });
+    (shape, feature)
+}
+
+/// `x` rounded to bfloat16 (round to nearest even, as `VCVTNEPS2BF16`), as its 16 bits.
+pub fn to_bf16(x: f32) -> u16 {
+    let bits = x.to_bits();
+    if x.is_nan() {
+        return ((bits >> 16) | 0x40) as u16;
+    }
+    let round = 0x7fff + ((bits >> 16) & 1);
+    (bits.wrapping_add(round) >> 16) as u16
+}
+
+/// The f32 of a bfloat16's bits.
+pub fn from_bf16(h: u16) -> f32 {
+    f32::from_bits((h as u32) << 16)
+}
+
+/// `x` rounded to the nearest bfloat16.
+pub fn round_bf16(x: f32) -> f32 {
+    from_bf16(to_bf16(x))
+}

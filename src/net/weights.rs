@@ -1,0 +1,77 @@
+//! The dual-branch head's weights as plain row-major f32 layers ([`Dense`]), read once from the
+//! burn [`DualHead`]: what every inference path packs or reads ([`super::FusedHead`], the
+//! native kernels of [`super::native`]).
+
+use super::DualHead;
+use super::dense::Dense;
+use super::head::Branch;
+use super::tiles::round_bf16;
+
+/// One branch: hidden ReLU layers, then the `width → 1` output as a dot product.
+#[derive(Debug, Clone)]
+pub(super) struct BranchWeights {
+    pub(super) hidden: Vec<Dense>,
+    pub(super) output: Vec<f32>,
+    pub(super) output_bias: f32,
+}
+
+impl BranchWeights {
+    fn of(branch: &Branch) -> BranchWeights {
+        let (hidden, output) = branch.layers();
+        let output = Dense::of(output);
+        BranchWeights {
+            hidden: hidden.iter().map(Dense::of).collect(),
+            output: output.weight,
+            output_bias: output.bias[0],
+        }
+    }
+}
+
+/// The head's weights: the image and rotation halves of the first layer and both branches
+/// (`[shape, feature]`).
+#[derive(Debug, Clone)]
+pub(super) struct HeadWeights {
+    pub(super) width: usize,
+    pub(super) image: Dense,
+    pub(super) rotation: Dense,
+    pub(super) branches: [BranchWeights; 2],
+}
+
+impl HeadWeights {
+    /// Reads `head`'s weights.
+    pub(super) fn of(head: &DualHead) -> HeadWeights {
+        let (image, rotation, shape, feature) = head.parts();
+        let rotation = Dense::of(rotation);
+        HeadWeights {
+            width: rotation.outputs,
+            image: Dense::of(image),
+            rotation,
+            branches: [BranchWeights::of(shape), BranchWeights::of(feature)],
+        }
+    }
+
+    /// These weights with the branches' and the rotation layer's weights rounded to bfloat16
+    /// (the image half of the first layer stays f32, as in the native bfloat16 kernel).
+    pub(super) fn rounded_to_bf16(&self) -> HeadWeights {
+        let round = |d: &Dense| Dense {
+            weight: d.weight.iter().copied().map(round_bf16).collect(),
+            ..d.clone()
+        };
+        let branch = |b: &BranchWeights| BranchWeights {
+            hidden: b.hidden.iter().map(round).collect(),
+            ..b.clone()
+        };
+        HeadWeights {
+            rotation: round(&self.rotation),
+            branches: [branch(&self.branches[0]), branch(&self.branches[1])],
+            ..self.clone()
+        }
+    }
+
+    /// Each branch's hidden layers, output weights and output bias.
+    pub(super) fn branch_layers(&self) -> [(&[Dense], &[f32], f32); 2] {
+        self.branches
+            .each_ref()
+            .map(|b| (&b.hidden[..], &b.output[..], b.output_bias))
+    }
+}
