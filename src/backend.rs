@@ -1,4 +1,4 @@
-//! The one place where compute devices are chosen (DESIGN.md §4: keep the backend one switch).
+//! The one place where compute devices are chosen (docs/DESIGN.md §6: keep the backend one switch).
 //!
 //! burn 0.22 compiles both CPU backends in. Measured here (2 cores): ndarray runs the head's and
 //! the SIRENs' matmuls ~2× faster than flex, but flex trains the query U-Net ~30× faster than
@@ -35,7 +35,7 @@ pub fn device_for(workload: Workload) -> Device {
         Device::flex()
     } else {
         // burn 0.22 marks ndarray deprecated in favour of flex; it is still the faster choice
-        // for matmul-bound work (DESIGN.md §4).
+        // for matmul-bound work (docs/DESIGN.md §6).
         #[allow(deprecated)]
         Device::ndarray()
     }

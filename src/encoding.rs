@@ -1,4 +1,4 @@
-//! Positional encodings of rotations, the input of the distribution head (DESIGN.md §2).
+//! Positional encodings of rotations, the input of the distribution head (docs/DESIGN.md §2).
 //!
 //! Both take rotations as row-major `f32` matrices (`[r00, r01, …, r22]`) and return one row per
 //! rotation, either as plain `Vec<f32>` rows (row-major `n × dim`) or as a burn tensor `[n, dim]`.

@@ -1,7 +1,8 @@
 //! alignist: orientation distributions over SO(3) from images of known objects, trained with
 //! dense, symmetry-aware targets from CAD experts (Alignist, ECCV 2024).
 //!
-//! See `DESIGN.md` in the project's shared notes for the conventions every module shares.
+//! `docs/DESIGN.md` holds the conventions every module shares, the method as implemented, the
+//! layout and the bundle format; code cites it by section.
 
 #![warn(missing_docs)]
 

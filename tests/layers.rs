@@ -1,4 +1,4 @@
-//! The layering of `src/` (docs/DESIGN.md §6), read from the code's own `crate::…` and `super::…`
+//! The layering of `src/` (docs/DESIGN.md §3), read from the code's own `crate::…` and `super::…`
 //! paths: every arrow between top-level modules points down the floors below, and inside a module
 //! the files import each other without a circle.
 

@@ -210,7 +210,7 @@ fn polar_cells_are_compact_and_old_centres_stay_readable() {
     }
 }
 
-/// The reference centres (healpy, from the definition in DESIGN.md §1).
+/// The reference centres (healpy, from the definition in docs/DESIGN.md §1).
 fn reference(level: u8) -> Vec<[f64; 4]> {
     let text = std::fs::read_to_string(format!(
         "{}/tests/data/so3-grid-level{level}.csv",

@@ -197,7 +197,7 @@ fn ll_averages_over_every_equivalent() {
 
 #[test]
 fn ll_ceilings_match_the_design_notes_at_level_4() {
-    // DESIGN.md §2: tet 10.11, cube 9.42, icosa 8.50, cone 8.04, cylinder 7.34 at level 4.
+    // docs/DESIGN.md §2: tet 10.11, cube 9.42, icosa 8.50, cone 8.04, cylinder 7.34 at level 4.
     let g = GridLevel::new(4).unwrap();
     let mut rng = ChaCha8Rng::seed_from_u64(10);
     let cases = [

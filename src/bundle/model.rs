@@ -1,4 +1,4 @@
-//! A model bundle (DESIGN.md §3): `models/<name>/` with `manifest.json`, the network's weights
+//! A model bundle (docs/DESIGN.md §4): `models/<name>/` with `manifest.json`, the network's weights
 //! (`network.safetensors`), and, per object, the expert set it was trained with
 //! (`experts/<object>/`, which holds the object's normalised mesh).
 

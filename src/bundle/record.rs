@@ -1,4 +1,4 @@
-//! Every record a bundle's files hold (DESIGN.md §3): the model manifest and what it embeds —
+//! Every record a bundle's files hold (docs/DESIGN.md §4): the model manifest and what it embeds —
 //! the training configuration and report, the evaluation report, the checksums of the files.
 //! Plain serde data, below everything that reads or writes it (`bundle`, `train`, `engine`,
 //! `serve`); the behaviour on these types lives with its users.
@@ -54,7 +54,7 @@ pub struct ModelManifest {
     pub name: String,
     /// The network (input size, layout, encoding, head).
     pub network: NetworkConfig,
-    /// Input normalisation: crops are RGB scaled to `[0, 1]`, object-centred (DESIGN.md §2).
+    /// Input normalisation: crops are RGB scaled to `[0, 1]`, object-centred (docs/DESIGN.md §2).
     pub input: String,
     /// Objects, in the order the bundle was trained on them.
     pub objects: Vec<BundleObject>,

@@ -110,7 +110,7 @@ pub struct Mesh {
 }
 
 /// How a mesh was mapped to NOCS: `x_nocs = (x − centre) / scale`, where `centre` is the centre of
-/// the bounding box and `scale` the radius of the bounding sphere around it (DESIGN.md §1).
+/// the bounding box and `scale` the radius of the bounding sphere around it (docs/DESIGN.md §1).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Normalisation {
     /// Bounding-box centre in the file's units.

@@ -1,6 +1,6 @@
 //! Exact signed distance of points to a closed, oriented mesh (parry3d), batched.
 //!
-//! parry3d speaks glam; the conversion happens here and nowhere else (DESIGN.md §1).
+//! parry3d speaks glam; the conversion happens here and nowhere else (docs/DESIGN.md §1).
 
 use nalgebra::Vector3;
 use parry3d::math::Vector as GlamVec;

@@ -1,5 +1,5 @@
 //! The SYMSOL shapes, built so that their symmetry sets are exactly the groups of the SO(3) core
-//! (DESIGN.md §1), and textured variants in the spirit of SYMSOL-II.
+//! (docs/DESIGN.md §1), and textured variants in the spirit of SYMSOL-II.
 //!
 //! Every shape is returned in NOCS (bounding-box centre at 0, bounding-sphere radius 1). The cone
 //! and cylinder are tessellated with 360 segments at whole degrees, so the sampled continuous

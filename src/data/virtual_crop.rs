@@ -1,4 +1,4 @@
-//! Object crops as a virtual camera sees them (DESIGN.md §1, "Crops and cameras"), rendered
+//! Object crops as a virtual camera sees them (docs/DESIGN.md §1, "Crops and cameras"), rendered
 //! directly — fresh training and evaluation data.
 //!
 //! The crop convention, shared by training, evaluation and serving: given the camera's

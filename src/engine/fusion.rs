@@ -4,7 +4,7 @@
 //!
 //! For a candidate `R` and the object's centre `τ` in the camera frame, the points `q_i` sit at
 //! `x_i = Rᵀ·(q_i − τ)` in the object's frame; the fused term is `−U_SDF(R, τ)` on those points,
-//! with the λ, ε and norm the expert set was selected with (DESIGN.md §2).
+//! with the λ, ε and norm the expert set was selected with (docs/DESIGN.md §2).
 //!
 //! Points relative to the object's centre (the old input) have `τ = 0`. Points as the camera sees
 //! them ([`CameraPoints`], from a depth image) have `τ` found, not given:

@@ -169,7 +169,7 @@ pub fn prepare_image(
         }
         Some(c) => {
             c.check(image.width(), image.height(), "image.crop")?;
-            // The crop convention's scale rule (DESIGN.md §1): a square of CROP_MARGIN × the
+            // The crop convention's scale rule (docs/DESIGN.md §1): a square of CROP_MARGIN × the
             // box's longer side around its centre. Without intrinsics this is a plain cut (a
             // camera looking through the image centre), black where it leaves the image.
             let side = (CROP_MARGIN * c.width.max(c.height)).round().max(1.0) as u32;

@@ -285,7 +285,7 @@ impl Default for EngineConfig {
             search_default_level: 5,
             search_max_level: 6,
             // Chosen by the search study of `alignist-train bench` (held-out renders, top-10 to
-            // level 5, against the exhaustive level-5 argmax; README "Benchmarks"): with the
+            // level 5, against the exhaustive level-5 argmax; docs/BENCHMARKS.md): with the
             // coarse levels in bfloat16, 1024 cells halving per level (1024, 512, 256) agreed on
             // 189 of 190 distinct images over the bench's sets of 150 and 50, at p50 ~22 ms;
             // 768 halving, ~4 ms faster, on 188 (98.9 %). The search before, 128 at every level in
@@ -780,7 +780,7 @@ impl Model {
         Ok(logits)
     }
 
-    /// The full distribution at `level` (DESIGN.md §2: `log p` per cell, `+ log(N/π²)`).
+    /// The full distribution at `level` (docs/DESIGN.md §2: `log p` per cell, `+ log(N/π²)`).
     pub fn distribution(
         &self,
         features: &Tensor<2>,

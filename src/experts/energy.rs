@@ -1,5 +1,5 @@
 //! Energies of candidate rotations and the target measures they give (paper Eq. 3–4,
-//! DESIGN.md §2).
+//! docs/DESIGN.md §2).
 //!
 //! `x⁰_i` are visible surface points in canonical coordinates (from a NOCS render at `R_gt`).
 //! A candidate `R` explains them as `x'_i = Rᵀ·R_gt·x⁰_i`; at `R = R_gt·S` for a symmetry `S`,

@@ -1,4 +1,4 @@
-//! The feature expert (SurfEmb, Haugaard & Buch 2022; DESIGN.md §2): a key SIREN
+//! The feature expert (SurfEmb, Haugaard & Buch 2022; docs/DESIGN.md §2): a key SIREN
 //! `f_SE: R³ → R¹²` (3 → 256 → 256 → 12, ω₀ = 30) and a query CNN (a small U-Net) that maps an
 //! RGB crop to a mask logit and a 12-d query per pixel. Trained jointly on renders at random
 //! poses with mask BCE + InfoNCE: each sampled foreground pixel's query is scored against the key

@@ -1,4 +1,4 @@
-//! The two frozen CAD experts of the paper (Sec. 3, Eq. 3–4; DESIGN.md §2): a neural SDF and
+//! The two frozen CAD experts of the paper (Sec. 3, Eq. 3–4; docs/DESIGN.md §2): a neural SDF and
 //! SurfEmb-style surface features, the energies they give to candidate rotations, and dense
 //! voxel bakes of both for fast scoring during training.
 

@@ -1,4 +1,4 @@
-//! The object's table of relative rotations where targets have mass (DESIGN.md §2, "Sampling").
+//! The object's table of relative rotations where targets have mass (docs/DESIGN.md §2, "Sampling").
 //!
 //! The targets of an image depend on a candidate `R` only through `Q = R_gtᵀ·R` and the visible
 //! points, so for every view they have mass at `R_gt·Q` for `Q` in one fixed set: the object's

@@ -1,4 +1,4 @@
-//! The SDF expert `f_SDF: R³ → R` (DESIGN.md §2): a SIREN (4 sine layers, 256 wide, ω₀ = 30)
+//! The SDF expert `f_SDF: R³ → R` (docs/DESIGN.md §2): a SIREN (4 sine layers, 256 wide, ω₀ = 30)
 //! fitted with an L1 loss to exact signed distances (parry3d) of points near the surface and in
 //! the bounding volume of the NOCS mesh.
 

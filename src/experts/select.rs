@@ -1,4 +1,4 @@
-//! Choosing λ_SDF and λ_SE without the object's symmetry group (DESIGN.md §2).
+//! Choosing λ_SDF and λ_SE without the object's symmetry group (docs/DESIGN.md §2).
 //!
 //! The experts must find the symmetry from the CAD model alone, so nothing here may read the
 //! group: a criterion that needs equivalents would pick the sharpest λ for a part whose symmetry
@@ -23,7 +23,7 @@ use crate::so3::{haar_rotation, random_axis, to_row_major_f32};
 /// Side of the NOCS render that visible points are taken from.
 pub const TARGET_RENDER_SIZE: u32 = 128;
 
-/// Number of visible points per image (DESIGN.md §2: about 100).
+/// Number of visible points per image (docs/DESIGN.md §2: about 100).
 pub const VISIBLE_POINTS: usize = 100;
 
 /// The visible canonical points of `mesh` at rotation `r_gt` (SYMSOL pose), seeded.

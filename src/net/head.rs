@@ -1,4 +1,4 @@
-//! The dual-branch head (paper Sec. 3.3 and supplementary; DESIGN.md §2): the image feature and
+//! The dual-branch head (paper Sec. 3.3 and supplementary; docs/DESIGN.md §2): the image feature and
 //! the rotation's positional encoding are each projected to 256, summed, and passed through two
 //! ReLU MLPs (4 linear layers, 256 wide) that give the log-weights `s_θ(I, R)` (shape branch,
 //! learns the SDF expert's measure) and `s_φ(I, R)` (feature branch, the SurfEmb expert's).

@@ -1,5 +1,5 @@
 //! The nested equivolumetric SO(3) grid (Yershova et al. 2010 as used by IPDF, re-indexed nested
-//! as in SpyroPose), DESIGN.md §1, with compact cells at the poles.
+//! as in SpyroPose), docs/DESIGN.md §1, with compact cells at the poles.
 //!
 //! Level `L` has `N_L = 72·8^L` cells: the `12·4^L` nested HEALPix pixels of depth `L` times
 //! `6·2^L` tilt bins. Write `R = Rz(φ)·Ry(θ)·Rz(ψ)` (ZYZ), so that `R·e_z = (θ, φ)`. Cell `(p, t)`

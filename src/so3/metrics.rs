@@ -1,5 +1,5 @@
 //! Metrics of a distribution over a grid level against the equivalent ground truths of an image
-//! (IPDF conventions, DESIGN.md §2).
+//! (IPDF conventions, docs/DESIGN.md §2).
 //!
 //! A distribution is given as unnormalised log-weights `s_i`, one per cell of the level, in index
 //! order; its mass is `p_i = softmax(s)_i`.
@@ -115,7 +115,7 @@ pub fn image_metrics(
 }
 
 /// The best LL that a distribution on this level can reach for these ground truths: all mass
-/// spread evenly over the `M` distinct cells that hold them gives `log(N/M)` (DESIGN.md §2, "the
+/// spread evenly over the `M` distinct cells that hold them gives `log(N/M)` (docs/DESIGN.md §2, "the
 /// grid caps LL").
 pub fn ll_ceiling(grid: &GridLevel, ground_truths: &[Rotation3<f64>]) -> f64 {
     let mut cells: Vec<u64> = ground_truths.iter().map(|g| grid.cell_of(g)).collect();
@@ -168,7 +168,7 @@ pub fn summarize(per_image: &[ImageMetrics], thresholds_deg: &[f64]) -> MetricsS
 }
 
 /// How a distribution's mass sits around the equivalent ground truths of an image (the expert
-/// targets' *balance*, DESIGN.md §2).
+/// targets' *balance*, docs/DESIGN.md §2).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct MassNearEquivalents {
     /// The radius in degrees.

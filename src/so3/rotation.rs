@@ -1,6 +1,6 @@
 //! Angles and conversions between the rotation representations used on interfaces.
 //!
-//! Conventions (DESIGN.md §1): `R` maps object coordinates to camera coordinates; quaternions
+//! Conventions (docs/DESIGN.md §1): `R` maps object coordinates to camera coordinates; quaternions
 //! are `(w, x, y, z)` with `w ≥ 0`; matrices are row-major.
 
 use nalgebra::{Matrix3, Quaternion, Rotation3, UnitQuaternion, Vector3};

@@ -1,4 +1,4 @@
-//! Symmetry groups of objects, as lists of rotations (SYMSOL conventions, DESIGN.md §1).
+//! Symmetry groups of objects, as lists of rotations (SYMSOL conventions, docs/DESIGN.md §1).
 //!
 //! A rotation `S` is a symmetry when `S·X = X` for the object's surface `X` (in canonical
 //! coordinates); then `R_gt·S` shows the same image as `R_gt`, so [`equivalents`] lists every
@@ -179,7 +179,7 @@ impl From<SymmetryGroup> for String {
     }
 }
 
-/// The canonical tetrahedron's vertices (DESIGN.md §1).
+/// The canonical tetrahedron's vertices (docs/DESIGN.md §1).
 pub fn tetrahedron_vertices() -> Vec<Vector3<f64>> {
     vec![
         Vector3::new(1.0, 1.0, 1.0),

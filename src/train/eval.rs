@@ -1,4 +1,4 @@
-//! Evaluation over a full grid level (DESIGN.md §2 metrics): the network's combined log-density
+//! Evaluation over a full grid level (docs/DESIGN.md §2 metrics): the network's combined log-density
 //! `s_θ + s_φ` on every cell centre, then LL (all equivalents), spread, and the argmax's error.
 //! The rotation half of the head's first layer is computed once per level and shared.
 

@@ -1,4 +1,4 @@
-//! The K rotations each training image is scored on (DESIGN.md §2, "Sampling").
+//! The K rotations each training image is scored on (docs/DESIGN.md §2, "Sampling").
 //!
 //! Mode-focused (the paper's): `focused` rotations `R_gt·Q`, with `Q` jittered uniformly in a
 //! small ball around the centre of a cell drawn from the object's [`ModeTable`] (the relative rotations where the experts' targets
