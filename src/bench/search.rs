@@ -198,7 +198,7 @@ pub fn print(figures: &[SearchFigures], default: &SearchParams, objects: &[Strin
         "  start  keep             coarse  agreement  found max  mean gap  covered mass  p50 (encoder incl.)"
     );
     for f in figures {
-        let keep = describe_keep(&f.params);
+        let keep = f.params.keep_description();
         println!(
             "  {:>5}  {keep:<16} {:<6} {:>8.1} % {:>8.1} % {:>9.3} {:>12.4}  {:>8.1} ms",
             f.params.start_level,
@@ -214,7 +214,7 @@ pub fn print(figures: &[SearchFigures], default: &SearchParams, objects: &[Strin
         println!(
             "default search (start {}, keep {}, coarse levels {}): agreement: {:.1} %, found max {:.1} %, mean gap {:.3}, covered mass {:.4}",
             default.start_level,
-            describe_keep(default),
+            default.keep_description(),
             default.coarse_precision,
             100.0 * f.agreement,
             100.0 * f.found_maximum,
@@ -241,16 +241,4 @@ pub fn print(figures: &[SearchFigures], default: &SearchParams, objects: &[Strin
             }
         );
     }
-}
-
-/// The keep of a search as the table shows it: `128`, `0.99 mass ≤512`, `512 ×0.5/level`.
-fn describe_keep(search: &SearchParams) -> String {
-    let mut keep = match search.keep_mass {
-        Some(m) => format!("{m} mass ≤{}", search.keep),
-        None => search.keep.to_string(),
-    };
-    if search.keep_taper != 1.0 {
-        keep += &format!(" ×{}/level", search.keep_taper);
-    }
-    keep
 }

@@ -4,7 +4,7 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
 
-use alignist::engine::{EngineConfig, ImageLimits};
+use alignist::engine::{EngineConfig, ImageLimits, SearchParams};
 use alignist::net::{Kernels, Precision};
 use alignist::serve::BatchConfig;
 use alignist::serve::auth::Token;
@@ -252,14 +252,17 @@ fn main() -> Result<()> {
         engine: EngineConfig {
             max_full_level: cli.max_level,
             search_max_level: cli.max_search_level,
-            search_start_level: cli
-                .search_start_level
-                .unwrap_or(defaults.search_start_level),
-            keep: cli.search_keep.unwrap_or(defaults.keep),
-            keep_taper: cli.search_keep_taper.unwrap_or(defaults.keep_taper),
-            coarse_precision: cli
-                .search_coarse_precision
-                .unwrap_or(defaults.coarse_precision),
+            search: SearchParams {
+                start_level: cli
+                    .search_start_level
+                    .unwrap_or(defaults.search.start_level),
+                keep: cli.search_keep.unwrap_or(defaults.search.keep),
+                keep_taper: cli.search_keep_taper.unwrap_or(defaults.search.keep_taper),
+                coarse_precision: cli
+                    .search_coarse_precision
+                    .unwrap_or(defaults.search.coarse_precision),
+                ..defaults.search
+            },
             search_budget_ms,
             search_agreement: cli.search_agreement,
             kernels: cli.kernels,

@@ -115,22 +115,13 @@ pub use crate::bundle::study::KEEP_TAPER;
 pub struct EngineConfig {
     /// Highest level served in full (its rotation projections are precomputed at load).
     pub max_full_level: u8,
-    /// Level scored in full at the start of a coarse-to-fine search.
-    pub search_start_level: u8,
     /// Default finest level of the search.
     pub search_default_level: u8,
     /// Highest level a search may reach.
     pub search_max_level: u8,
-    /// Cells kept per level of the search (at most, with `keep_mass`).
-    pub keep: usize,
-    /// Keep only the cells holding this fraction of each level's estimated mass (at most
-    /// `keep`); `None` keeps `keep` cells always.
-    pub keep_mass: Option<f64>,
-    /// Each finer level of the search keeps this many times as many cells as the one before
-    /// (1: `keep` at every level; 0.5: `keep`, `keep/2`, …).
-    pub keep_taper: f64,
-    /// The arithmetic of the search's levels before the finest (the finest is always f32).
-    pub coarse_precision: Precision,
+    /// The coarse-to-fine search: its start level, the cells it keeps per level and the
+    /// arithmetic of its coarse levels.
+    pub search: SearchParams,
     /// Limits on request images.
     pub image_limits: ImageLimits,
     /// Most depth points per request.
@@ -166,18 +157,30 @@ pub struct SearchParams {
     pub coarse_precision: Precision,
 }
 
+impl SearchParams {
+    /// The cells it keeps, in words: `128`, `0.99 mass ≤512`, `512 ×0.5/level`.
+    pub fn keep_description(&self) -> String {
+        let mut keep = match self.keep_mass {
+            Some(m) => format!("{m} mass ≤{}", self.keep),
+            None => self.keep.to_string(),
+        };
+        if self.keep_taper != 1.0 {
+            keep += &format!(" ×{}/level", self.keep_taper);
+        }
+        keep
+    }
+}
+
 impl std::fmt::Display for SearchParams {
     /// `start 2, keep 1024 ×0.5/level, coarse bf16` (a keep by mass: `keep 0.999 mass ≤512`).
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "start {}, keep ", self.start_level)?;
-        match self.keep_mass {
-            Some(m) => write!(f, "{m} mass ≤{}", self.keep)?,
-            None => write!(f, "{}", self.keep)?,
-        }
-        if self.keep_taper != 1.0 {
-            write!(f, " ×{}/level", self.keep_taper)?;
-        }
-        write!(f, ", coarse {}", self.coarse_precision)
+        write!(
+            f,
+            "start {}, keep {}, coarse {}",
+            self.start_level,
+            self.keep_description(),
+            self.coarse_precision
+        )
     }
 }
 
@@ -187,7 +190,10 @@ impl EngineConfig {
     pub fn within(&self, levels: &crate::bundle::model::GridLevels) -> EngineConfig {
         EngineConfig {
             max_full_level: self.max_full_level.min(levels.full_max),
-            search_start_level: self.search_start_level.min(levels.full_max),
+            search: SearchParams {
+                start_level: self.search.start_level.min(levels.full_max),
+                ..self.search
+            },
             search_default_level: self.search_default_level.min(levels.search_max),
             search_max_level: self.search_max_level.min(levels.search_max),
             ..*self
@@ -196,13 +202,7 @@ impl EngineConfig {
 
     /// The search this configuration runs.
     pub fn search(&self) -> SearchParams {
-        SearchParams {
-            start_level: self.search_start_level,
-            keep: self.keep,
-            keep_mass: self.keep_mass,
-            keep_taper: self.keep_taper,
-            coarse_precision: self.coarse_precision,
-        }
+        self.search
     }
 
     /// Checks the levels against each other and the grid, and the limits: a server must not
@@ -227,38 +227,41 @@ impl EngineConfig {
                 ),
             );
         }
-        if self.search_start_level > self.search_default_level
+        if self.search.start_level > self.search_default_level
             || self.search_default_level > self.search_max_level
         {
             return bad(
                 "search levels",
                 format!(
                     "need start ({}) ≤ default ({}) ≤ maximum ({})",
-                    self.search_start_level, self.search_default_level, self.search_max_level
+                    self.search.start_level, self.search_default_level, self.search_max_level
                 ),
             );
         }
-        if self.search_start_level > self.max_full_level {
+        if self.search.start_level > self.max_full_level {
             return bad(
                 "search_start_level",
                 format!(
                     "{} is above the highest full level {} (the search starts from a full level)",
-                    self.search_start_level, self.max_full_level
+                    self.search.start_level, self.max_full_level
                 ),
             );
         }
-        if let Some(f) = self.keep_mass
+        if let Some(f) = self.search.keep_mass
             && !(f > 0.0 && f <= 1.0)
         {
             return bad("keep_mass", format!("{f} must be in (0, 1]"));
         }
-        if !KEEP_TAPER.contains(&self.keep_taper) {
+        if !KEEP_TAPER.contains(&self.search.keep_taper) {
             return bad(
                 "keep_taper",
-                format!("{} must be in {KEEP_TAPER:?}", self.keep_taper),
+                format!("{} must be in {KEEP_TAPER:?}", self.search.keep_taper),
             );
         }
-        if self.keep == 0 || self.image_limits.max_bytes == 0 || self.image_limits.max_pixels == 0 {
+        if self.search.keep == 0
+            || self.image_limits.max_bytes == 0
+            || self.image_limits.max_pixels == 0
+        {
             return bad(
                 "limits",
                 "keep and the image limits must be positive".into(),
@@ -281,7 +284,6 @@ impl Default for EngineConfig {
     fn default() -> Self {
         Self {
             max_full_level: 4,
-            search_start_level: 2,
             search_default_level: 5,
             search_max_level: 6,
             // Chosen by the search study of `alignist-train bench` (held-out renders, top-10 to
@@ -290,10 +292,13 @@ impl Default for EngineConfig {
             // 189 of 190 distinct images over the bench's sets of 150 and 50, at p50 ~22 ms;
             // 768 halving, ~4 ms faster, on 188 (98.9 %). The search before, 128 at every level in
             // f32, agreed on 93–94 %.
-            keep: 1024,
-            keep_mass: None,
-            keep_taper: 0.5,
-            coarse_precision: Precision::Bf16,
+            search: SearchParams {
+                start_level: 2,
+                keep: 1024,
+                keep_mass: None,
+                keep_taper: 0.5,
+                coarse_precision: Precision::Bf16,
+            },
             image_limits: ImageLimits::default(),
             max_depth_points: 10_000,
             depth_image_points: 256,
@@ -572,11 +577,7 @@ impl Model {
                 c.predicted_ms
             );
         }
-        self.config.search_start_level = c.chosen.start_level;
-        self.config.keep = c.chosen.keep;
-        self.config.keep_mass = c.chosen.keep_mass;
-        self.config.keep_taper = c.chosen.keep_taper;
-        self.config.coarse_precision = c.chosen.coarse_precision;
+        self.config.search = c.chosen;
         self.calibration = Some(c);
         Ok(self)
     }
