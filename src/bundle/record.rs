@@ -109,7 +109,7 @@ pub struct GridLevels {
 }
 
 /// The measure loss of the Alignist objective.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "snake_case")]
 pub enum MeasureLoss {
     /// Generalised KL (paper Eq. 5).
@@ -119,15 +119,17 @@ pub enum MeasureLoss {
 }
 
 /// Which experts' targets an Alignist run fits (the paper's ablation of the experts).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "snake_case")]
 pub enum ExpertBranches {
     /// Both: the shape branch fits the SDF expert, the feature branch the feature expert.
     #[default]
     Both,
     /// Only the SDF expert; the feature branch is silenced (a constant output).
+    #[value(name = "shape")]
     ShapeOnly,
     /// Only the feature expert; the shape branch is silenced.
+    #[value(name = "feature")]
     FeatureOnly,
 }
 

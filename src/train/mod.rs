@@ -8,6 +8,7 @@ pub mod data;
 pub mod depth_eval;
 pub mod eval;
 pub mod experts;
+pub mod fit;
 pub mod results;
 pub mod sampling;
 pub mod trainer;

@@ -35,8 +35,8 @@ pub(crate) struct BenchArgs {
     #[arg(long, default_value_t = 32)]
     image_size: u32,
     /// Training: encoder layout.
-    #[arg(long, value_enum, default_value_t = crate::fit::Layout::Tiny)]
-    layout: crate::fit::Layout,
+    #[arg(long, value_enum, default_value_t = alignist::net::ResNetLayout::Tiny)]
+    layout: alignist::net::ResNetLayout,
     /// Training: measured steps per method.
     #[arg(long, default_value_t = 30)]
     steps: usize,
@@ -88,7 +88,7 @@ fn bench_training(args: &BenchArgs) -> Result<()> {
         batch: args.batch,
         k: args.k,
         image_size: args.image_size,
-        layout: args.layout.into(),
+        layout: args.layout,
         steps: args.steps,
         ..TrainingBenchConfig::default()
     };

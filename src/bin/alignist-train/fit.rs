@@ -6,7 +6,9 @@ use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::eval::print_eval;
-use alignist::train::TrainConfig;
+use alignist::net::ResNetLayout;
+use alignist::train::{ExpertBranches, MeasureLoss, TrainConfig};
+use alignist::train::fit::{FitData, FitInputs, FitSource, fitted_manifest, init_weights};
 
 #[derive(clap::Args)]
 pub(crate) struct FitArgs {
@@ -42,8 +44,8 @@ pub(crate) struct FitArgs {
     #[arg(long, value_enum, default_value_t = MethodArg::Alignist)]
     method: MethodArg,
     /// Measure loss of the alignist method.
-    #[arg(long, value_enum, default_value_t = LossArg::Gkl)]
-    loss: LossArg,
+    #[arg(long, value_enum, default_value_t = MeasureLoss::Gkl)]
+    loss: MeasureLoss,
     /// Sampling of the alignist method.
     #[arg(long, value_enum, default_value_t = SamplingArg::Modes)]
     sampling: SamplingArg,
@@ -52,11 +54,11 @@ pub(crate) struct FitArgs {
     #[arg(long, default_value_t = alignist::train::sampling::PAPER_FOCUSED_SHARE)]
     focused_fraction: f64,
     /// Experts fitted by the alignist method; a single-expert run silences the other branch.
-    #[arg(long, value_enum, default_value_t = FitExpertsArg::Both)]
-    fit_experts: FitExpertsArg,
+    #[arg(long, value_enum, default_value_t = ExpertBranches::Both)]
+    fit_experts: ExpertBranches,
     /// Encoder layout.
-    #[arg(long, value_enum, default_value_t = Layout::Tiny)]
-    layout: Layout,
+    #[arg(long, value_enum, default_value_t = ResNetLayout::Tiny)]
+    layout: ResNetLayout,
     /// Rotation encoding.
     #[arg(long, value_enum, default_value_t = EncodingArg::Cube)]
     encoding: EncodingArg,
@@ -118,14 +120,6 @@ pub(crate) enum MethodArg {
     Ipdf,
 }
 
-/// `--loss`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub(crate) enum LossArg {
-    /// Generalised KL (the paper's).
-    Gkl,
-    /// L1 between the measures (ablation).
-    L1,
-}
 
 /// `--sampling`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -136,16 +130,6 @@ pub(crate) enum SamplingArg {
     Random,
 }
 
-/// `--fit-experts`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub(crate) enum FitExpertsArg {
-    /// Both experts (the paper's).
-    Both,
-    /// The SDF expert only.
-    Shape,
-    /// The feature expert only.
-    Feature,
-}
 
 /// `--encoding`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -168,25 +152,18 @@ impl From<EncodingArg> for alignist::encoding::RotationEncoding {
 impl FitArgs {
     /// The training method the flags ask for.
     fn method(&self) -> alignist::train::Method {
-        use alignist::train::{ExpertBranches, MeasureLoss, Method, SamplingStrategy};
+        use alignist::train::{Method, SamplingStrategy};
         match self.method {
             MethodArg::Ipdf => Method::Ipdf,
             MethodArg::Alignist => Method::Alignist {
-                loss: match self.loss {
-                    LossArg::Gkl => MeasureLoss::Gkl,
-                    LossArg::L1 => MeasureLoss::L1,
-                },
+                loss: self.loss,
                 sampling: match self.sampling {
                     SamplingArg::Modes => {
                         SamplingStrategy::mode_focused_share(self.k, self.focused_fraction)
                     }
                     SamplingArg::Random => SamplingStrategy::Uniform,
                 },
-                experts: match self.fit_experts {
-                    FitExpertsArg::Both => ExpertBranches::Both,
-                    FitExpertsArg::Shape => ExpertBranches::ShapeOnly,
-                    FitExpertsArg::Feature => ExpertBranches::FeatureOnly,
-                },
+                experts: self.fit_experts,
             },
         }
     }
@@ -209,23 +186,17 @@ impl FitArgs {
             init: self
                 .init
                 .as_deref()
-                .map(|dir| init_weights(dir, network))
+                .map(|dir| {
+                    init_weights(dir, network).with_context(|| format!("--init {}", dir.display()))
+                })
                 .transpose()?,
         })
     }
 
     /// Checks what clap cannot: counts, ranges and the flags that go together.
     fn check(&self) -> Result<()> {
-        if !self.fresh && self.data.len() != self.experts.len() {
-            bail!(
-                "give one --experts per --data ({} --data, {} --experts)",
-                self.data.len(),
-                self.experts.len()
-            );
-        }
-        if !(self.fraction > 0.0 && self.fraction <= 1.0) {
-            bail!("--fraction must be in (0, 1], got {}", self.fraction);
-        }
+        // The data's own settings (--fraction, --supersample, one --experts per --data) are
+        // checked where the data is assembled (alignist::train::fit).
         if !(0.0..=1.0).contains(&self.focused_fraction) {
             bail!(
                 "--focused-fraction must be in [0, 1], got {}",
@@ -270,222 +241,57 @@ impl FitArgs {
     }
 }
 
-/// Encoder layouts on the command line.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub(crate) enum Layout {
-    /// Basic blocks [1, 1, 1, 1], widths 16 … 128 (the CPU default).
-    Tiny,
-    /// ResNet-18.
-    Resnet18,
-    /// ResNet-50.
-    Resnet50,
-}
 
-impl From<Layout> for alignist::net::ResNetLayout {
-    fn from(l: Layout) -> Self {
-        match l {
-            Layout::Tiny => Self::Tiny,
-            Layout::Resnet18 => Self::Resnet18,
-            Layout::Resnet50 => Self::Resnet50,
-        }
-    }
-}
-
-/// What `fit` trains and evaluates on.
-pub(crate) struct FitData {
-    objects: Vec<alignist::bundle::model::BundleObject>,
-    sets: Vec<alignist::bundle::experts::ExpertSet>,
-    images: Vec<alignist::train::TrainingImage>,
-    tests: Vec<alignist::train::eval::EvalImage>,
-    fresh: Option<alignist::train::data::FreshRenders>,
-}
-
-/// Training and test images from `--data` BOP datasets.
-pub(crate) fn dataset_fit_data(args: &FitArgs) -> Result<FitData> {
-    use alignist::bundle::experts::ExpertSet;
-    use alignist::bundle::model::BundleObject;
-    use alignist::data::BopDataset;
-    use alignist::train::data::{eval_images, training_images};
-
-    let mut data_out = FitData {
-        objects: Vec::new(),
-        sets: Vec::new(),
-        images: Vec::new(),
-        tests: Vec::new(),
-        fresh: None,
-    };
-    for (i, (data, experts)) in args.data.iter().zip(&args.experts).enumerate() {
-        let set =
-            ExpertSet::load(experts).with_context(|| format!("--experts {}", experts.display()))?;
-        let train_ds = BopDataset::open(data, "train")
-            .with_context(|| format!("--data {}", data.display()))?;
-        let imgs = training_images(&train_ds, i, &set.mesh, args.image_size, args.fraction)
-            .with_context(|| format!("reading --data {}", data.display()))?;
-        let name = set.manifest.object.name.clone();
-        eprintln!(
-            "{name}: {} training images from {}",
-            imgs.len(),
-            data.display()
-        );
-        data_out.objects.push(BundleObject {
-            name: name.clone(),
-            experts: format!("experts/{name}"),
-            data: data.display().to_string(),
-            train_images: imgs.len(),
-        });
-        data_out.images.extend(imgs);
-        if args.eval_images > 0 {
-            let test_ds = BopDataset::open(data, "test")
-                .with_context(|| format!("--data {} (test split)", data.display()))?;
-            data_out.tests.extend(eval_images(
-                &test_ds,
-                &name,
-                args.image_size,
-                args.eval_images,
-            )?);
-        }
-        data_out.sets.push(set);
-    }
-    Ok(data_out)
-}
-
-/// Fresh renders of the experts' meshes, and `--eval-images` fresh test crops per object from
-/// `--eval-seed`.
-pub(crate) fn fresh_fit_data(args: &FitArgs) -> Result<FitData> {
-    use alignist::bundle::experts::ExpertSet;
-    use alignist::bundle::model::BundleObject;
-    use alignist::data::realism::{Realism, SceneAssets};
-    use alignist::train::data::FreshRenders;
-
-    if !(1..=8).contains(&args.supersample) {
-        bail!("--supersample must be in 1 ..= 8, got {}", args.supersample);
-    }
-    let sets = args
-        .experts
-        .iter()
-        .map(|e| ExpertSet::load(e).with_context(|| format!("--experts {}", e.display())))
-        .collect::<Result<Vec<_>>>()?;
-    let meshes: Vec<_> = sets.iter().map(|s| s.mesh.clone()).collect();
-    let fresh = FreshRenders {
-        realism: args
-            .realistic
-            .then(|| SceneAssets::new(&meshes, Realism::TRAIN)),
-        meshes,
-        supersample: args.supersample,
-        // The low-data regime on fresh renders: a fixed pool holding `fraction` of the images a
-        // run of this budget sees (steps × batch), shared out over the objects.
-        pool: (args.fraction < 1.0).then(|| {
-            ((args.fraction * (args.steps * args.batch) as f64) / sets.len() as f64).ceil() as usize
-        }),
-    };
-    let names: Vec<String> = sets
-        .iter()
-        .map(|s| s.manifest.object.name.clone())
-        .collect();
-    let symmetries: Vec<_> = sets.iter().map(|s| s.symmetries()).collect();
-    let tests = fresh.eval_images(
-        &names,
-        &symmetries,
-        args.image_size,
-        args.eval_images,
-        args.eval_seed,
-    );
-    let objects = names
-        .iter()
-        .map(|name| BundleObject {
-            name: name.clone(),
-            experts: format!("experts/{name}"),
-            data: match fresh.pool {
-                None => format!(
-                    "fresh {}renders ({}x supersampled)",
-                    if args.realistic { "realistic " } else { "" },
-                    args.supersample
-                ),
-                Some(n) => format!(
-                    "a fixed pool of {n} renders ({}x supersampled)",
-                    args.supersample
-                ),
+impl FitArgs {
+    /// What the flags ask to train and test on.
+    fn inputs(&self) -> FitInputs {
+        FitInputs {
+            experts: self.experts.clone(),
+            source: match self.fresh {
+                true => FitSource::Fresh {
+                    realistic: self.realistic,
+                    supersample: self.supersample,
+                    eval_seed: self.eval_seed,
+                },
+                false => FitSource::Datasets(self.data.clone()),
             },
-            train_images: fresh.pool.unwrap_or(0),
-        })
-        .collect();
-    eprintln!(
-        "{} objects, {}; {} fresh test crops (seed {})",
-        sets.len(),
-        match fresh.pool {
-            None => "fresh renders every step".to_string(),
-            Some(n) => format!("a fixed pool of {n} rendered images per object"),
-        },
-        tests.len(),
-        args.eval_seed
-    );
-    Ok(FitData {
-        objects,
-        sets,
-        images: Vec::new(),
-        tests,
-        fresh: Some(fresh),
-    })
+            image_size: self.image_size,
+            fraction: self.fraction,
+            eval_images: self.eval_images,
+        }
+    }
 }
 
 pub(crate) fn fit_cmd(args: &FitArgs) -> Result<()> {
-    use alignist::bundle::model::{GridLevels, ModelBundle, ModelManifest, Provenance};
+    use alignist::bundle::model::ModelBundle;
     use alignist::train::NetworkConfig;
 
     args.check()?;
-    let network = NetworkConfig::new(args.layout.into(), args.encoding.into())
+    let network = NetworkConfig::new(args.layout, args.encoding.into())
         .with_image_size(args.image_size);
-    let FitData {
-        objects,
-        sets,
-        images,
-        tests,
-        fresh,
-    } = if args.fresh {
-        fresh_fit_data(args)?
-    } else {
-        dataset_fit_data(args)?
-    };
+    let mut data = FitData::load(&args.inputs(), args.steps, args.batch)?;
+    eprintln!("{}", data.describe());
     let config = args.train_config(&network)?;
-    let baked: Vec<_> = sets.iter().map(|s| s.bake()).collect();
-    let modes = sets
-        .iter()
-        .zip(&baked)
-        .map(|(s, b)| s.mode_table(b))
-        .collect::<Result<Vec<_>, _>>()
-        .context("building the mode tables")?;
-    let training = alignist::train::TrainingSet {
-        objects: baked,
-        modes,
-        images,
-        fresh,
-    };
+    let training = data.training_set()?;
     let Some((trained, report)) = train_with_progress(args, &config, &training)? else {
         return Ok(());
     };
     if args.profile {
         print_profile(&report.profile);
     }
-    let evaluation = evaluate_fit(args, &trained, &network, &tests)?;
-    let engine = alignist::engine::EngineConfig::default();
-    let mut manifest = ModelManifest::new(
-        args.out
-            .file_name()
-            .and_then(|n| n.to_str())
-            .unwrap_or("model")
-            .to_string(),
-        network,
-        objects,
-        // The levels the engine serves by default: what the server caps this model to.
-        GridLevels {
-            full_max: engine.max_full_level,
-            search_max: engine.search_max_level,
-        },
-        Provenance {
-            command: std::env::args().collect::<Vec<_>>().join(" "),
-            train: config,
-            report: report.clone(),
-        },
+    let evaluation = evaluate_fit(args, &trained, &network, &data.tests)?;
+    let name = args
+        .out
+        .file_name()
+        .and_then(|n| n.to_str())
+        .unwrap_or("model");
+    let command = std::env::args().collect::<Vec<_>>().join(" ");
+    let mut manifest = fitted_manifest(
+        name.to_string(),
+        data.objects,
+        command,
+        config,
+        report.clone(),
         evaluation.clone(),
     );
     let dirs: Vec<&Path> = args.experts.iter().map(|p| p.as_path()).collect();
@@ -571,40 +377,6 @@ fn train_with_progress(
         return Ok(None);
     }
     Ok(Some((trained, report)))
-}
-
-/// The weights of the bundle in `dir`, checked to be of the network `fit` is asked to train.
-fn init_weights(
-    dir: &Path,
-    network: &alignist::train::NetworkConfig,
-) -> Result<alignist::train::config::InitWeights> {
-    use alignist::bundle::model::{ModelBundle, NETWORK_FILE};
-    let bundle = ModelBundle::load(dir).with_context(|| format!("--init {}", dir.display()))?;
-    if &bundle.manifest.network != network {
-        bail!(
-            "--init {}: its network ({}) is not the one asked for ({}); give the same --layout, \
-             --encoding and --image-size",
-            dir.display(),
-            serde_json::to_string(&bundle.manifest.network)?,
-            serde_json::to_string(network)?
-        );
-    }
-    let file = bundle
-        .manifest
-        .files
-        .get(NETWORK_FILE)
-        .cloned()
-        .with_context(|| {
-            format!(
-                "--init {}: the manifest lists no {NETWORK_FILE}",
-                dir.display()
-            )
-        })?;
-    Ok(alignist::train::config::InitWeights {
-        path: dir.join(NETWORK_FILE).display().to_string(),
-        file,
-        trained_by: bundle.manifest.provenance.command.clone(),
-    })
 }
 
 /// Progress lines for logs (a bar is drawn only on a terminal): every 2 % of the run or every
