@@ -293,3 +293,53 @@ fn render_experts_fit_eval_and_load_a_bundle() {
         "{err}"
     );
 }
+
+#[test]
+fn calibrate_folds_a_recorded_temperature_into_a_new_bundle_and_refuses_twice() {
+    let model = common::models_dir().join("tiny");
+    let root = tempfile::tempdir().unwrap();
+    let out = root.path().join("tiny-calibrated");
+    let printed = run(&[
+        "calibrate",
+        "--model",
+        s(&model),
+        "--out",
+        s(&out),
+        "--images",
+        "4",
+        "--level",
+        "2",
+        "--supersample",
+        "1",
+        "--eval-images",
+        "2",
+    ]);
+    let text = String::from_utf8_lossy(&printed.stdout);
+    assert!(text.contains("temperature"), "{text}");
+    let before = ModelBundle::load(&model).unwrap();
+    let after = ModelBundle::load(&out).unwrap();
+    let fit = after
+        .manifest
+        .calibration
+        .clone()
+        .expect("the calibration is recorded");
+    assert!(fit.scale > 0.1 && fit.scale < 5.0, "{fit:?}");
+    // The fitted scale never lowers the calibration crops' LL (scale 1 is one of the candidates
+    // of a concave maximisation).
+    assert!(fit.ll_after >= fit.ll_before - 1e-6, "{fit:?}");
+    assert_eq!(fit.images, 4);
+    assert!(fit.command.contains("calibrate"));
+    assert!(after.manifest.evaluation.is_some());
+    assert!(
+        before.manifest.calibration.is_none(),
+        "the input is left as it was"
+    );
+    // A calibrated bundle is not calibrated again.
+    let again = Command::new(env!("CARGO_BIN_EXE_alignist-train"))
+        .args(["calibrate", "--model", s(&out), "--out"])
+        .arg(root.path().join("twice"))
+        .output()
+        .unwrap();
+    assert!(!again.status.success());
+    assert!(String::from_utf8_lossy(&again.stderr).contains("calibrated already"));
+}

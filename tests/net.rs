@@ -128,6 +128,31 @@ fn encoder_and_head_give_one_score_per_image_and_rotation() {
     assert_eq!(ResNetLayout::Resnet50.feature_dim(), 2048);
 }
 
+#[test]
+fn an_output_scale_multiplies_the_combined_log_density() {
+    let d = device();
+    let enc = RotationEncoding::Cube;
+    let head = HeadConfig::new(16, enc.dim()).init(&d);
+    let features: Tensor<2> = Tensor::random([2, 16], Distribution::Default, &d);
+    let grid = alignist::so3::GridLevel::new(0).unwrap().matrices_f32();
+    let shared = head
+        .project_rotations(enc.encode_tensor(&grid, &d))
+        .unsqueeze::<3>();
+    let scores = |h: &alignist::net::DualHead| -> Vec<f32> {
+        h.forward_projected(features.clone(), shared.clone())
+            .combined()
+            .into_data()
+            .to_vec::<f32>()
+            .unwrap()
+    };
+    let before = scores(&head);
+    let after = scores(&head.clone().with_output_scale(0.25));
+    assert!(before.iter().any(|v| v.abs() > 1e-3));
+    for (a, b) in before.iter().zip(&after) {
+        assert!((0.25 * a - b).abs() < 1e-5, "{a} × 0.25 ≠ {b}");
+    }
+}
+
 /// `rows` rotations spread over SO(3) (row-major), shifted by `offset` about the first axis.
 fn spread_rotations(rows: usize, offset: f64) -> Vec<[f32; 9]> {
     (0..rows)

@@ -64,6 +64,10 @@ pub struct ModelManifest {
     pub provenance: Provenance,
     /// Evaluation on held-out images, when it was run.
     pub evaluation: Option<EvalReport>,
+    /// The temperature folded into the network's output layers, when it was calibrated
+    /// (`alignist-train calibrate`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<TemperatureFit>,
     /// Checksums of every file except the manifest, relative to the bundle.
     pub files: BTreeMap<String, FileEntry>,
 }
@@ -93,9 +97,31 @@ impl ModelManifest {
             levels,
             provenance,
             evaluation,
+            calibration: None,
             files: Default::default(),
         }
     }
+}
+
+/// A temperature calibration: the combined log-density of the network was multiplied by `scale`
+/// (`1 / T`, folded into both branches' output layers), the scale that maximised the LL of
+/// calibration crops from the training distribution (`train::calibrate`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TemperatureFit {
+    /// The factor applied to the combined log-density (`1 / T`).
+    pub scale: f64,
+    /// Mean LL of the calibration crops before (scale 1).
+    pub ll_before: f64,
+    /// Mean LL of the calibration crops at `scale`.
+    pub ll_after: f64,
+    /// Calibration crops.
+    pub images: usize,
+    /// Grid level of the LL.
+    pub level: u8,
+    /// What the crops were, in words (their split and seed).
+    pub crops: String,
+    /// The command that calibrated the bundle.
+    pub command: String,
 }
 
 /// Grid levels of a bundle: the server serves it up to these at most

@@ -108,6 +108,13 @@ impl Branch {
 }
 
 impl Branch {
+    /// The branch with its output layer (weight and bias) multiplied by `scale`.
+    fn scaled(mut self, scale: f32) -> Self {
+        self.output.weight = self.output.weight.map(|w| w.mul_scalar(scale));
+        self.output.bias = self.output.bias.map(|b| b.map(|t| t.mul_scalar(scale)));
+        self
+    }
+
     /// The branch with a zero output weight: it answers its output bias for every input, and,
     /// left out of the loss, gets no gradient and stays so (a single-expert ablation).
     fn silenced(mut self) -> Self {
@@ -154,6 +161,15 @@ impl DualHead {
     pub fn with_output_biases(mut self, shape: f32, feature: f32) -> Self {
         self.shape_branch = self.shape_branch.with_output_bias(shape);
         self.feature_branch = self.feature_branch.with_output_bias(feature);
+        self
+    }
+
+    /// Both branches' outputs multiplied by `scale` (their output weights and biases): the
+    /// combined log-density `s_θ + s_φ` times `scale`, a temperature of `1 / scale`
+    /// (`train::calibrate`).
+    pub fn with_output_scale(mut self, scale: f32) -> Self {
+        self.shape_branch = self.shape_branch.scaled(scale);
+        self.feature_branch = self.feature_branch.scaled(scale);
         self
     }
 

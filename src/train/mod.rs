@@ -2,6 +2,7 @@
 //! objectives, Adam with warm-up and cosine decay, atomic checkpoints and resume.
 
 pub mod bench;
+pub mod calibrate;
 pub mod checkpoint;
 pub mod config;
 pub mod data;

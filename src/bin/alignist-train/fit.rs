@@ -7,8 +7,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::eval::print_eval;
 use alignist::net::ResNetLayout;
-use alignist::train::{ExpertBranches, MeasureLoss, TrainConfig};
 use alignist::train::fit::{FitData, FitInputs, FitSource, fitted_manifest, init_weights};
+use alignist::train::{ExpertBranches, MeasureLoss, TrainConfig};
 
 #[derive(clap::Args)]
 pub(crate) struct FitArgs {
@@ -120,7 +120,6 @@ pub(crate) enum MethodArg {
     Ipdf,
 }
 
-
 /// `--sampling`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub(crate) enum SamplingArg {
@@ -129,7 +128,6 @@ pub(crate) enum SamplingArg {
     /// Uniform (ablation).
     Random,
 }
-
 
 /// `--encoding`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -241,7 +239,6 @@ impl FitArgs {
     }
 }
 
-
 impl FitArgs {
     /// What the flags ask to train and test on.
     fn inputs(&self) -> FitInputs {
@@ -267,8 +264,8 @@ pub(crate) fn fit_cmd(args: &FitArgs) -> Result<()> {
     use alignist::train::NetworkConfig;
 
     args.check()?;
-    let network = NetworkConfig::new(args.layout, args.encoding.into())
-        .with_image_size(args.image_size);
+    let network =
+        NetworkConfig::new(args.layout, args.encoding.into()).with_image_size(args.image_size);
     let mut data = FitData::load(&args.inputs(), args.steps, args.batch)?;
     eprintln!("{}", data.describe());
     let config = args.train_config(&network)?;

@@ -3,6 +3,7 @@
 //! Each subcommand lives in its own module; this file parses the command line and dispatches.
 
 mod bench;
+mod calibrate;
 mod eval;
 mod experts;
 mod fit;
@@ -57,6 +58,10 @@ enum Command {
     Fit(FitArgs),
     /// Evaluate a model bundle on the test split of BOP datasets.
     Eval(EvalArgs),
+    /// Fold a temperature into a bundle's network, chosen by the LL of realistic crops of the
+    /// training distribution (a model that is unsure should say so), and write the calibrated
+    /// bundle.
+    Calibrate(calibrate::CalibrateArgs),
     /// Print the evaluation figures of model bundles as Markdown tables (per object and
     /// averaged, with the ceiling of the level, the training budget and wall time).
     Results {
@@ -79,6 +84,7 @@ fn main() -> Result<()> {
         Command::Score(args) => score::score_cmd(&args),
         Command::Fit(args) => fit::fit_cmd(&args),
         Command::Eval(args) => eval::eval_cmd(&args),
+        Command::Calibrate(args) => calibrate::calibrate_cmd(&args),
         Command::Results { bundles } => results::results_cmd(&bundles),
         Command::Bench(args) => bench::bench_cmd(&args),
     }
