@@ -142,7 +142,7 @@ fn an_output_scale_multiplies_the_combined_log_density() {
         h.forward_projected(features.clone(), shared.clone())
             .combined()
             .into_data()
-            .to_vec::<f32>()
+            .try_to_vec::<f32>()
             .unwrap()
     };
     let before = scores(&head);
