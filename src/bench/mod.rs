@@ -113,6 +113,33 @@ pub fn bench(
         rayon::current_num_threads(),
         crops.len()
     );
+    let peak = print_peaks(&model);
+    full_grid_figures(&model, &crops[0], bundle, peak);
+    // The coarse-to-fine search against the exhaustive level-5 argmax.
+    let figures = search::study(&model, crops, &search::candidates(), 5, 10)?;
+    search::print(&figures, &model.config().search(), objects);
+    if write_study {
+        let command = std::env::args().collect::<Vec<_>>().join(" ");
+        search::record(&figures, 5, crops.len(), command).save(bundle)?;
+        println!(
+            "search study written to {}",
+            bundle
+                .join(crate::bundle::study::SEARCH_STUDY_FILE)
+                .display()
+        );
+    }
+    let in_process_p50 = top_k_latency(&model, crops)?;
+    encoder_rates(&model, crops);
+    let mut png = Vec::new();
+    image::RgbImage::from_raw(size, size, crops[0].clone())
+        .ok_or_else(|| anyhow::anyhow!("crop size"))?
+        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)?;
+    grpc_vs_in_process(model, bundle, &png, in_process_p50)
+}
+
+/// Prints the matmul peak of matrixmultiply, the FMA peak of this CPU and the load-time
+/// calibration; returns the widest FMA peak (GFLOP/s).
+fn print_peaks(model: &Model) -> f64 {
     let library = matmul_peak_gflops(crate::net::tiles::TILE_ROWS);
     println!(
         "matmul peak of matrixmultiply (4096×256·256×256 f32 in tiles of {} rows over the cores): {library:.1} GFLOP/s",
@@ -142,8 +169,14 @@ pub fn bench(
         ),
         None => println!("calibration: none"),
     }
-    let one = model.features(&[&crops[0]]);
-    let flops = head_flops_per_rotation(&model);
+    peak
+}
+
+/// Prints the full grids of levels 3 and 4 in f32 (against the FMA `peak` and numpy) and in
+/// bfloat16.
+fn full_grid_figures(model: &Model, crop: &[u8], bundle: &Path, peak: f64) {
+    let one = model.features(&[crop]);
+    let flops = head_flops_per_rotation(model);
     let mut ours_ms = Vec::new();
     for level in [3u8, 4] {
         let grid_len = model.grid(level).map_or(0, |g| g.len());
@@ -180,19 +213,10 @@ pub fn bench(
             f32_ms / (s * 1e3)
         );
     }
-    // The coarse-to-fine search against the exhaustive level-5 argmax.
-    let figures = search::study(&model, crops, &search::candidates(), 5, 10)?;
-    search::print(&figures, &model.config().search(), objects);
-    if write_study {
-        let command = std::env::args().collect::<Vec<_>>().join(" ");
-        search::record(&figures, 5, crops.len(), command).save(bundle)?;
-        println!(
-            "search study written to {}",
-            bundle
-                .join(crate::bundle::study::SEARCH_STUDY_FILE)
-                .display()
-        );
-    }
+}
+
+/// Prints and returns the p50 of a top-10 search to level 5, encoder included, over 30 calls.
+fn top_k_latency(model: &Model, crops: &[Vec<u8>]) -> anyhow::Result<f64> {
     let options = PredictOptions {
         top_k: 10,
         level: Some(5),
@@ -212,6 +236,11 @@ pub fn bench(
         "top-k p50: {in_process_p50:.1} ms (top-10 to level 5 with the default search, encoder included; p99 {:.1} ms)",
         quantile(&lat, 0.99)
     );
+    Ok(in_process_p50)
+}
+
+/// Prints the encoder's images per second at batch 1 and at the server's batch.
+fn encoder_rates(model: &Model, crops: &[Vec<u8>]) {
     for batch in [1usize, BatchConfig::default().max_batch] {
         let refs: Vec<&[u8]> = (0..batch)
             .map(|i| crops[i % crops.len()].as_slice())
@@ -221,11 +250,6 @@ pub fn bench(
         });
         println!("encoder at batch {batch}: {:.1} images/s", batch as f64 / s);
     }
-    let mut png = Vec::new();
-    image::RgbImage::from_raw(size, size, crops[0].clone())
-        .ok_or_else(|| anyhow::anyhow!("crop size"))?
-        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)?;
-    grpc_vs_in_process(model, bundle, &png, in_process_p50)
 }
 
 /// Runs the numpy reference (`benches/reference_head.py`) on the same bundle and grids and

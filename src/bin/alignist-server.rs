@@ -180,6 +180,15 @@ fn main() -> Result<()> {
         )
         .with_writer(std::io::stderr)
         .init();
+    let config = server_config(cli)?;
+    let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
+    runtime.block_on(run(config, shutdown_signal()))?;
+    Ok(())
+}
+
+/// Refuses counts and sizes that would make every call fail, and a models path that is not a
+/// folder.
+fn check_limits(cli: &Cli) -> Result<()> {
     if cli.max_batch == 0 || cli.queue == 0 || cli.head_workers == Some(0) {
         bail!("--max-batch, --queue and --head-workers must be at least 1");
     }
@@ -195,15 +204,12 @@ fn main() -> Result<()> {
              --body-timeout-s and --max-receiving-mib must be at least 1"
         );
     }
-    let auth_token = match &cli.auth_token_file {
-        Some(path) => Some(Token::from_file(path).context("--auth-token-file")?),
-        None => None,
-    };
-    if auth_token.is_some() && cli.tls_cert.is_none() && !cli.listen.ip().is_loopback() {
-        tracing::warn!(
-            "a bearer token over plaintext on {}: anyone on the path can read it; add --tls-cert \
-             and --tls-key",
-            cli.listen
+    if cli.max_in_flight_mib << 20 < cli.max_image_bytes {
+        bail!(
+            "--max-in-flight-mib {} is below one image (--max-image-bytes {}): no call could be \
+             admitted",
+            cli.max_in_flight_mib,
+            cli.max_image_bytes
         );
     }
     if !cli.models.is_dir() {
@@ -213,22 +219,23 @@ fn main() -> Result<()> {
             cli.models.display()
         );
     }
-    let metrics_listen = match cli.metrics_listen.as_str() {
-        "off" | "" => None,
-        s => Some(
-            s.parse()
-                .with_context(|| format!("--metrics-listen '{s}' is not an address or 'off'"))?,
-        ),
-    };
-    let health_listen = match cli.health_listen.as_str() {
-        "off" | "" => None,
-        s => Some(
-            s.parse::<SocketAddr>()
-                .with_context(|| format!("--health-listen '{s}' is not an address or 'off'"))?,
-        ),
-    };
+    Ok(())
+}
+
+/// The address of `--flag value`, or `None` for `off` (or empty).
+fn optional_address(flag: &str, value: &str) -> Result<Option<SocketAddr>> {
+    match value {
+        "off" | "" => Ok(None),
+        s => Ok(Some(s.parse::<SocketAddr>().with_context(|| {
+            format!("--{flag} '{s}' is not an address or 'off'")
+        })?)),
+    }
+}
+
+/// The engine's settings from the flags: explicit `--search-*` flags serve that search; otherwise
+/// a positive budget calibrates it at load.
+fn engine_config(cli: &Cli) -> Result<EngineConfig> {
     let defaults = EngineConfig::default();
-    // Explicit search flags serve that search; otherwise a positive budget calibrates it.
     let search_set = cli.search_start_level.is_some()
         || cli.search_keep.is_some()
         || cli.search_keep_taper.is_some()
@@ -243,40 +250,62 @@ fn main() -> Result<()> {
         "--search-agreement {} must be in 0–1",
         cli.search_agreement
     );
-    let search_budget_ms =
-        (!search_set && cli.search_budget_ms > 0.0).then_some(cli.search_budget_ms);
-    let config = ServerConfig {
+    let engine = EngineConfig {
+        max_full_level: cli.max_level,
+        search_max_level: cli.max_search_level,
+        search: SearchParams {
+            start_level: cli
+                .search_start_level
+                .unwrap_or(defaults.search.start_level),
+            keep: cli.search_keep.unwrap_or(defaults.search.keep),
+            keep_taper: cli.search_keep_taper.unwrap_or(defaults.search.keep_taper),
+            coarse_precision: cli
+                .search_coarse_precision
+                .unwrap_or(defaults.search.coarse_precision),
+            ..defaults.search
+        },
+        search_budget_ms: (!search_set && cli.search_budget_ms > 0.0)
+            .then_some(cli.search_budget_ms),
+        search_agreement: cli.search_agreement,
+        kernels: cli.kernels,
+        // A lower search maximum lowers the default search with it.
+        search_default_level: defaults.search_default_level.min(cli.max_search_level),
+        image_limits: ImageLimits {
+            max_bytes: cli.max_image_bytes,
+            max_pixels: cli.max_image_pixels,
+        },
+        depth_image_points: cli.depth_points,
+        ..defaults
+    };
+    engine.validate().context(
+        "the levels and limits given (--max-level, --max-search-level, --search-*, image limits, \
+         --depth-points)",
+    )?;
+    Ok(engine)
+}
+
+/// The server's settings from the flags, checked.
+fn server_config(cli: Cli) -> Result<ServerConfig> {
+    check_limits(&cli)?;
+    let auth_token = match &cli.auth_token_file {
+        Some(path) => Some(Token::from_file(path).context("--auth-token-file")?),
+        None => None,
+    };
+    if auth_token.is_some() && cli.tls_cert.is_none() && !cli.listen.ip().is_loopback() {
+        tracing::warn!(
+            "a bearer token over plaintext on {}: anyone on the path can read it; add --tls-cert \
+             and --tls-key",
+            cli.listen
+        );
+    }
+    let metrics_listen = optional_address("metrics-listen", &cli.metrics_listen)?;
+    let health_listen = optional_address("health-listen", &cli.health_listen)?;
+    let engine = engine_config(&cli)?;
+    Ok(ServerConfig {
         models: cli.models,
         listen: cli.listen,
         metrics_listen,
-        engine: EngineConfig {
-            max_full_level: cli.max_level,
-            search_max_level: cli.max_search_level,
-            search: SearchParams {
-                start_level: cli
-                    .search_start_level
-                    .unwrap_or(defaults.search.start_level),
-                keep: cli.search_keep.unwrap_or(defaults.search.keep),
-                keep_taper: cli.search_keep_taper.unwrap_or(defaults.search.keep_taper),
-                coarse_precision: cli
-                    .search_coarse_precision
-                    .unwrap_or(defaults.search.coarse_precision),
-                ..defaults.search
-            },
-            search_budget_ms,
-            search_agreement: cli.search_agreement,
-            kernels: cli.kernels,
-            // A lower search maximum lowers the default search with it.
-            search_default_level: EngineConfig::default()
-                .search_default_level
-                .min(cli.max_search_level),
-            image_limits: ImageLimits {
-                max_bytes: cli.max_image_bytes,
-                max_pixels: cli.max_image_pixels,
-            },
-            depth_image_points: cli.depth_points,
-            ..EngineConfig::default()
-        },
+        engine,
         batch: BatchConfig {
             max_batch: cli.max_batch,
             max_delay: Duration::from_millis(cli.max_delay_ms),
@@ -308,20 +337,5 @@ fn main() -> Result<()> {
             .map(|(cert, key)| TlsFiles { cert, key }),
         auth_token,
         health_listen,
-    };
-    if cli.max_in_flight_mib << 20 < cli.max_image_bytes {
-        bail!(
-            "--max-in-flight-mib {} is below one image (--max-image-bytes {}): no call could be \
-             admitted",
-            cli.max_in_flight_mib,
-            cli.max_image_bytes
-        );
-    }
-    config
-        .engine
-        .validate()
-        .context("the levels and limits given (--max-level, --max-search-level, --search-*, image limits, --depth-points)")?;
-    let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
-    runtime.block_on(run(config, shutdown_signal()))?;
-    Ok(())
+    })
 }

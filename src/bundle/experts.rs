@@ -190,45 +190,11 @@ impl ExpertSet {
                 ),
             });
         }
+        check_manifest(&manifest, &manifest_path)?;
         let field = |message: String| BundleError::Manifest {
             path: manifest_path.display().to_string(),
             message,
         };
-        for name in [MESH_FILE, SDF_FILE, KEYS_FILE, QUERY_FILE] {
-            if !manifest.files.contains_key(name) {
-                return Err(field(format!("files: no entry for {name}")));
-            }
-        }
-        // Shapes are checked before any network is allocated: a manifest is user input.
-        let shapes = &crate::net::NETWORK_LIMITS;
-        crate::net::check_range(
-            "sdf.config.hidden",
-            manifest.sdf.config.hidden,
-            &shapes.hidden,
-        )
-        .and_then(|()| {
-            crate::net::check_range(
-                "sdf.config.layers",
-                manifest.sdf.config.layers,
-                &shapes.layers,
-            )
-        })
-        .and_then(|()| {
-            crate::net::check_range(
-                "features.config.width",
-                manifest.features.config.width,
-                &(1..=512),
-            )
-        })
-        .map_err(field)?;
-        if manifest.object.mesh_sha256 != manifest.files[MESH_FILE].sha256 {
-            return Err(field(
-                "object.mesh_sha256 differs from files.\"mesh.ply\".sha256".into(),
-            ));
-        }
-        for (i, m) in manifest.object.symmetries.iter().enumerate() {
-            from_row_major(*m).map_err(|e| field(format!("object.symmetries[{i}]: {e}")))?;
-        }
         let mesh_path = dir.join(MESH_FILE);
         super::verify_file(&mesh_path, &manifest.files[MESH_FILE])?;
         let mesh = Mesh::load(&mesh_path)?;
@@ -324,4 +290,50 @@ pub fn bake_experts(
 /// Row-major symmetries for the manifest.
 pub fn symmetries_row_major(symmetries: &[Rotation3<f64>]) -> Vec<[f64; 9]> {
     symmetries.iter().map(to_row_major).collect()
+}
+
+/// Checks an expert manifest's entries and shapes before any network is allocated (a manifest
+/// is user input): every file listed, the networks' sizes in range, the mesh's checksum
+/// consistent, every symmetry a rotation.
+fn check_manifest(manifest: &ExpertsManifest, manifest_path: &Path) -> Result<(), BundleError> {
+    let field = |message: String| BundleError::Manifest {
+        path: manifest_path.display().to_string(),
+        message,
+    };
+    for name in [MESH_FILE, SDF_FILE, KEYS_FILE, QUERY_FILE] {
+        if !manifest.files.contains_key(name) {
+            return Err(field(format!("files: no entry for {name}")));
+        }
+    }
+    // Shapes are checked before any network is allocated: a manifest is user input.
+    let shapes = &crate::net::NETWORK_LIMITS;
+    crate::net::check_range(
+        "sdf.config.hidden",
+        manifest.sdf.config.hidden,
+        &shapes.hidden,
+    )
+    .and_then(|()| {
+        crate::net::check_range(
+            "sdf.config.layers",
+            manifest.sdf.config.layers,
+            &shapes.layers,
+        )
+    })
+    .and_then(|()| {
+        crate::net::check_range(
+            "features.config.width",
+            manifest.features.config.width,
+            &(1..=512),
+        )
+    })
+    .map_err(field)?;
+    if manifest.object.mesh_sha256 != manifest.files[MESH_FILE].sha256 {
+        return Err(field(
+            "object.mesh_sha256 differs from files.\"mesh.ply\".sha256".into(),
+        ));
+    }
+    for (i, m) in manifest.object.symmetries.iter().enumerate() {
+        from_row_major(*m).map_err(|e| field(format!("object.symmetries[{i}]: {e}")))?;
+    }
+    Ok(())
 }

@@ -376,114 +376,11 @@ pub fn background<R: Rng + ?Sized>(rng: &mut R, split: Split, n: usize) -> Vec<[
                 .map(|t| mix(a, b, t))
                 .collect()
         }
-        (Split::Train, 1) => {
-            let mut img = vec![a; n * n];
-            for _ in 0..rng.random_range(3..16) {
-                let c = colour(rng);
-                let (cx, cy) = (
-                    rng.random::<f32>() * n as f32,
-                    rng.random::<f32>() * n as f32,
-                );
-                let r = rng.random_range(0.05..0.5) * n as f32;
-                match rng.random_range(0..3) {
-                    0 => fill(&mut img, n, c, |x, y| {
-                        (x - cx).abs() < r && (y - cy).abs() < r * 0.6
-                    }),
-                    1 => fill(&mut img, n, c, |x, y| {
-                        (x - cx).powi(2) + (y - cy).powi(2) < r * r
-                    }),
-                    _ => {
-                        let angle = rng.random::<f32>() * std::f32::consts::PI;
-                        let (s, co) = angle.sin_cos();
-                        let half = rng.random_range(0.5..2.5f32);
-                        fill(&mut img, n, c, |x, y| {
-                            ((x - cx) * s - (y - cy) * co).abs() < half
-                        })
-                    }
-                }
-            }
-            img
-        }
-        (Split::Train, _) => {
-            let angle = rng.random::<f32>() * std::f32::consts::TAU;
-            let (s, c) = angle.sin_cos();
-            (0..n * n)
-                .map(|i| {
-                    let (x, y) = (
-                        (i % n) as f32 / n as f32 - 0.5,
-                        (i / n) as f32 / n as f32 - 0.5,
-                    );
-                    mix(a, b, (x * c + y * s + 0.5).clamp(0.0, 1.0))
-                })
-                .collect()
-        }
-        (Split::HeldOut, 0) => {
-            let period = rng.random_range(3.0..(n as f32 / 2.0).max(4.0));
-            let angle = rng.random::<f32>() * std::f32::consts::PI;
-            let (s, c) = angle.sin_cos();
-            let check = rng.random::<f64>() < 0.5;
-            (0..n * n)
-                .map(|i| {
-                    let (x, y) = ((i % n) as f32, (i / n) as f32);
-                    let u = ((x * c + y * s) / period).floor() as i64;
-                    let v = ((-x * s + y * c) / period).floor() as i64;
-                    let on = if check {
-                        (u + v).rem_euclid(2)
-                    } else {
-                        u.rem_euclid(2)
-                    };
-                    if on == 0 { a } else { b }
-                })
-                .collect()
-        }
-        (Split::HeldOut, 1) => {
-            let sites: Vec<([f32; 2], [f32; 3])> = (0..rng.random_range(4..24))
-                .map(|_| {
-                    (
-                        [
-                            rng.random::<f32>() * n as f32,
-                            rng.random::<f32>() * n as f32,
-                        ],
-                        colour(rng),
-                    )
-                })
-                .collect();
-            (0..n * n)
-                .map(|i| {
-                    let (x, y) = ((i % n) as f32, (i / n) as f32);
-                    sites
-                        .iter()
-                        .min_by(|p, q| {
-                            let d = |s: &[f32; 2]| (s[0] - x).powi(2) + (s[1] - y).powi(2);
-                            d(&p.0).total_cmp(&d(&q.0))
-                        })
-                        .map_or(a, |s| s.1)
-                })
-                .collect()
-        }
-        (Split::HeldOut, _) => {
-            let blobs: Vec<([f32; 3], [f32; 3])> = (0..rng.random_range(3..10))
-                .map(|_| {
-                    (
-                        [
-                            rng.random::<f32>() * n as f32,
-                            rng.random::<f32>() * n as f32,
-                            rng.random_range(0.1..0.4) * n as f32,
-                        ],
-                        colour(rng),
-                    )
-                })
-                .collect();
-            (0..n * n)
-                .map(|i| {
-                    let (x, y) = ((i % n) as f32, (i / n) as f32);
-                    blobs.iter().fold(a, |acc, (p, c)| {
-                        let d2 = (p[0] - x).powi(2) + (p[1] - y).powi(2);
-                        mix(acc, *c, (-d2 / (2.0 * p[2] * p[2])).exp())
-                    })
-                })
-                .collect()
-        }
+        (Split::Train, 1) => shapes(rng, n, a, colour),
+        (Split::Train, _) => gradient(rng, n, a, b),
+        (Split::HeldOut, 0) => stripes(rng, n, a, b),
+        (Split::HeldOut, 1) => cells(rng, n, a, colour),
+        (Split::HeldOut, _) => blobs(rng, n, a, colour),
     };
     // Fine grain over every family: surfaces are never perfectly flat.
     let grain = rng.random_range(0.0..0.15f32);
@@ -494,6 +391,141 @@ pub fn background<R: Rng + ?Sized>(rng: &mut R, split: Split, n: usize) -> Vec<[
         }
     }
     out
+}
+
+type Rgb = [f32; 3];
+
+/// Training: random rectangles, discs and lines of random colours on `a`.
+fn shapes<R: Rng + ?Sized>(
+    rng: &mut R,
+    n: usize,
+    a: Rgb,
+    colour: impl Fn(&mut R) -> Rgb,
+) -> Vec<Rgb> {
+    let mut img = vec![a; n * n];
+    for _ in 0..rng.random_range(3..16) {
+        let c = colour(rng);
+        let (cx, cy) = (
+            rng.random::<f32>() * n as f32,
+            rng.random::<f32>() * n as f32,
+        );
+        let r = rng.random_range(0.05..0.5) * n as f32;
+        match rng.random_range(0..3) {
+            0 => fill(&mut img, n, c, |x, y| {
+                (x - cx).abs() < r && (y - cy).abs() < r * 0.6
+            }),
+            1 => fill(&mut img, n, c, |x, y| {
+                (x - cx).powi(2) + (y - cy).powi(2) < r * r
+            }),
+            _ => {
+                let angle = rng.random::<f32>() * std::f32::consts::PI;
+                let (s, co) = angle.sin_cos();
+                let half = rng.random_range(0.5..2.5f32);
+                fill(&mut img, n, c, |x, y| {
+                    ((x - cx) * s - (y - cy) * co).abs() < half
+                })
+            }
+        }
+    }
+    img
+}
+
+/// Training: a linear gradient from `a` to `b` at a random angle.
+fn gradient<R: Rng + ?Sized>(rng: &mut R, n: usize, a: Rgb, b: Rgb) -> Vec<Rgb> {
+    let angle = rng.random::<f32>() * std::f32::consts::TAU;
+    let (s, c) = angle.sin_cos();
+    (0..n * n)
+        .map(|i| {
+            let (x, y) = (
+                (i % n) as f32 / n as f32 - 0.5,
+                (i / n) as f32 / n as f32 - 0.5,
+            );
+            mix(a, b, (x * c + y * s + 0.5).clamp(0.0, 1.0))
+        })
+        .collect()
+}
+
+/// Held out: stripes or checks of `a` and `b` at a random period and angle.
+fn stripes<R: Rng + ?Sized>(rng: &mut R, n: usize, a: Rgb, b: Rgb) -> Vec<Rgb> {
+    let period = rng.random_range(3.0..(n as f32 / 2.0).max(4.0));
+    let angle = rng.random::<f32>() * std::f32::consts::PI;
+    let (s, c) = angle.sin_cos();
+    let check = rng.random::<f64>() < 0.5;
+    (0..n * n)
+        .map(|i| {
+            let (x, y) = ((i % n) as f32, (i / n) as f32);
+            let u = ((x * c + y * s) / period).floor() as i64;
+            let v = ((-x * s + y * c) / period).floor() as i64;
+            let on = if check {
+                (u + v).rem_euclid(2)
+            } else {
+                u.rem_euclid(2)
+            };
+            if on == 0 { a } else { b }
+        })
+        .collect()
+}
+
+/// Held out: Voronoi cells of random colours.
+fn cells<R: Rng + ?Sized>(
+    rng: &mut R,
+    n: usize,
+    a: Rgb,
+    colour: impl Fn(&mut R) -> Rgb,
+) -> Vec<Rgb> {
+    let sites: Vec<([f32; 2], [f32; 3])> = (0..rng.random_range(4..24))
+        .map(|_| {
+            (
+                [
+                    rng.random::<f32>() * n as f32,
+                    rng.random::<f32>() * n as f32,
+                ],
+                colour(rng),
+            )
+        })
+        .collect();
+    (0..n * n)
+        .map(|i| {
+            let (x, y) = ((i % n) as f32, (i / n) as f32);
+            sites
+                .iter()
+                .min_by(|p, q| {
+                    let d = |s: &[f32; 2]| (s[0] - x).powi(2) + (s[1] - y).powi(2);
+                    d(&p.0).total_cmp(&d(&q.0))
+                })
+                .map_or(a, |s| s.1)
+        })
+        .collect()
+}
+
+/// Held out: soft Gaussian blobs of random colours over `a`.
+fn blobs<R: Rng + ?Sized>(
+    rng: &mut R,
+    n: usize,
+    a: Rgb,
+    colour: impl Fn(&mut R) -> Rgb,
+) -> Vec<Rgb> {
+    let blobs: Vec<([f32; 3], [f32; 3])> = (0..rng.random_range(3..10))
+        .map(|_| {
+            (
+                [
+                    rng.random::<f32>() * n as f32,
+                    rng.random::<f32>() * n as f32,
+                    rng.random_range(0.1..0.4) * n as f32,
+                ],
+                colour(rng),
+            )
+        })
+        .collect();
+    (0..n * n)
+        .map(|i| {
+            let (x, y) = ((i % n) as f32, (i / n) as f32);
+            blobs.iter().fold(a, |acc, (p, c)| {
+                let d2 = (p[0] - x).powi(2) + (p[1] - y).powi(2);
+                mix(acc, *c, (-d2 / (2.0 * p[2] * p[2])).exp())
+            })
+        })
+        .collect()
 }
 
 fn fill(img: &mut [[f32; 3]], n: usize, c: [f32; 3], inside: impl Fn(f32, f32) -> bool) {

@@ -197,101 +197,12 @@ pub fn calibrate(
     }
     let size = model.input_size() as usize;
     let grey = vec![128u8; size * size * 3];
-    let features = model.features(&[&grey]);
-    let mut rates = Rates {
-        encoder: time_ms(RUNS, true, || {
-            let _ = model.features(&[&grey]);
-        }),
-        start: BTreeMap::new(),
-        row: BTreeMap::new(),
-    };
-    let grid = model
-        .grid(level)
-        .ok_or_else(|| EngineError::InvalidArgument {
-            field: "level".into(),
-            message: format!("{level} is above this model's grids"),
-        })?;
-    let step = (grid.len() / TIMED_ROWS).max(1) as u64;
-    let rotations: Vec<[f32; 9]> = (0..TIMED_ROWS as u64)
-        .map(|i| crate::so3::to_row_major_f32(&grid.rotation((i * step) % grid.len() as u64)))
-        .collect();
-    for c in &candidates {
-        for (l, _, precision) in rows_per_level(model, &c.params, level) {
-            if l == c.params.start_level.min(level) {
-                rates.start.entry((l, precision)).or_insert_with(|| {
-                    time_ms(RUNS, true, || {
-                        let _ =
-                            model.projected[l as usize].log_weights_in(precision, features.clone());
-                    })
-                });
-            } else {
-                rates.row.entry(precision).or_insert_with(|| {
-                    let time = |rows: &[[f32; 9]]| {
-                        let rows = [rows.to_vec()];
-                        time_ms(RUNS, true, || {
-                            let _ = model.score_rotations_many(&features, &rows, precision);
-                        })
-                    };
-                    let (many, few) = (time(&rotations), time(&rotations[..SMALL_ROWS]));
-                    let per_row = ((many - few) / (TIMED_ROWS - SMALL_ROWS) as f64).max(0.0);
-                    ((few - per_row * SMALL_ROWS as f64).max(0.0), per_row)
-                });
-            }
-        }
-    }
+    let rates = measure_rates(model, &candidates, &grey, level)?;
     let predicted: Vec<f64> = candidates
         .iter()
         .map(|c| rates.predict(model, &c.params, level))
         .collect();
-    // Timings are noisy: searches predicted within [`TIE`] of the fastest of a set count as
-    // equally fast, and the one scoring the fewest rows (then the study's order) is taken, so
-    // that the choice does not flip between starts.
-    let rows = |i: usize| -> usize {
-        rows_per_level(model, &candidates[i].params, level)
-            .iter()
-            .map(|r| r.1)
-            .sum()
-    };
-    let fastest = |set: &[usize]| -> Option<usize> {
-        let best = set
-            .iter()
-            .map(|&i| predicted[i])
-            .fold(f64::INFINITY, f64::min);
-        set.iter()
-            .copied()
-            .filter(|&i| predicted[i] <= best * TIE)
-            .min_by_key(|&i| (rows(i), i))
-    };
-    let agreement = |i: usize| candidates[i].agreement.unwrap_or(0.0);
-    let within: Vec<usize> = (0..candidates.len())
-        .filter(|&i| predicted[i] <= budget_ms)
-        .collect();
-    let most = within
-        .iter()
-        .map(|&i| agreement(i))
-        .fold(f64::NEG_INFINITY, f64::max);
-    let most_agreeing: Vec<usize> = within
-        .iter()
-        .copied()
-        .filter(|&i| agreement(i) >= most)
-        .collect();
-    let all: Vec<usize> = (0..candidates.len()).collect();
-    let (pick, reason) = match fastest(&most_agreeing) {
-        Some(i) => (
-            i,
-            format!(
-                "the most agreeing of {} searches predicted within {budget_ms} ms",
-                within.len()
-            ),
-        ),
-        None => (
-            fastest(&all).unwrap_or(0),
-            format!(
-                "no search reaching the target is predicted within {budget_ms} ms: the fastest of {}",
-                candidates.len()
-            ),
-        ),
-    };
+    let (pick, reason) = choose(model, &candidates, &predicted, budget_ms, level);
     let chosen = candidates[pick];
     let options = PredictOptions {
         top_k: TOP_K,
@@ -323,4 +234,116 @@ pub fn calibrate(
             None => format!("no search study in the bundle: the configured search, {reason}"),
         },
     })
+}
+
+/// The encoder's time and the head's rates on this CPU, for every start level and precision
+/// the `candidates` use, measured on the `grey` image.
+fn measure_rates(
+    model: &Model,
+    candidates: &[Candidate],
+    grey: &[u8],
+    level: u8,
+) -> Result<Rates, EngineError> {
+    let features = model.features(&[grey]);
+    let mut rates = Rates {
+        encoder: time_ms(RUNS, true, || {
+            let _ = model.features(&[grey]);
+        }),
+        start: BTreeMap::new(),
+        row: BTreeMap::new(),
+    };
+    let grid = model
+        .grid(level)
+        .ok_or_else(|| EngineError::InvalidArgument {
+            field: "level".into(),
+            message: format!("{level} is above this model's grids"),
+        })?;
+    let step = (grid.len() / TIMED_ROWS).max(1) as u64;
+    let rotations: Vec<[f32; 9]> = (0..TIMED_ROWS as u64)
+        .map(|i| crate::so3::to_row_major_f32(&grid.rotation((i * step) % grid.len() as u64)))
+        .collect();
+    for c in candidates {
+        for (l, _, precision) in rows_per_level(model, &c.params, level) {
+            if l == c.params.start_level.min(level) {
+                rates.start.entry((l, precision)).or_insert_with(|| {
+                    time_ms(RUNS, true, || {
+                        let _ =
+                            model.projected[l as usize].log_weights_in(precision, features.clone());
+                    })
+                });
+            } else {
+                rates.row.entry(precision).or_insert_with(|| {
+                    let time = |rows: &[[f32; 9]]| {
+                        let rows = [rows.to_vec()];
+                        time_ms(RUNS, true, || {
+                            let _ = model.score_rotations_many(&features, &rows, precision);
+                        })
+                    };
+                    let (many, few) = (time(&rotations), time(&rotations[..SMALL_ROWS]));
+                    let per_row = ((many - few) / (TIMED_ROWS - SMALL_ROWS) as f64).max(0.0);
+                    ((few - per_row * SMALL_ROWS as f64).max(0.0), per_row)
+                });
+            }
+        }
+    }
+    Ok(rates)
+}
+
+/// The candidate to serve and why: the most agreeing one predicted within `budget_ms`, else the
+/// fastest. Timings are noisy: searches predicted within [`TIE`] of the fastest of a set count as
+/// equally fast, and the one scoring the fewest rows (then the study's order) is taken, so that
+/// the choice does not flip between starts.
+fn choose(
+    model: &Model,
+    candidates: &[Candidate],
+    predicted: &[f64],
+    budget_ms: f64,
+    level: u8,
+) -> (usize, String) {
+    let rows = |i: usize| -> usize {
+        rows_per_level(model, &candidates[i].params, level)
+            .iter()
+            .map(|r| r.1)
+            .sum()
+    };
+    let fastest = |set: &[usize]| -> Option<usize> {
+        let best = set
+            .iter()
+            .map(|&i| predicted[i])
+            .fold(f64::INFINITY, f64::min);
+        set.iter()
+            .copied()
+            .filter(|&i| predicted[i] <= best * TIE)
+            .min_by_key(|&i| (rows(i), i))
+    };
+    let agreement = |i: usize| candidates[i].agreement.unwrap_or(0.0);
+    let within: Vec<usize> = (0..candidates.len())
+        .filter(|&i| predicted[i] <= budget_ms)
+        .collect();
+    let most = within
+        .iter()
+        .map(|&i| agreement(i))
+        .fold(f64::NEG_INFINITY, f64::max);
+    let most_agreeing: Vec<usize> = within
+        .iter()
+        .copied()
+        .filter(|&i| agreement(i) >= most)
+        .collect();
+    let all: Vec<usize> = (0..candidates.len()).collect();
+    match fastest(&most_agreeing) {
+        Some(i) => (
+            i,
+            format!(
+                "the most agreeing of {} searches predicted within {budget_ms} ms",
+                within.len()
+            ),
+        ),
+        None => (
+            fastest(&all).unwrap_or(0),
+            format!(
+                "no search reaching the target is predicted within {budget_ms} ms: the fastest of {}",
+                candidates.len()
+            ),
+        ),
+    }
 }

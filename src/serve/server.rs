@@ -477,19 +477,7 @@ pub async fn run(
     ))
     .max_decoding_message_size(config.engine.image_limits.max_bytes + (1 << 20));
     if let Some(addr) = config.health_listen {
-        let listener = TcpListener::bind(addr)
-            .await
-            .map_err(|source| ServeError::Bind { addr, source })?;
-        info!(%addr, "plaintext health checks listening");
-        let health_only = Server::builder()
-            .add_service(health_service.clone())
-            .serve_with_incoming(BoundedIncoming::new(listener, config.transport));
-        // It lives as long as the process: a draining server still answers NOT_SERVING there.
-        tokio::spawn(async move {
-            if let Err(e) = health_only.await {
-                error!("plaintext health checks stopped: {e}");
-            }
-        });
+        serve_health_only(addr, health_service.clone(), config.transport).await?;
     }
     let loader = spawn_loader(&config, state, health.clone(), hup);
     let (stop_accepting, stopped) = tokio::sync::oneshot::channel::<()>();
@@ -541,6 +529,31 @@ pub async fn run(
         }
     }
     drain(&health, stop_accepting, server, config.drain_timeout).await
+}
+
+/// Serves the health service alone, in plaintext on `addr`, for as long as the process lives (a
+/// draining server still answers NOT_SERVING there).
+async fn serve_health_only(
+    addr: SocketAddr,
+    health_service: tonic_health::pb::health_server::HealthServer<
+        impl tonic_health::pb::health_server::Health,
+    >,
+    transport: TransportLimits,
+) -> Result<(), ServeError> {
+    let listener = TcpListener::bind(addr)
+        .await
+        .map_err(|source| ServeError::Bind { addr, source })?;
+    info!(%addr, "plaintext health checks listening");
+    let health_only = Server::builder()
+        .add_service(health_service)
+        .serve_with_incoming(BoundedIncoming::new(listener, transport));
+    // It lives as long as the process: a draining server still answers NOT_SERVING there.
+    tokio::spawn(async move {
+        if let Err(e) = health_only.await {
+            error!("plaintext health checks stopped: {e}");
+        }
+    });
+    Ok(())
 }
 
 /// Stops accepting, reports NOT_SERVING (the service and the whole server), and waits up to
