@@ -383,7 +383,8 @@ pub fn frame_table(r: &FrameResponse) -> String {
         r.compute_ms
     );
     for (i, d) in r.detections.iter().enumerate() {
-        let b = d.r#box.unwrap_or_default();
+        // The box as the server used it (sub-pixel; `box` is only the whole-pixel echo).
+        let b = d.bbox.unwrap_or_default();
         let ray = d
             .ray
             .as_ref()
@@ -391,7 +392,7 @@ pub fn frame_table(r: &FrameResponse) -> String {
             .unwrap_or_default();
         let _ = writeln!(
             s,
-            "\n== box {} at ({}, {}) {}×{}, ray {ray}",
+            "\n== box {} at ({:.1}, {:.1}) {:.1}×{:.1}, ray {ray}",
             i + 1,
             b.x,
             b.y,
@@ -412,7 +413,8 @@ pub fn frame_json(r: &FrameResponse) -> serde_json::Value {
         "model_version": r.model_version,
         "compute_ms": r.compute_ms,
         "detections": r.detections.iter().map(|d| {
-            let b = d.r#box.unwrap_or_default();
+            // The box as the server used it (sub-pixel; `box` is only the whole-pixel echo).
+        let b = d.bbox.unwrap_or_default();
             serde_json::json!({
                 "box": [b.x, b.y, b.width, b.height],
                 "ray": d.ray.as_ref().map(|q| [q.w, q.x, q.y, q.z]),
