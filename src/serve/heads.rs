@@ -1,6 +1,5 @@
-//! The head stage: the head work of concurrent calls for one model — Predict's and PredictFrame's
-//! coarse-to-fine searches, PredictDistribution's full levels — on a bounded queue shared by one
-//! fixed pool of worker threads (`--head-workers`, one per core by default). A full
+//! The head stage: the Predict work (scoring and coarse-to-fine search) of concurrent calls for
+//! one model, on a bounded queue shared by a fixed pool of worker threads (one per core). A full
 //! queue is refused at once; a call whose caller went away is dropped before its work; a panic
 //! fails only its call (INTERNAL) and is counted, and the worker goes on.
 //!
@@ -18,39 +17,15 @@ use tonic::{Code, Status};
 
 use super::BatchConfig;
 use super::status::{Reason, refused, status_of};
-use crate::engine::{Cancel, CropDepth, Distribution, Model, PredictOptions, Prediction};
+use crate::engine::{Cancel, Model, PredictOptions, Prediction};
 
-/// One call's head work: an image's features, its depth points when depth was given, and what to
-/// compute.
+/// One call's head work.
 struct HeadJob {
     features: Vec<f32>,
-    depth: Option<CropDepth>,
-    work: Work,
-}
-
-/// What a [`HeadJob`] computes, and where its answer goes.
-enum Work {
-    /// A search (Predict, one box of PredictFrame).
-    Predict {
-        options: PredictOptions,
-        reply: oneshot::Sender<Result<Prediction, Status>>,
-    },
-    /// Every cell of a level (PredictDistribution).
-    Distribution {
-        level: u8,
-        cancel: Cancel,
-        reply: oneshot::Sender<Result<Distribution, Status>>,
-    },
-}
-
-impl Work {
-    /// Whether the caller went away (its answer would be dropped).
-    fn abandoned(&self) -> bool {
-        match self {
-            Work::Predict { reply, .. } => reply.is_closed(),
-            Work::Distribution { reply, .. } => reply.is_closed(),
-        }
-    }
+    options: PredictOptions,
+    /// The depth points, when depth was given.
+    depth: Option<crate::engine::CropDepth>,
+    reply: oneshot::Sender<Result<Prediction, Status>>,
 }
 
 /// The head stage of one model.
@@ -93,50 +68,17 @@ impl HeadStage {
         &self,
         features: Vec<f32>,
         mut options: PredictOptions,
-        depth: Option<CropDepth>,
+        depth: Option<crate::engine::CropDepth>,
     ) -> Result<Prediction, Status> {
         let (reply, answer) = oneshot::channel();
         options.cancel = Cancel::new();
         let guard = options.cancel.on_drop();
-        let work = Work::Predict { options, reply };
-        self.queue(HeadJob {
+        let job = HeadJob {
             features,
+            options,
             depth,
-            work,
-        })?;
-        let answered = answer.await.map_err(|_| stopped(&self.model))?;
-        guard.disarm();
-        answered
-    }
-
-    /// Every cell of `level` for one image's features. Dropping the returned future cancels the
-    /// scoring at its next chunk.
-    pub async fn distribution(
-        &self,
-        features: Vec<f32>,
-        level: u8,
-        depth: Option<CropDepth>,
-    ) -> Result<Distribution, Status> {
-        let (reply, answer) = oneshot::channel();
-        let cancel = Cancel::new();
-        let guard = cancel.on_drop();
-        let work = Work::Distribution {
-            level,
-            cancel,
             reply,
         };
-        self.queue(HeadJob {
-            features,
-            depth,
-            work,
-        })?;
-        let answered = answer.await.map_err(|_| stopped(&self.model))?;
-        guard.disarm();
-        answered
-    }
-
-    /// Queues `job`, or refuses it at once when the queue is full.
-    fn queue(&self, job: HeadJob) -> Result<(), Status> {
         self.sender.try_send(job).map_err(|e| match e {
             mpsc::error::TrySendError::Full(_) => refused(
                 Code::Unavailable,
@@ -148,7 +90,10 @@ impl HeadStage {
                 Some(std::time::Duration::from_millis(100)),
             ),
             mpsc::error::TrySendError::Closed(_) => stopped(&self.model),
-        })
+        })?;
+        let answered = answer.await.map_err(|_| stopped(&self.model))?;
+        guard.disarm();
+        answered
     }
 }
 
@@ -170,7 +115,7 @@ fn run(model: Arc<Model>, receiver: Arc<Mutex<mpsc::Receiver<HeadJob>>>) {
         };
         let Some(job) = job else { return };
         // A caller that gave up (cancelled, deadline) is not worth scoring.
-        if job.work.abandoned() {
+        if job.reply.is_closed() {
             metrics::counter!("alignist_abandoned_work_total").increment(1);
             continue;
         }
@@ -178,42 +123,16 @@ fn run(model: Arc<Model>, receiver: Arc<Mutex<mpsc::Receiver<HeadJob>>>) {
     }
 }
 
-/// Runs one call's head work and answers it.
+/// Runs one call's search and answers it.
 fn answer(model: &Model, job: HeadJob) {
-    let HeadJob {
-        features,
-        depth,
-        work,
-    } = job;
-    let features = || model.features_tensor(&features);
-    let fusion = || depth.as_ref().map(|d| d.input(model));
-    match work {
-        Work::Predict { options, reply } => {
-            let answer = guarded(model, || model.predict(&features(), &options, fusion()));
-            let _ = reply.send(answer);
-        }
-        Work::Distribution {
-            level,
-            cancel,
-            reply,
-        } => {
-            let answer = guarded(model, || {
-                model.distribution_cancellable(&features(), level, fusion(), &cancel)
-            });
-            let _ = reply.send(answer);
-        }
-    }
-}
-
-/// `compute`'s answer, timed; a panic fails only this call (INTERNAL) and is counted.
-fn guarded<T>(
-    model: &Model,
-    compute: impl FnOnce() -> Result<T, crate::engine::EngineError>,
-) -> Result<T, Status> {
     let started = Instant::now();
-    let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(compute));
+    let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        let features = model.features_tensor(&job.features);
+        let depth = job.depth.as_ref().map(|d| d.input(model));
+        model.predict(&features, &job.options, depth)
+    }));
     metrics::histogram!("alignist_head_seconds").record(started.elapsed().as_secs_f64());
-    match outcome {
+    let reply = match outcome {
         Ok(result) => result.map_err(status_of),
         Err(panic) => {
             let message = super::batcher::panic_message(panic.as_ref());
@@ -226,5 +145,6 @@ fn guarded<T>(
                 None,
             ))
         }
-    }
+    };
+    let _ = job.reply.send(reply);
 }

@@ -892,8 +892,18 @@ impl AlignistService {
             c => c,
         } as usize;
         let features = encode(&mut p).await?.features;
+        let model = p.model.clone();
+        let depth = p.depth;
+        let _slot = self.admission.head_slot().await?;
         let compute = Instant::now();
-        let distribution = p.head.distribution(features, level, p.depth.take()).await?;
+        let distribution = blocking(move |cancel| {
+            let f = model.features_tensor(&features);
+            let fusion = depth.as_ref().map(|d| d.input(&model));
+            model
+                .distribution_cancellable(&f, level, fusion, cancel)
+                .map_err(status_of)
+        })
+        .await?;
         metrics::histogram!("alignist_compute_seconds", "method" => "PredictDistribution")
             .record(compute.elapsed().as_secs_f64());
         let (tx, rx) = tokio::sync::mpsc::channel(4);
