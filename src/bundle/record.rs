@@ -323,9 +323,9 @@ pub struct StepProfile {
     pub encoder_forward: f64,
     /// Rotation encoding, head forward and the loss.
     pub head_forward: f64,
-    /// burn's backward: the encoder's, and the head's on burn's head path ([`crate::train::trainer::HeadPath::Burn`]).
+    /// burn's backward: the encoder's, and the head's on burn's head path (the `burn` head path of the trainer).
     pub backward: f64,
-    /// The hand-written head's backward ([`crate::train::trainer::HeadPath::Fused`]; 0 on burn's).
+    /// The hand-written head's backward (the hand-written head path of the trainer; 0 on burn's).
     #[serde(default)]
     pub head_backward: f64,
     /// The Adam step.
