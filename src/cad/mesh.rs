@@ -109,14 +109,93 @@ pub struct Mesh {
     pub colors: Option<MeshColors>,
 }
 
-/// How a mesh was mapped to NOCS: `x_nocs = (x − centre) / scale`, where `centre` is the centre of
-/// the bounding box and `scale` the radius of the bounding sphere around it (docs/DESIGN.md §1).
+/// How a mesh was mapped to NOCS: `x_nocs = (x − centre) / scale`, where `centre` is the point
+/// named by `centre_of` and `scale` the radius of the bounding sphere around it (docs/DESIGN.md
+/// §1), both in the file's `units`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Normalisation {
-    /// Bounding-box centre in the file's units.
+    /// The centre, in the file's units.
     pub centre: [f64; 3],
-    /// Bounding-sphere radius in the file's units.
+    /// Bounding-sphere radius around the centre, in the file's units.
     pub scale: f64,
+    /// Which point the centre is (sets written before this field: the bounding box's centre).
+    #[serde(default)]
+    pub centre_of: CentreOf,
+    /// The unit of the file's coordinates, when known.
+    #[serde(default)]
+    pub units: LengthUnit,
+}
+
+/// The point of a mesh that NOCS puts at the origin.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CentreOf {
+    /// The centre of the axis-aligned bounding box (the SYMSOL shapes, and sets written before
+    /// the centroid).
+    #[default]
+    BoundingBox,
+    /// The area-weighted centroid of the surface: on every symmetry axis of the part, whatever
+    /// its bounding box (an odd `Cn` part is not symmetric about its box's centre).
+    SurfaceCentroid,
+}
+
+/// The unit of a mesh file's coordinates.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LengthUnit {
+    /// Not stated (the SYMSOL shapes are unitless).
+    #[default]
+    Unknown,
+    /// Metres (scans are often in metres).
+    Metre,
+    /// Millimetres (BOP's CAD models).
+    Millimetre,
+}
+
+impl LengthUnit {
+    /// The unit a part of bounding-sphere radius `radius` (in the file's numbers) is most likely
+    /// drawn in: a robot's parts are between a few millimetres and a metre or two across, so a
+    /// radius above 2 is millimetres and one below is metres.
+    pub fn guess(radius: f64) -> LengthUnit {
+        if radius > 2.0 {
+            LengthUnit::Millimetre
+        } else {
+            LengthUnit::Metre
+        }
+    }
+
+    /// Metres per unit (`None` when unknown).
+    pub fn metres(&self) -> Option<f64> {
+        match self {
+            LengthUnit::Unknown => None,
+            LengthUnit::Metre => Some(1.0),
+            LengthUnit::Millimetre => Some(1e-3),
+        }
+    }
+}
+
+impl std::fmt::Display for LengthUnit {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            LengthUnit::Unknown => "unknown",
+            LengthUnit::Metre => "m",
+            LengthUnit::Millimetre => "mm",
+        })
+    }
+}
+
+impl std::str::FromStr for LengthUnit {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "m" | "metre" | "meter" | "metres" | "meters" => Ok(LengthUnit::Metre),
+            "mm" | "millimetre" | "millimeter" | "millimetres" | "millimeters" => {
+                Ok(LengthUnit::Millimetre)
+            }
+            "unknown" => Ok(LengthUnit::Unknown),
+            other => Err(format!("unknown length unit '{other}' (expected m or mm)")),
+        }
+    }
 }
 
 impl Normalisation {
@@ -129,6 +208,25 @@ impl Normalisation {
     pub fn from_nocs(&self, p: &Vector3<f64>) -> Vector3<f64> {
         p * self.scale + Vector3::from(self.centre)
     }
+}
+
+/// A user's part read from `path` and mapped to NOCS about its surface centroid, with its name
+/// (the file's stem) and normalisation; `units` (guessed from its size when `None`) is recorded
+/// in the normalisation, so answers can be given in the user's units.
+pub fn load_part(
+    path: &Path,
+    units: Option<LengthUnit>,
+) -> Result<(String, Mesh, Normalisation), CadError> {
+    let mesh = Mesh::load(path)?;
+    let mut n = mesh.centroid_normalisation();
+    n.units = units.unwrap_or_else(|| LengthUnit::guess(n.scale));
+    let (nocs, n) = mesh.normalised_by(n);
+    let name = path
+        .file_stem()
+        .and_then(|s| s.to_str())
+        .unwrap_or("object")
+        .to_string();
+    Ok((name, nocs, n))
 }
 
 /// A point sampled on the surface, with the triangle it lies on.
@@ -232,10 +330,20 @@ impl Mesh {
         (lo, hi)
     }
 
-    /// The NOCS normalisation of this mesh (bounding-box centre, bounding-sphere radius).
+    /// The NOCS normalisation of this mesh about its bounding box's centre (the SYMSOL shapes'
+    /// convention), with the bounding-sphere radius around it.
     pub fn normalisation(&self) -> Normalisation {
         let (lo, hi) = self.bounds();
-        let centre = (lo + hi) / 2.0;
+        self.normalisation_about((lo + hi) / 2.0, CentreOf::BoundingBox)
+    }
+
+    /// The NOCS normalisation of a part about its surface centroid, with the bounding-sphere
+    /// radius around it: the frame a user's CAD part is trained and served in.
+    pub fn centroid_normalisation(&self) -> Normalisation {
+        self.normalisation_about(self.surface_centroid(), CentreOf::SurfaceCentroid)
+    }
+
+    fn normalisation_about(&self, centre: Vector3<f64>, centre_of: CentreOf) -> Normalisation {
         let scale = self
             .vertices
             .iter()
@@ -244,17 +352,81 @@ impl Mesh {
         Normalisation {
             centre: centre.into(),
             scale: if scale > 0.0 { scale } else { 1.0 },
+            centre_of,
+            units: LengthUnit::Unknown,
         }
     }
 
-    /// The mesh mapped to NOCS, with the normalisation that did it.
+    /// The area-weighted centroid of the surface (the vertices' mean for a surface without
+    /// area).
+    pub fn surface_centroid(&self) -> Vector3<f64> {
+        let (mut sum, mut area) = (Vector3::zeros(), 0.0);
+        for t in &self.triangles {
+            let [a, b, c] = t.map(|i| self.vertices[i as usize].cast::<f64>());
+            let w = 0.5 * (b - a).cross(&(c - a)).norm();
+            sum += w * (a + b + c) / 3.0;
+            area += w;
+        }
+        if area > 0.0 {
+            sum / area
+        } else {
+            self.vertices
+                .iter()
+                .map(|v| v.cast::<f64>())
+                .sum::<Vector3<f64>>()
+                / self.vertices.len().max(1) as f64
+        }
+    }
+
+    /// The mesh mapped to NOCS about its bounding box's centre, with the normalisation that did
+    /// it.
     pub fn normalised(&self) -> (Mesh, Normalisation) {
-        let n = self.normalisation();
+        self.normalised_by(self.normalisation())
+    }
+
+    /// The mesh mapped to NOCS by `n`.
+    pub fn normalised_by(&self, n: Normalisation) -> (Mesh, Normalisation) {
         let mut out = self.clone();
         for v in &mut out.vertices {
             *v = n.to_nocs(&v.cast::<f64>()).cast::<f32>();
         }
         (out, n)
+    }
+
+    /// The triangles that enclose a volume, with how many were left out: degenerate ones (a
+    /// repeated vertex), repeats of a triangle with the same winding, and pairs of one triangle
+    /// wound both ways (a zero-thickness sliver, common in scans). Call on a welded mesh.
+    pub fn enclosing_triangles(&self) -> (Vec<[u32; 3]>, usize) {
+        // A triangle's vertex set, and whether its winding is an even permutation of it.
+        let key = |t: &[u32; 3]| {
+            let mut k = *t;
+            k.sort_unstable();
+            let even = (t[0] == k[0] && t[1] == k[1])
+                || (t[1] == k[0] && t[2] == k[1])
+                || (t[2] == k[0] && t[0] == k[1]);
+            (k, even)
+        };
+        let mut windings: HashMap<[u32; 3], [bool; 2]> = HashMap::new();
+        for t in &self.triangles {
+            let (k, even) = key(t);
+            windings.entry(k).or_default()[usize::from(even)] = true;
+        }
+        let mut seen = std::collections::HashSet::new();
+        let kept: Vec<[u32; 3]> = self
+            .triangles
+            .iter()
+            .filter(|t| {
+                let (k, _) = key(t);
+                t[0] != t[1]
+                    && t[1] != t[2]
+                    && t[0] != t[2]
+                    && windings[&k] != [true, true]
+                    && seen.insert(k)
+            })
+            .copied()
+            .collect();
+        let dropped = self.triangles.len() - kept.len();
+        (kept, dropped)
     }
 
     /// The same surface with vertices at identical positions merged (STL and some OBJ/PLY files

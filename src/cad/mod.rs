@@ -7,7 +7,8 @@ mod sdf;
 pub mod shapes;
 
 pub use mesh::{
-    Edges, Mesh, MeshColors, Normalisation, SurfacePoint, Texture, bilinear, write_ply,
+    CentreOf, Edges, LengthUnit, Mesh, MeshColors, Normalisation, SurfacePoint, Texture, bilinear,
+    load_part, write_ply,
 };
 pub use render::{Camera, Pose, Render, RenderOptions, render};
 pub use scene::{CornerNormals, Light, Lighting, Material, SceneObject, SceneRender, render_scene};

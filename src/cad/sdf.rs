@@ -17,10 +17,14 @@ pub struct SignedDistance {
 
 impl SignedDistance {
     /// Builds the distance query for `mesh`, which must be closed and consistently oriented
-    /// (after welding identical vertices). A mesh wound inward is flipped.
+    /// after welding identical vertices and leaving out the triangles that enclose nothing
+    /// ([`Mesh::enclosing_triangles`]: degenerate ones and zero-thickness slivers of scans). A
+    /// mesh wound inward is flipped.
     pub fn new(mesh: &Mesh) -> Result<Self, CadError> {
         mesh.validate()?;
-        let welded = mesh.welded();
+        let mut welded = mesh.welded();
+        welded.triangles = welded.enclosing_triangles().0;
+        welded.colors = None;
         welded.check_closed()?;
         let mut triangles = welded.triangles.clone();
         if welded.signed_volume() < 0.0 {

@@ -27,7 +27,7 @@ use serde::{Deserialize, Serialize};
 use super::DataError;
 use super::virtual_crop::perspective_crop;
 use crate::cad::{Camera, Mesh, Pose, Render, write_ply};
-use crate::so3::{CONTINUOUS_STEPS, So3Error, from_row_major, to_row_major};
+use crate::so3::{CONTINUOUS_STEPS, So3Error, from_row_major, nearest_rotation, to_row_major};
 
 /// One ground truth of `scene_gt.json` (BOP field names).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -396,7 +396,18 @@ pub struct BopDataset {
     pub models: BTreeMap<u32, ModelInfo>,
     /// Every object instance of the split, by scene, image and ground truth.
     pub samples: Vec<BopSample>,
+    /// How many `cam_R_m2c` were not orthonormal to [`CORRECTED_ABOVE`] and were replaced by the
+    /// nearest rotation (within [`ROTATION_TOLERANCE`]).
+    pub rotations_corrected: usize,
 }
+
+/// How far a recorded `cam_R_m2c` may be from a rotation (`max |MᵀM − I|`): real datasets store
+/// poses orthonormal only to a few 1e-3; further than this is an error in the file.
+pub const ROTATION_TOLERANCE: f64 = 1e-2;
+
+/// Recorded rotations less orthonormal than this (more than JSON's printed digits explain) count
+/// as corrected.
+pub const CORRECTED_ABOVE: f64 = 1e-6;
 
 impl BopDataset {
     /// Reads `root/models/models_info.json` and every scene of `root/<split>`.
@@ -419,14 +430,17 @@ impl BopDataset {
                 message: "no scene folders (NNNNNN) in this split".into(),
             });
         }
-        let mut samples = Vec::new();
+        let (mut samples, mut rotations_corrected) = (Vec::new(), 0);
         for (scene, dir) in scenes {
-            samples.extend(scene_samples(root, &models, scene, &dir)?);
+            let (scene_samples, corrected) = scene_samples(root, &models, scene, &dir)?;
+            samples.extend(scene_samples);
+            rotations_corrected += corrected;
         }
         Ok(Self {
             root: root.to_path_buf(),
             models,
             samples,
+            rotations_corrected,
         })
     }
 
@@ -478,14 +492,15 @@ fn sphere_box(k: &[f64; 9], t: &Vector3<f64>, radius: f64) -> [f64; 4] {
 }
 
 /// Every object instance of one scene folder of a split (`scene_gt.json`, `scene_camera.json`,
-/// and, when present, `scene_gt_info.json` and `scene_gt_equivalents.json`).
+/// and, when present, `scene_gt_info.json` and `scene_gt_equivalents.json`), and how many of its
+/// rotations were corrected to the nearest rotation.
 fn scene_samples(
     root: &Path,
     models: &BTreeMap<u32, ModelInfo>,
     scene: u32,
     dir: &Path,
-) -> Result<Vec<BopSample>, DataError> {
-    let mut samples = Vec::new();
+) -> Result<(Vec<BopSample>, usize), DataError> {
+    let (mut samples, mut corrected) = (Vec::new(), 0);
     let gt_file = dir.join("scene_gt.json");
     let gts: BTreeMap<u32, Vec<SceneGt>> = read_json(&gt_file)?;
     let cam_file = dir.join("scene_camera.json");
@@ -504,8 +519,13 @@ fn scene_samples(
                 file: gt_file.display().to_string(),
                 message: format!("image {im_id}, gt {gt_index}: {what}"),
             };
-            let rotation =
-                from_row_major(gt.cam_r_m2c).map_err(|e| field(&format!("cam_R_m2c: {e}")))?;
+            let (rotation, ortho_err) = nearest_rotation(gt.cam_r_m2c, ROTATION_TOLERANCE)
+                .map_err(|e| {
+                    field(&format!(
+                        "cam_R_m2c: {e} (tolerance {ROTATION_TOLERANCE:.0e})"
+                    ))
+                })?;
+            corrected += usize::from(ortho_err > CORRECTED_ABOVE);
             let info = models
                 .get(&gt.obj_id)
                 .ok_or_else(|| field(&format!("obj_id {} has no models_info entry", gt.obj_id)))?;
@@ -552,7 +572,7 @@ fn scene_samples(
             });
         }
     }
-    Ok(samples)
+    Ok((samples, corrected))
 }
 
 /// `file` parsed, or `None` when it does not exist.

@@ -9,6 +9,7 @@ pub mod modes;
 pub mod sdf;
 pub mod select;
 mod siren;
+pub mod symmetry;
 
 pub use siren::{Siren, SirenConfig};
 

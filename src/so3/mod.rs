@@ -9,8 +9,8 @@ mod symmetry;
 
 pub use grid::{GridConvention, GridLevel, MAX_LEVEL, covering_radius};
 pub use rotation::{
-    from_quaternion, from_row_major, geodesic_angle, quaternion_angle, quaternion_dot, rot_x,
-    rot_y, rot_z, to_quaternion, to_row_major, to_row_major_f32,
+    from_quaternion, from_row_major, geodesic_angle, nearest_rotation, quaternion_angle,
+    quaternion_dot, rot_x, rot_y, rot_z, to_quaternion, to_row_major, to_row_major_f32,
 };
 pub use sample::{haar_rotation, haar_rotations, jitter_in_cell, random_axis};
 pub use symmetry::{

@@ -94,6 +94,28 @@ pub fn from_row_major(m: [f64; 9]) -> Result<Rotation3<f64>, So3Error> {
     Ok(UnitQuaternion::new_normalize(q.into_inner()).to_rotation_matrix())
 }
 
+/// The rotation nearest (in the Frobenius norm) to the row-major matrix `m`, with `m`'s
+/// orthonormality error `max |MᵀM − I|`: the polar factor `U·Vᵀ` of its SVD. Recorded poses of
+/// real datasets are orthonormal only to a few 1e-3 (BOP scenes have determinants like 1.0029);
+/// a matrix further than `tolerance` from a rotation, or a reflection, is refused.
+pub fn nearest_rotation(m: [f64; 9], tolerance: f64) -> Result<(Rotation3<f64>, f64), So3Error> {
+    let mat = Matrix3::from_row_slice(&m);
+    let ortho_err = (mat.transpose() * mat - Matrix3::identity()).abs().max();
+    let det = mat.determinant();
+    if !ortho_err.is_finite() || ortho_err > tolerance || det <= 0.0 {
+        return Err(So3Error::NotARotation { det, ortho_err });
+    }
+    let svd = mat.svd(true, true);
+    let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
+        return Err(So3Error::NotARotation { det, ortho_err });
+    };
+    let polar = u * v_t;
+    Ok((
+        from_row_major(to_row_major(&Rotation3::from_matrix_unchecked(polar)))?,
+        ortho_err,
+    ))
+}
+
 /// Row-major `f32` entries, the layout of the batched encodings and the network.
 pub fn to_row_major_f32(r: &Rotation3<f64>) -> [f32; 9] {
     to_row_major(r).map(|v| v as f32)

@@ -14,9 +14,14 @@ pub(crate) struct ObjectArgs {
     /// A mesh file (.obj, .ply, .stl); it is normalised to NOCS.
     #[arg(long)]
     mesh: Option<PathBuf>,
-    /// Symmetry group of --mesh (none, T, O, I, C<n>, D<n>, cone, cylinder).
+    /// Symmetry group of --mesh (none, T, O, I, C<n>, D<n>, cone, cylinder), when known; the
+    /// experts discover it either way and the manifest reports both.
     #[arg(long, default_value = "none", requires = "mesh")]
     symmetry: String,
+    /// Unit of --mesh's coordinates: m, mm, or auto (a bounding-sphere radius above 2 is taken
+    /// for millimetres). Recorded in the manifest with the mesh frame.
+    #[arg(long, default_value = "auto", requires = "mesh")]
+    units: String,
 }
 
 impl ObjectArgs {
@@ -29,26 +34,38 @@ impl ObjectArgs {
         alignist::cad::Normalisation,
         Vec<nalgebra::Rotation3<f64>>,
     )> {
-        use alignist::cad::{Mesh, Shape};
+        use alignist::cad::Shape;
         use alignist::so3::SymmetryGroup;
-        let (name, mesh, symmetries) = match (&self.shape, &self.mesh) {
+        match (&self.shape, &self.mesh) {
             (Some(name), _) => {
                 let shape: Shape = name.parse().context("--shape")?;
-                (shape.name().to_string(), shape.mesh(), shape.symmetries())
+                let (mesh, normalisation) = shape.mesh().normalised();
+                Ok((
+                    shape.name().to_string(),
+                    mesh,
+                    normalisation,
+                    shape.symmetries(),
+                ))
             }
             (None, Some(path)) => {
                 let group: SymmetryGroup = self.symmetry.parse().context("--symmetry")?;
-                let mesh =
-                    Mesh::load(path).with_context(|| format!("--mesh {}", path.display()))?;
-                let stem = path
-                    .file_stem()
-                    .and_then(|s| s.to_str())
-                    .unwrap_or("object");
-                (stem.to_string(), mesh, group.rotations())
+                let units = parse_units(&self.units)?;
+                let (name, mesh, normalisation) = alignist::cad::load_part(path, units)
+                    .with_context(|| format!("--mesh {}", path.display()))?;
+                Ok((name, mesh, normalisation, group.rotations()))
             }
             (None, None) => bail!("give --shape NAME or --mesh FILE"),
-        };
-        let (mesh, normalisation) = mesh.normalised();
-        Ok((name, mesh, normalisation, symmetries))
+        }
+    }
+}
+
+/// `--units`: `auto` (`None`, guessed from the part's size), `m` or `mm`.
+pub(crate) fn parse_units(s: &str) -> Result<Option<alignist::cad::LengthUnit>> {
+    match s {
+        "auto" => Ok(None),
+        other => other
+            .parse()
+            .map(Some)
+            .map_err(|e: String| anyhow::anyhow!("--units: {e} or auto")),
     }
 }
