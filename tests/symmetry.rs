@@ -3,18 +3,14 @@
 //! mesh's exact one, baked as the SDF expert is (a trained expert adds its own error, which the
 //! identity's residual absorbs).
 
-use alignist::cad::{Mesh, Shape, SignedDistance};
-use alignist::experts::baked::VoxelGrid;
-use alignist::experts::symmetry::{DiscoveredSymmetry, DiscoveryConfig, discover_symmetry};
+use alignist::cad::{Mesh, Shape};
+use alignist::experts::symmetry::{DiscoveredSymmetry, DiscoveryConfig, mesh_symmetry};
 use nalgebra::Vector3;
 
 /// The symmetry of `mesh` (mapped to NOCS about its surface centroid) from its baked exact SDF.
 fn discover(mesh: &Mesh) -> DiscoveredSymmetry {
     let (nocs, _) = mesh.normalised_by(mesh.centroid_normalisation());
-    let exact = SignedDistance::new(&nocs).expect("a closed mesh");
-    let bake = VoxelGrid::bake(64, 1.05, 1, |p| exact.distances(p));
-    discover_symmetry(&|p| bake.sample(p), &nocs, &[], &DiscoveryConfig::default())
-        .expect("level 3 exists")
+    mesh_symmetry(&nocs, &DiscoveryConfig::default()).expect("a closed mesh")
 }
 
 /// A closed solid over a regular `n`-gon of radius 1 in z = 0, scaled by `stretch` in x and y:

@@ -23,6 +23,7 @@ use crate::experts::feature::{
 use crate::experts::modes::{ModeTable, ModeTableConfig};
 use crate::experts::sdf::{SdfFit, SdfTrainConfig};
 use crate::experts::select::EnergySelection;
+use crate::experts::symmetry::DiscoveredSymmetry;
 use crate::experts::{Siren, SirenConfig, run_batched};
 use crate::so3::{from_row_major, to_row_major};
 
@@ -80,6 +81,9 @@ pub struct ExpertsManifest {
     /// How the mode table was built (format 2).
     #[serde(default)]
     pub modes: Option<ModeTableConfig>,
+    /// The symmetry the SDF expert shows (sets written before discovery have none).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub symmetry: Option<DiscoveredSymmetry>,
     /// The voxel bakes.
     pub bake: BakeInfo,
     /// The command that made this set.

@@ -488,7 +488,7 @@ pub fn models_table(list: &ListModelsResponse) -> String {
             let _ = writeln!(
                 s,
                 "  {}: symmetry {}{axis} ({} rotations listed), frame = (mesh − ({:.4}, {:.4}, \
-                 {:.4})) / {:.4}, {} training images",
+                 {:.4})) / {:.4} {}, {} training images",
                 o.name,
                 o.symmetry,
                 o.symmetry_rotations.len(),
@@ -496,8 +496,12 @@ pub fn models_table(list: &ListModelsResponse) -> String {
                 c.y,
                 c.z,
                 o.frame_scale,
+                o.frame_units,
                 o.train_images
             );
+            if !o.discovered_symmetry.is_empty() {
+                let _ = writeln!(s, "    {}", discovered_line(o));
+            }
         }
     }
     for f in &list.failed {
@@ -514,4 +518,28 @@ pub fn models_table(list: &ListModelsResponse) -> String {
         );
     }
     s
+}
+
+/// What the experts found about an object's symmetry, in a line.
+fn discovered_line(o: &crate::serve::proto::ObjectInfo) -> String {
+    let axes: Vec<String> = o
+        .discovered_axes
+        .iter()
+        .map(|a| format!("({:+.3}, {:+.3}, {:+.3})", a.x, a.y, a.z))
+        .collect();
+    format!(
+        "discovered symmetry {}{} (confidence {:.2}){}",
+        o.discovered_symmetry,
+        match axes.len() {
+            0 => String::new(),
+            1 => format!(" about {}", axes[0]),
+            n => format!(" with {n} axes of highest order, e.g. {}", axes[0]),
+        },
+        o.discovered_confidence,
+        if o.near_symmetry.is_empty() {
+            String::new()
+        } else {
+            format!(", nearly {}", o.near_symmetry)
+        }
+    )
 }

@@ -317,6 +317,8 @@ pub struct ModelObject {
     pub symmetries: Vec<nalgebra::Rotation3<f64>>,
     /// Their group, when they form a named one.
     pub symmetry_group: Option<crate::so3::SymmetryGroup>,
+    /// The symmetry the experts discovered (expert sets made before discovery have none).
+    pub discovered: Option<crate::experts::symmetry::DiscoveredSymmetry>,
     /// How the source mesh maps to the object frame.
     pub normalisation: crate::cad::Normalisation,
     /// Training images.
@@ -521,6 +523,7 @@ impl Model {
                 name: o.name.clone(),
                 symmetries: set.symmetries(),
                 symmetry_group: crate::so3::SymmetryGroup::identify(&set.symmetries()),
+                discovered: set.manifest.symmetry.clone(),
                 normalisation: set.manifest.object.normalisation,
                 train_images: o.train_images,
                 fusion: DepthFusion::new(set),

@@ -958,6 +958,22 @@ pub fn object_info(o: &crate::engine::ModelObject) -> ObjectInfo {
             .map(|a| vector([a.x, a.y, a.z])),
         frame_centre: Some(vector(o.normalisation.centre)),
         frame_scale: o.normalisation.scale,
+        discovered_symmetry: o
+            .discovered
+            .as_ref()
+            .map_or_else(String::new, |d| d.label.clone()),
+        discovered_axes: o
+            .discovered
+            .iter()
+            .flat_map(|d| d.axes.iter().map(|a| vector(*a)))
+            .collect(),
+        discovered_confidence: o.discovered.as_ref().map_or(0.0, |d| d.confidence),
+        near_symmetry: o
+            .discovered
+            .as_ref()
+            .and_then(|d| d.near.as_ref())
+            .map_or_else(String::new, |n| n.label.clone()),
+        frame_units: o.normalisation.units.to_string(),
     }
 }
 

@@ -17,6 +17,7 @@ use crate::experts::modes::{ModeTable, ModeTableConfig};
 use crate::experts::run_batched;
 use crate::experts::sdf::SdfTrainConfig;
 use crate::experts::select::WidthCriterion;
+use crate::experts::symmetry::{DiscoveryConfig, discover_symmetry};
 
 /// The voxel bake resolution per axis of `alignist-train experts` (64³ cells over ±1.05).
 pub const DEFAULT_BAKE_RESOLUTION: usize = 64;
@@ -129,6 +130,16 @@ pub fn train_expert_set(
         ..baked
     };
     let modes = ModeTable::build(&baked, &job.mesh, &job.modes)?;
+    progress("symmetry", 0, 1, 0.0);
+    let symmetry = discover_symmetry(
+        &|p| baked.sdf.sample(p),
+        &job.mesh,
+        &modes.centres()?,
+        &DiscoveryConfig {
+            seed: job.sdf.seed,
+            ..DiscoveryConfig::default()
+        },
+    )?;
     Ok(ExpertSet {
         manifest: ExpertsManifest {
             format_version: EXPERTS_FORMAT_VERSION,
@@ -150,6 +161,7 @@ pub fn train_expert_set(
             energy,
             energy_selection: selection,
             modes: Some(modes.config),
+            symmetry: Some(symmetry),
             bake: BakeInfo {
                 resolution: job.bake_resolution,
                 bound,

@@ -12,6 +12,7 @@ mod object;
 mod render;
 mod results;
 mod score;
+mod symmetry;
 
 use std::path::PathBuf;
 
@@ -50,6 +51,10 @@ enum Command {
     /// Train the two CAD experts of an object (SDF and SurfEmb features), bake them, choose λ by
     /// the LL of their targets, and write the expert set.
     Experts(ExpertsArgs),
+    /// Print the symmetry of a part as its SDF shows it (a mesh's exact SDF, or an expert set's
+    /// baked one): none, C<n>, D<n>, cone, cylinder, T, O, I, with its axes, a confidence, and
+    /// the larger group the part nearly has.
+    Symmetry(symmetry::SymmetryArgs),
     /// Write the target distribution the experts give for one rotation on every cell of a grid
     /// level (`index,log_a_sdf,log_a_se`).
     Score(ScoreArgs),
@@ -82,6 +87,7 @@ fn main() -> Result<()> {
         Command::Render(args) => render::render_cmd(&args),
         Command::Experts(args) => experts::experts_cmd(&args),
         Command::Score(args) => score::score_cmd(&args),
+        Command::Symmetry(args) => symmetry::symmetry_cmd(&args),
         Command::Fit(args) => fit::fit_cmd(&args),
         Command::Eval(args) => eval::eval_cmd(&args),
         Command::Calibrate(args) => calibrate::calibrate_cmd(&args),
