@@ -489,6 +489,7 @@ fn cube_mode_table_holds_every_symmetry_and_sampling_reaches_every_equivalent() 
         &SamplingStrategy::ModeFocused {
             focused: 2000,
             temperature: 0.0,
+            focused_end: None,
         },
         2001,
         &r_gt,

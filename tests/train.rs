@@ -1,6 +1,8 @@
 //! The trainer: real steps on a tiny set, deterministic for a seed, and a run interrupted after a
 //! checkpoint resumes to exactly the weights of an uninterrupted run.
 
+mod common;
+
 use std::ops::ControlFlow;
 
 use alignist::bundle::experts::{bake_experts, key_siren_config};
@@ -18,6 +20,7 @@ use alignist::train::{
     MeasureLoss, Method, Network, NetworkConfig, SamplingStrategy, TrainConfig, TrainingImage,
     TrainingSet, train,
 };
+use common::tensors;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
@@ -111,6 +114,7 @@ fn alignist_method() -> Method {
         sampling: SamplingStrategy::ModeFocused {
             focused: 40,
             temperature: 0.0,
+            focused_end: None,
         },
         experts: Default::default(),
     }
@@ -129,28 +133,6 @@ fn fingerprint(network: &Network, set: &TrainingSet) -> Vec<f32> {
     let grid = GridLevel::new(0).unwrap().matrices_f32();
     let scores = network.scores(images, &[grid.clone(), grid], &RotationEncoding::Cube);
     scores.combined().into_data().try_to_vec::<f32>().unwrap()
-}
-
-/// The tensors of a safetensors file by name, as raw bytes (the header's metadata map has no
-/// fixed order, so whole files are compared tensor by tensor).
-fn tensors(path: &std::path::Path) -> std::collections::BTreeMap<String, Vec<u8>> {
-    let bytes = std::fs::read(path).unwrap();
-    let n = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
-    let header: serde_json::Map<String, serde_json::Value> =
-        serde_json::from_slice(&bytes[8..8 + n]).unwrap();
-    let data = &bytes[8 + n..];
-    header
-        .iter()
-        .filter(|(k, _)| *k != "__metadata__")
-        .map(|(k, v)| {
-            let o = &v["data_offsets"];
-            let (s, e) = (
-                o[0].as_u64().unwrap() as usize,
-                o[1].as_u64().unwrap() as usize,
-            );
-            (k.clone(), data[s..e].to_vec())
-        })
-        .collect()
 }
 
 #[test]
@@ -474,6 +456,7 @@ fn single_expert_runs_silence_the_other_branch() {
             sampling: SamplingStrategy::ModeFocused {
                 focused: 40,
                 temperature: 0.0,
+                focused_end: None,
             },
             experts,
         });

@@ -68,6 +68,9 @@ pub struct ModelManifest {
     /// (`alignist-train calibrate`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub calibration: Option<TemperatureFit>,
+    /// How `alignist-train new` spent its time budget (bundles made otherwise have none).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub budget: Option<BudgetRecord>,
     /// Checksums of every file except the manifest, relative to the bundle.
     pub files: BTreeMap<String, FileEntry>,
 }
@@ -98,9 +101,45 @@ impl ModelManifest {
             provenance,
             evaluation,
             calibration: None,
+            budget: None,
             files: Default::default(),
         }
     }
+}
+
+/// How a model made by `alignist-train new` spent its budget: the plan its probes sized, and the
+/// wall time of every stage (across resumes).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BudgetRecord {
+    /// The budget, seconds.
+    pub budget_seconds: f64,
+    /// Wall time of the whole job when the bundle was written, seconds.
+    pub spent_seconds: f64,
+    /// The plan.
+    pub plan: BudgetPlan,
+    /// `(stage, seconds)` in order: probes, experts, fit, evaluation.
+    pub stages: Vec<(String, f64)>,
+}
+
+/// The steps a budget buys, from timed probes on the machine that runs the job.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BudgetPlan {
+    /// Adam steps of each object's SDF expert.
+    pub sdf_steps: usize,
+    /// Adam steps of each object's feature expert.
+    pub feature_steps: usize,
+    /// Seconds per SDF / feature expert step in the probe.
+    pub probe_sdf_step: f64,
+    /// Seconds per feature expert step in the probe.
+    pub probe_feature_step: f64,
+    /// Steps of the network's one schedule (0 until the experts are trained and the fit probed).
+    pub fit_steps: usize,
+    /// Seconds per training step in the probe.
+    pub probe_fit_step: f64,
+    /// Seconds per evaluation image in the probe.
+    pub probe_eval_image: f64,
+    /// Held-out realistic test crops per object.
+    pub eval_images: usize,
 }
 
 /// A temperature calibration: the combined log-density of the network was multiplied by `scale`
@@ -262,6 +301,10 @@ pub enum SamplingStrategy {
         /// Cells are drawn ∝ `exp(temperature · log_weight)`: 0 = uniformly over the table.
         #[serde(default)]
         temperature: f64,
+        /// When set, the focused count is annealed linearly from `focused` at the first step to
+        /// this at the last (the recipe of `alignist-train new`: 3/4 of K down to 1/20).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        focused_end: Option<usize>,
     },
     /// The GT, then uniform rotations.
     Uniform,
@@ -282,6 +325,38 @@ impl SamplingStrategy {
         SamplingStrategy::ModeFocused {
             focused: (k as f64 * share).floor() as usize,
             temperature: 0.0,
+            focused_end: None,
+        }
+    }
+
+    /// The focused share annealed linearly from `start` of K at the first step to `end` at the
+    /// last.
+    pub fn annealed_share(k: usize, start: f64, end: f64) -> Self {
+        SamplingStrategy::ModeFocused {
+            focused: (k as f64 * start).floor() as usize,
+            temperature: 0.0,
+            focused_end: Some((k as f64 * end).floor() as usize),
+        }
+    }
+
+    /// The strategy at `step` of a run of `steps`: an annealed focused count resolved to its
+    /// value there.
+    pub fn at_step(&self, step: usize, steps: usize) -> SamplingStrategy {
+        match *self {
+            SamplingStrategy::ModeFocused {
+                focused,
+                temperature,
+                focused_end: Some(end),
+            } => {
+                let t = step as f64 / steps.saturating_sub(1).max(1) as f64;
+                let now = focused as f64 + (end as f64 - focused as f64) * t.min(1.0);
+                SamplingStrategy::ModeFocused {
+                    focused: now.round() as usize,
+                    temperature,
+                    focused_end: None,
+                }
+            }
+            other => other,
         }
     }
 }

@@ -84,6 +84,20 @@ pub struct DiscoveredSymmetry {
     pub near: Option<NearSymmetry>,
     /// How it was searched.
     pub config: DiscoveryConfig,
+    /// The symmetries found, row-major, identity first (a continuous one as its samples every
+    /// 10°): the equivalent ground truths of an evaluation when none was declared.
+    #[serde(default)]
+    pub found: Vec<[f64; 9]>,
+}
+
+impl DiscoveredSymmetry {
+    /// [`DiscoveredSymmetry::found`] as rotations (entries that are not rotations left out).
+    pub fn rotations(&self) -> Vec<Rotation3<f64>> {
+        self.found
+            .iter()
+            .filter_map(|m| crate::so3::from_row_major(*m).ok())
+            .collect()
+    }
 }
 
 /// A near-symmetry of a part.
@@ -317,6 +331,7 @@ fn name_symmetries(
         baseline,
         near,
         config: *config,
+        found: accepted.iter().map(crate::so3::to_row_major).collect(),
     }
 }
 

@@ -148,7 +148,12 @@ pub fn train_expert_set(
                 source: job.mesh.source.clone(),
                 mesh_sha256: String::new(),
                 normalisation: job.normalisation,
-                symmetries: symmetries_row_major(&job.symmetries),
+                // Declared symmetries, or else the discovered ones (for evaluation and reports).
+                symmetries: if job.symmetries.len() > 1 {
+                    symmetries_row_major(&job.symmetries)
+                } else {
+                    symmetry.found.clone()
+                },
             },
             sdf: SdfSection {
                 config: job.sdf,

@@ -10,6 +10,7 @@ pub mod depth_eval;
 pub mod eval;
 pub mod experts;
 pub mod fit;
+pub mod new_model;
 pub mod results;
 pub mod sampling;
 pub mod trainer;

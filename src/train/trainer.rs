@@ -63,12 +63,13 @@ impl HeadPath {
     }
 }
 
-/// The K rotations of image `id` for one step, and (Alignist) their expert targets.
+/// The K rotations of image `id` at `step`, and (Alignist) their expert targets.
 fn sample_image(
     config: &TrainConfig,
     set: &TrainingSet,
     im: &TrainingImage,
     samplers: &[ModeSampler],
+    step: usize,
     rng: &mut ChaCha8Rng,
     profile: &mut StepProfile,
 ) -> (Vec<[f32; 9]>, Option<LogTargets>) {
@@ -76,7 +77,7 @@ fn sample_image(
     let started = Instant::now();
     let samples = match &config.method {
         Method::Alignist { sampling, .. } => sample_rotations(
-            sampling,
+            &sampling.at_step(step, config.steps),
             config.k,
             &im.rotation,
             samplers.get(im.object),
@@ -153,7 +154,7 @@ fn mean_log_targets(
         set,
         &mut rng,
     ) {
-        if let (_, Some(t)) = sample_image(config, set, &im, samplers, &mut rng, &mut profile) {
+        if let (_, Some(t)) = sample_image(config, set, &im, samplers, 0, &mut rng, &mut profile) {
             sdf += t.log_a_sdf.iter().map(|&l| (l as f64).exp()).sum::<f64>();
             se += t.log_a_se.iter().map(|&l| (l as f64).exp()).sum::<f64>();
             count += t.log_a_sdf.len();
@@ -365,7 +366,8 @@ impl Run<'_> {
         let mut log_sdf = Vec::with_capacity(images.len() * config.k);
         let mut log_se = Vec::with_capacity(images.len() * config.k);
         for im in &images {
-            let (mats, targets) = sample_image(config, set, im, samplers, &mut rng, &mut profile);
+            let (mats, targets) =
+                sample_image(config, set, im, samplers, step, &mut rng, &mut profile);
             if let Some(t) = targets {
                 log_sdf.extend(t.log_a_sdf);
                 log_se.extend(t.log_a_se);

@@ -358,6 +358,15 @@ pub(crate) fn eval_cmd(args: &EvalArgs) -> Result<()> {
         }
         let ds =
             BopDataset::open(Path::new(dir), "test").with_context(|| format!("--data {spec}"))?;
+        if ds.rotations_corrected > 0 {
+            eprintln!(
+                "--data {spec}: {} of {} ground-truth rotations were not orthonormal and were \
+                 replaced by the nearest rotation (tolerance {:.0e})",
+                ds.rotations_corrected,
+                ds.samples.len(),
+                alignist::data::bop::ROTATION_TOLERANCE
+            );
+        }
         tests.extend(eval_images(&ds, name, size, args.images)?);
     }
     let bar = ProgressBar::new(tests.len() as u64);

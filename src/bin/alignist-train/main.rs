@@ -8,6 +8,7 @@ mod eval;
 mod experts;
 mod fit;
 mod grid;
+mod new;
 mod object;
 mod render;
 mod results;
@@ -58,6 +59,10 @@ enum Command {
     /// Write the target distribution the experts give for one rotation on every cell of a grid
     /// level (`index,log_a_sdf,log_a_se`).
     Score(ScoreArgs),
+    /// From CAD files to a served model within a time budget: the experts of every part, one
+    /// network on realistic renders by the recipe, a held-out realistic evaluation, the bundle
+    /// (resumable with --resume; the symmetry of each part is discovered and reported).
+    New(new::NewArgs),
     /// Train the distribution network on BOP datasets (one per object, with its expert set),
     /// evaluate it on their test splits, and write a model bundle.
     Fit(FitArgs),
@@ -89,6 +94,7 @@ fn main() -> Result<()> {
         Command::Score(args) => score::score_cmd(&args),
         Command::Symmetry(args) => symmetry::symmetry_cmd(&args),
         Command::Fit(args) => fit::fit_cmd(&args),
+        Command::New(args) => new::new_cmd(&args),
         Command::Eval(args) => eval::eval_cmd(&args),
         Command::Calibrate(args) => calibrate::calibrate_cmd(&args),
         Command::Results { bundles } => results::results_cmd(&bundles),

@@ -1,0 +1,129 @@
+//! `alignist-train new`: from CAD files to a served model within a time budget.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result, bail};
+
+use crate::eval::print_eval;
+use crate::object::parse_units;
+use alignist::train::new_model::{NewModel, new_model};
+
+#[derive(clap::Args)]
+pub(crate) struct NewArgs {
+    /// A part's mesh file (.obj, .ply, .stl; closed); repeat per part. The file's stem names the
+    /// object.
+    #[arg(long, required = true)]
+    mesh: Vec<PathBuf>,
+    /// Unit of the meshes' coordinates: m, mm, or auto (per part: a bounding-sphere radius above
+    /// 2 is taken for millimetres).
+    #[arg(long, default_value = "auto")]
+    units: String,
+    /// The bundle folder to write (e.g. models/my-parts); the job's work lies beside it in
+    /// <out>.job until the bundle is written.
+    #[arg(long)]
+    out: PathBuf,
+    /// Wall time for the whole job: experts, training, evaluation (e.g. 2h, 45m, 600s).
+    #[arg(long, value_parser = parse_budget)]
+    budget: f64,
+    /// Continue the job a killed run left in <out>.job (its budget and plan are kept).
+    #[arg(long)]
+    resume: bool,
+    /// Held-out realistic test crops per object.
+    #[arg(long, default_value_t = 50)]
+    eval_images: usize,
+    /// At most this many training steps (for experiments; default: what the budget buys).
+    #[arg(long)]
+    max_steps: Option<usize>,
+    /// At most this many steps of each expert (for experiments; default: what the budget buys,
+    /// up to the experts' default steps).
+    #[arg(long)]
+    max_expert_steps: Option<usize>,
+    /// Seed of the experts and of the training renders.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+}
+
+/// A time like `2h`, `45m`, `90s`, `1.5h` or a number of seconds.
+fn parse_budget(s: &str) -> Result<f64, String> {
+    let (number, unit) = match s
+        .trim()
+        .char_indices()
+        .find(|(_, c)| c.is_ascii_alphabetic())
+    {
+        Some((i, _)) => (&s.trim()[..i], &s.trim()[i..]),
+        None => (s.trim(), "s"),
+    };
+    let value: f64 = number
+        .trim()
+        .parse()
+        .map_err(|_| format!("'{s}' is not a time (e.g. 2h, 45m, 600s)"))?;
+    let factor = match unit {
+        "s" | "sec" => 1.0,
+        "m" | "min" => 60.0,
+        "h" => 3600.0,
+        other => return Err(format!("unknown unit '{other}' in '{s}' (h, m or s)")),
+    };
+    let seconds = value * factor;
+    if !(seconds.is_finite() && seconds > 0.0) {
+        return Err(format!("the budget must be positive, got '{s}'"));
+    }
+    Ok(seconds)
+}
+
+pub(crate) fn new_cmd(args: &NewArgs) -> Result<()> {
+    if args.eval_images == 0 {
+        bail!("--eval-images must be at least 1: the model is judged on held-out crops");
+    }
+    let model = NewModel {
+        meshes: args.mesh.clone(),
+        units: parse_units(&args.units)?,
+        out: args.out.clone(),
+        budget_seconds: args.budget,
+        eval_images: args.eval_images,
+        max_steps: args.max_steps,
+        max_expert_steps: args.max_expert_steps,
+        seed: args.seed,
+        command: std::env::args().collect::<Vec<_>>().join(" "),
+    };
+    let manifest = new_model(&model, args.resume, &|line| eprintln!("{line}"))
+        .with_context(|| format!("making {}", args.out.display()))?;
+    if let Some(b) = &manifest.budget {
+        eprintln!(
+            "spent {:.0} s of a {:.0} s budget ({:.1} %): {}",
+            b.spent_seconds,
+            b.budget_seconds,
+            100.0 * b.spent_seconds / b.budget_seconds,
+            b.stages
+                .iter()
+                .map(|(s, t)| format!("{s} {t:.0} s"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+    }
+    if let Some(e) = &manifest.evaluation {
+        print_eval(e);
+    }
+    eprintln!(
+        "serve it with: alignist-server --models {}",
+        args.out
+            .parent()
+            .map_or_else(|| ".".into(), |p| p.display().to_string())
+    );
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::parse_budget;
+
+    #[test]
+    fn budgets_read_in_hours_minutes_and_seconds() {
+        assert_eq!(parse_budget("2h"), Ok(7200.0));
+        assert_eq!(parse_budget("45m"), Ok(2700.0));
+        assert_eq!(parse_budget("90"), Ok(90.0));
+        assert_eq!(parse_budget("1.5h"), Ok(5400.0));
+        assert!(parse_budget("2d").is_err());
+        assert!(parse_budget("-1h").is_err());
+        assert!(parse_budget("soon").is_err());
+    }
+}

@@ -1,0 +1,765 @@
+//! `alignist-train new`: from a user's CAD files to a served model within a time budget
+//! (docs/DESIGN.md §5, "One command").
+//!
+//! The job runs in stages, each resumable, in a folder beside the bundle (`<out>.job`):
+//! 1. **probe**: a few timed steps of each expert and, once the experts exist, of the network
+//!    and its evaluation, on this machine; they size the plan ([`BudgetPlan`]);
+//! 2. **experts** of every object (SDF, features, bake, λ, mode table, discovered symmetry),
+//!    objects side by side on the cores, each written when done;
+//! 3. **fit**: one schedule of [`RECIPE`] (realistic fresh renders, the focused share annealed
+//!    from 3/4 to 1/20) sized to the time left, checkpointed; stopped early only if the machine
+//!    turns out slower than the probe said;
+//! 4. **evaluation** on held-out realistic crops (another background source, light and
+//!    material ranges, seed), and the bundle, with the plan and the time of every stage.
+//!
+//! The time spent is kept in the job's state across kills and resumes, so the budget is the
+//! job's, not one process's.
+
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+
+use crate::bundle::experts::ExpertSet;
+use crate::bundle::model::ModelBundle;
+use crate::bundle::record::{BudgetPlan, BudgetRecord, EvalReport, TrainConfig};
+use crate::cad::{LengthUnit, Mesh, Normalisation};
+use crate::data::realism::Realism;
+use crate::encoding::RotationEncoding;
+use crate::experts::energy::EnergyParams;
+use crate::experts::feature::FeatureTrainConfig;
+use crate::experts::modes::ModeTableConfig;
+use crate::experts::sdf::SdfTrainConfig;
+use crate::experts::select::WidthCriterion;
+use crate::net::{NetworkConfig, ResNetLayout};
+
+use super::experts::{DEFAULT_BAKE_RESOLUTION, ExpertsJob, train_expert_set};
+use super::fit::{FitData, FitInputs, FitSource, fitted_manifest};
+use super::sampling::SamplingStrategy;
+use super::trainer::{ExpertBranches, MeasureLoss, Method};
+
+/// The recipe of one schedule, folded from the stages of the shipped SYMSOL model
+/// (docs/RESULTS.md): what `new` trains with unless an experiment says otherwise.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Recipe {
+    /// Crop side (px).
+    pub image_size: u32,
+    /// Images per step.
+    pub batch: usize,
+    /// Rotations per image.
+    pub k: usize,
+    /// Peak learning rate (warm-up, then cosine decay to zero).
+    pub lr: f64,
+    /// Focused share of the K at the first step, annealed linearly to `focused_end`.
+    pub focused_start: f64,
+    /// Focused share at the last step (the shipped model's last stage: 1/20).
+    pub focused_end: f64,
+    /// Supersampling of the fresh renders.
+    pub supersample: u32,
+}
+
+/// The recipe: batch 16 × K 256 at 32 px, peak lr 1e-3, the focused share 3/4 → 1/20.
+pub const RECIPE: Recipe = Recipe {
+    image_size: 32,
+    batch: 16,
+    k: 256,
+    lr: 1e-3,
+    focused_start: 0.75,
+    focused_end: 0.05,
+    supersample: 2,
+};
+
+/// Share of the budget the experts of all objects get at most (the rest trains the network).
+pub const EXPERTS_SHARE: f64 = 0.2;
+
+/// Evaluation level of the held-out set.
+pub const EVAL_LEVEL: u8 = 3;
+
+/// Seconds kept back for writing the bundle and the job's state.
+const WRITE_RESERVE_S: f64 = 3.0;
+
+/// Errors of a job; each says what to do.
+#[derive(Debug, thiserror::Error)]
+pub enum NewModelError {
+    /// A mesh that cannot be used.
+    #[error("{path}: {message}")]
+    Mesh {
+        /// The file.
+        path: String,
+        /// What is wrong.
+        message: String,
+    },
+    /// Settings or a state that do not go together.
+    #[error("{0}")]
+    Invalid(String),
+    /// The budget cannot pay for the smallest model.
+    #[error(
+        "a budget of {budget:.0} s is too small: {spent:.0} s went to probes and experts, and \
+         {needed:.0} s more are needed for {min_steps} training steps and the evaluation \
+         (measured: {step:.3} s per step, {eval:.3} s per test image)"
+    )]
+    BudgetTooSmall {
+        /// The budget.
+        budget: f64,
+        /// Spent so far.
+        spent: f64,
+        /// Needed beyond that.
+        needed: f64,
+        /// The least steps trained.
+        min_steps: usize,
+        /// Seconds per step.
+        step: f64,
+        /// Seconds per test image.
+        eval: f64,
+    },
+    /// A file of the job.
+    #[error("{path}: {message}")]
+    Io {
+        /// The file.
+        path: String,
+        /// What went wrong.
+        message: String,
+    },
+    /// Training the experts.
+    #[error("experts of {object}: {source}")]
+    Experts {
+        /// The object.
+        object: String,
+        /// What went wrong.
+        source: crate::experts::ExpertError,
+    },
+    /// Assembling the fit.
+    #[error(transparent)]
+    Fit(#[from] super::fit::FitError),
+    /// Training the network.
+    #[error(transparent)]
+    Train(#[from] super::TrainError),
+    /// Writing or reading a bundle.
+    #[error(transparent)]
+    Bundle(#[from] crate::bundle::BundleError),
+    /// A grid level of the evaluation.
+    #[error(transparent)]
+    So3(#[from] crate::so3::So3Error),
+}
+
+/// What to make.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NewModel {
+    /// The parts' mesh files (one object each; names are the files' stems).
+    pub meshes: Vec<PathBuf>,
+    /// Their unit (`None`: guessed per part from its size).
+    pub units: Option<LengthUnit>,
+    /// The bundle folder to write.
+    pub out: PathBuf,
+    /// The whole job's wall-time budget, seconds.
+    pub budget_seconds: f64,
+    /// Held-out realistic test crops per object.
+    pub eval_images: usize,
+    /// At most this many training steps (experiments and tests; `None`: what the budget buys).
+    pub max_steps: Option<usize>,
+    /// At most this many steps of each expert (experiments and tests).
+    pub max_expert_steps: Option<usize>,
+    /// Seed of the experts and the training data.
+    pub seed: u64,
+    /// The command line, for the manifests.
+    pub command: String,
+}
+
+/// The job's state on disk (`<out>.job/job.json`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct JobState {
+    /// The command that started the job.
+    pub command: String,
+    /// The meshes, in order.
+    pub meshes: Vec<PathBuf>,
+    /// The budget, seconds.
+    pub budget_seconds: f64,
+    /// Wall time spent by every run of the job so far, seconds.
+    pub spent_seconds: f64,
+    /// The plan, once probed.
+    pub plan: Option<BudgetPlan>,
+    /// `(stage, seconds)` of the stages finished.
+    pub stages: Vec<(String, f64)>,
+}
+
+/// The job's folder for the bundle `out`.
+pub fn job_dir(out: &Path) -> PathBuf {
+    let mut name = out.file_name().unwrap_or_default().to_os_string();
+    name.push(".job");
+    out.with_file_name(name)
+}
+
+/// The job's clock: what earlier runs spent plus this run's time.
+struct Clock {
+    before: f64,
+    started: Instant,
+    budget: f64,
+}
+
+impl Clock {
+    fn spent(&self) -> f64 {
+        self.before + self.started.elapsed().as_secs_f64()
+    }
+
+    fn left(&self) -> f64 {
+        self.budget - self.spent()
+    }
+}
+
+/// The job's state, saved atomically after every stage and now and then within one.
+struct Job {
+    dir: PathBuf,
+    state: JobState,
+    clock: Clock,
+}
+
+impl Job {
+    fn save(&mut self) -> Result<(), NewModelError> {
+        self.state.spent_seconds = self.clock.spent();
+        let path = self.dir.join("job.json");
+        let tmp = self.dir.join("job.json.tmp");
+        let io = |e: std::io::Error| NewModelError::Io {
+            path: path.display().to_string(),
+            message: e.to_string(),
+        };
+        let json = serde_json::to_vec_pretty(&self.state).expect("the job state serialises");
+        std::fs::write(&tmp, json).map_err(io)?;
+        std::fs::rename(&tmp, &path).map_err(io)
+    }
+
+    /// Runs `stage` unless it is done, recording its time.
+    fn stage<T>(
+        &mut self,
+        name: &str,
+        run: impl FnOnce(&mut Job) -> Result<T, NewModelError>,
+    ) -> Result<T, NewModelError> {
+        let started = self.clock.spent();
+        let out = run(self)?;
+        let seconds = self.clock.spent() - started;
+        match self.state.stages.iter_mut().find(|(n, _)| n == name) {
+            Some((_, s)) => *s += seconds,
+            None => self.state.stages.push((name.to_string(), seconds)),
+        }
+        self.save()?;
+        Ok(out)
+    }
+
+    fn say(&self, progress: &(dyn Fn(&str) + Sync), message: &str) {
+        progress(&format!(
+            "[{:6.0} s spent, {:6.0} s left] {message}",
+            self.clock.spent(),
+            self.clock.left().max(0.0)
+        ));
+    }
+}
+
+/// Opens the job folder: a new one, or with `resume` the one a killed run left (same meshes).
+fn open_job(model: &NewModel, resume: bool) -> Result<Job, NewModelError> {
+    let dir = job_dir(&model.out);
+    let state_file = dir.join("job.json");
+    let io = |path: &Path, e: std::io::Error| NewModelError::Io {
+        path: path.display().to_string(),
+        message: e.to_string(),
+    };
+    let state = if state_file.exists() {
+        if !resume {
+            return Err(NewModelError::Invalid(format!(
+                "{} holds a job already: continue it with --resume, or remove the folder",
+                dir.display()
+            )));
+        }
+        let bytes = std::fs::read(&state_file).map_err(|e| io(&state_file, e))?;
+        let state: JobState = serde_json::from_slice(&bytes).map_err(|e| NewModelError::Io {
+            path: state_file.display().to_string(),
+            message: e.to_string(),
+        })?;
+        if state.meshes != model.meshes {
+            return Err(NewModelError::Invalid(format!(
+                "{}: the job was started for other meshes ({:?}); give the same --mesh flags",
+                state_file.display(),
+                state.meshes
+            )));
+        }
+        state
+    } else {
+        std::fs::create_dir_all(&dir).map_err(|e| io(&dir, e))?;
+        JobState {
+            command: model.command.clone(),
+            meshes: model.meshes.clone(),
+            budget_seconds: model.budget_seconds,
+            spent_seconds: 0.0,
+            plan: None,
+            stages: Vec::new(),
+        }
+    };
+    let clock = Clock {
+        before: state.spent_seconds,
+        started: Instant::now(),
+        budget: state.budget_seconds,
+    };
+    Ok(Job { dir, state, clock })
+}
+
+/// A part: its name, its mesh in NOCS and the normalisation.
+type Part = (String, Mesh, Normalisation);
+
+/// Reads every part, checks that each is closed and that names differ.
+fn load_parts(model: &NewModel) -> Result<Vec<Part>, NewModelError> {
+    let mut parts: Vec<Part> = Vec::new();
+    for path in &model.meshes {
+        let err = |message: String| NewModelError::Mesh {
+            path: path.display().to_string(),
+            message,
+        };
+        let (name, mesh, n) =
+            crate::cad::load_part(path, model.units).map_err(|e| err(e.to_string()))?;
+        crate::cad::SignedDistance::new(&mesh)
+            .map_err(|e| err(format!("the SDF expert needs a closed mesh: {e}")))?;
+        if parts.iter().any(|(other, _, _)| *other == name) {
+            return Err(err(format!(
+                "two meshes are named '{name}' (the file's stem names the object); rename one"
+            )));
+        }
+        parts.push((name, mesh, n));
+    }
+    if parts.is_empty() {
+        return Err(NewModelError::Invalid("give at least one --mesh".into()));
+    }
+    Ok(parts)
+}
+
+/// The expert job of `part` with `sdf_steps` and `feature_steps`; no symmetry declared (the
+/// experts discover it).
+fn experts_job(
+    part: &Part,
+    sdf_steps: usize,
+    feature_steps: usize,
+    seed: u64,
+    command: &str,
+) -> ExpertsJob {
+    let (name, mesh, normalisation) = part;
+    ExpertsJob {
+        name: name.clone(),
+        mesh: mesh.clone(),
+        normalisation: *normalisation,
+        symmetries: vec![nalgebra::Rotation3::identity()],
+        sdf: SdfTrainConfig {
+            steps: sdf_steps,
+            seed,
+            ..SdfTrainConfig::default()
+        },
+        features: FeatureTrainConfig {
+            steps: feature_steps,
+            seed,
+            ..FeatureTrainConfig::default()
+        },
+        bake_resolution: DEFAULT_BAKE_RESOLUTION,
+        energy: EnergyParams::default(),
+        width: WidthCriterion {
+            seed,
+            ..WidthCriterion::default()
+        },
+        modes: ModeTableConfig {
+            seed,
+            ..ModeTableConfig::default()
+        },
+        command: command.to_string(),
+    }
+}
+
+/// Times a few steps of each expert on the first part, and sizes the experts to
+/// [`EXPERTS_SHARE`] of the budget (at most their default steps, at least 20 SDF and 10 feature
+/// steps).
+fn plan_experts(
+    job: &Job,
+    parts: &[Part],
+    seed: u64,
+    max_expert_steps: Option<usize>,
+) -> Result<BudgetPlan, NewModelError> {
+    use crate::experts::feature::train_features;
+    use crate::experts::sdf::train_sdf;
+    let mesh = &parts[0].1;
+    let expert_err = |source| NewModelError::Experts {
+        object: parts[0].0.clone(),
+        source,
+    };
+    const PROBE_SDF: usize = 10;
+    const PROBE_FEATURES: usize = 4;
+    let t = Instant::now();
+    train_sdf(
+        mesh,
+        &SdfTrainConfig {
+            steps: PROBE_SDF,
+            seed,
+            ..SdfTrainConfig::default()
+        },
+        |_, _| {},
+    )
+    .map_err(expert_err)?;
+    let sdf_step = t.elapsed().as_secs_f64() / PROBE_SDF as f64;
+    let t = Instant::now();
+    train_features(
+        mesh,
+        &[nalgebra::Rotation3::identity()],
+        &FeatureTrainConfig {
+            steps: PROBE_FEATURES,
+            seed,
+            ..FeatureTrainConfig::default()
+        },
+        |_, _| {},
+    )
+    .map_err(expert_err)?;
+    let feature_step = t.elapsed().as_secs_f64() / PROBE_FEATURES as f64;
+    let (sdf_default, feat_default) = (
+        SdfTrainConfig::default().steps,
+        FeatureTrainConfig::default().steps,
+    );
+    // Objects train side by side, one per core; the bake, λ selection, mode table and symmetry
+    // take about a tenth of the share.
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get()) as f64;
+    let rounds = (parts.len() as f64 / cores).ceil().max(1.0);
+    let per_object = 0.9 * EXPERTS_SHARE * job.clock.budget / rounds;
+    let full = sdf_default as f64 * sdf_step + feat_default as f64 * feature_step;
+    let scale = (per_object / full).min(1.0);
+    let cap = |steps: usize| max_expert_steps.map_or(steps, |m| steps.min(m.max(1)));
+    Ok(BudgetPlan {
+        sdf_steps: cap(((sdf_default as f64 * scale) as usize).max(20)),
+        feature_steps: cap(((feat_default as f64 * scale) as usize).max(10)),
+        probe_sdf_step: sdf_step,
+        probe_feature_step: feature_step,
+        fit_steps: 0,
+        probe_fit_step: 0.0,
+        probe_eval_image: 0.0,
+        eval_images: 0,
+    })
+}
+
+/// Trains the experts of every part not yet written to `<job>/experts/<name>`, side by side.
+fn train_experts(
+    job: &Job,
+    parts: &[Part],
+    plan: &BudgetPlan,
+    model: &NewModel,
+    progress: &(dyn Fn(&str) + Sync),
+) -> Result<Vec<PathBuf>, NewModelError> {
+    use rayon::prelude::*;
+    let dirs: Vec<PathBuf> = parts
+        .iter()
+        .map(|(name, _, _)| job.dir.join("experts").join(name))
+        .collect();
+    let job_say = Mutex::new(());
+    let say = |m: &str| {
+        let _guard = job_say.lock();
+        job.say(progress, m);
+    };
+    parts
+        .par_iter()
+        .zip(&dirs)
+        .filter(|(_, dir)| !dir.join("manifest.json").exists())
+        .try_for_each(|(part, dir)| {
+            let name = &part.0;
+            say(&format!(
+                "experts of {name}: {} SDF and {} feature steps",
+                plan.sdf_steps, plan.feature_steps
+            ));
+            let mut last = Instant::now();
+            let mut set = train_expert_set(
+                experts_job(
+                    part,
+                    plan.sdf_steps,
+                    plan.feature_steps,
+                    model.seed,
+                    &model.command,
+                ),
+                &mut |phase, step, steps, loss| {
+                    if last.elapsed().as_secs_f64() >= 30.0 {
+                        last = Instant::now();
+                        say(&format!(
+                            "experts of {name}: {phase} {step}/{steps} (loss {loss:.4})"
+                        ));
+                    }
+                },
+            )
+            .map_err(|source| NewModelError::Experts {
+                object: name.clone(),
+                source,
+            })?;
+            set.save(dir).map_err(|e| NewModelError::Io {
+                path: dir.display().to_string(),
+                message: e.to_string(),
+            })?;
+            if let Some(s) = &set.manifest.symmetry {
+                say(&format!(
+                    "experts of {name} written; symmetry {} (confidence {:.2}){}",
+                    s.label,
+                    s.confidence,
+                    s.near
+                        .as_ref()
+                        .map_or_else(String::new, |n| format!(", nearly {}", n.label))
+                ));
+            }
+            Ok::<(), NewModelError>(())
+        })?;
+    Ok(dirs)
+}
+
+/// The network and training configuration of the recipe for `steps`.
+pub fn recipe_config(steps: usize, seed: u64) -> TrainConfig {
+    let network = NetworkConfig::new(ResNetLayout::Tiny, RotationEncoding::Cube)
+        .with_image_size(RECIPE.image_size);
+    TrainConfig {
+        network,
+        method: Method::Alignist {
+            loss: MeasureLoss::Gkl,
+            sampling: SamplingStrategy::annealed_share(
+                RECIPE.k,
+                RECIPE.focused_start,
+                RECIPE.focused_end,
+            ),
+            experts: ExpertBranches::Both,
+        },
+        steps,
+        batch: RECIPE.batch,
+        k: RECIPE.k,
+        lr: RECIPE.lr,
+        warmup: super::config::warmup_steps(steps),
+        seed,
+        checkpoint_every: 50,
+        init: None,
+    }
+}
+
+/// Makes the model: every stage not done yet, then the bundle. `progress` gets a line now and
+/// then, with the time spent and left.
+pub fn new_model(
+    model: &NewModel,
+    resume: bool,
+    progress: &(dyn Fn(&str) + Sync),
+) -> Result<ModelManifest, NewModelError> {
+    if !(model.budget_seconds.is_finite() && model.budget_seconds > 0.0) {
+        return Err(NewModelError::Invalid(format!(
+            "the budget must be a positive time, got {} s",
+            model.budget_seconds
+        )));
+    }
+    let parts = load_parts(model)?;
+    let mut job = open_job(model, resume)?;
+    job.say(
+        progress,
+        &format!(
+            "{} part(s): {}",
+            parts.len(),
+            parts
+                .iter()
+                .map(|(n, _, norm)| format!("{n} (radius {:.4} {})", norm.scale, norm.units))
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
+    );
+    let plan = match job.state.plan.clone() {
+        Some(plan) => plan,
+        None => {
+            let plan = job.stage("probe", |job| {
+                plan_experts(job, &parts, model.seed, model.max_expert_steps)
+            })?;
+            job.state.plan = Some(plan.clone());
+            job.save()?;
+            plan
+        }
+    };
+    let dirs = job.stage("experts", |job| {
+        train_experts(job, &parts, &plan, model, progress)
+    })?;
+    fit_and_write(&mut job, model, plan, &dirs, resume, progress)
+}
+
+use crate::bundle::record::ModelManifest;
+
+/// The fit stage (probed and sized first), the evaluation and the bundle.
+fn fit_and_write(
+    job: &mut Job,
+    model: &NewModel,
+    mut plan: BudgetPlan,
+    dirs: &[PathBuf],
+    resume: bool,
+    progress: &(dyn Fn(&str) + Sync),
+) -> Result<ModelManifest, NewModelError> {
+    let inputs = FitInputs {
+        experts: dirs.to_vec(),
+        source: FitSource::Fresh {
+            realistic: true,
+            supersample: RECIPE.supersample,
+            eval_seed: model.seed ^ (7 << 40),
+        },
+        image_size: RECIPE.image_size,
+        fraction: 1.0,
+        eval_images: 0,
+    };
+    let mut data = FitData::load(&inputs, 1, RECIPE.batch)?;
+    let names: Vec<String> = data
+        .sets
+        .iter()
+        .map(|s| s.manifest.object.name.clone())
+        .collect();
+    let symmetries: Vec<_> = data.sets.iter().map(ExpertSet::symmetries).collect();
+    let tests = data
+        .fresh
+        .as_ref()
+        .expect("fresh renders")
+        .realistic_eval_images(
+            &names,
+            &symmetries,
+            RECIPE.image_size,
+            model.eval_images,
+            model.seed.wrapping_add(1 << 40),
+            Realism::HELD_OUT,
+        );
+    let training = data.training_set()?;
+    if plan.fit_steps == 0 {
+        plan = job.stage("probe", |job| {
+            size_fit(job, plan.clone(), model, &training, &tests)
+        })?;
+        job.state.plan = Some(plan.clone());
+        job.save()?;
+    }
+    let config = recipe_config(plan.fit_steps, model.seed);
+    job.say(
+        progress,
+        &format!(
+            "fit: {} steps of batch {} × K {} ({:.3} s per step in the probe), focused share {} → {}",
+            plan.fit_steps, RECIPE.batch, RECIPE.k, plan.probe_fit_step, RECIPE.focused_start,
+            RECIPE.focused_end
+        ),
+    );
+    let checkpoints = job.dir.join("checkpoints");
+    std::fs::create_dir_all(&checkpoints).map_err(|e| NewModelError::Io {
+        path: checkpoints.display().to_string(),
+        message: e.to_string(),
+    })?;
+    let reserve = plan.probe_eval_image * tests.len() as f64 * 1.2 + WRITE_RESERVE_S;
+    let (network, report) = job.stage("fit", |job| {
+        let mut last = Instant::now();
+        let out = super::train(
+            &config,
+            &training,
+            Some(&checkpoints),
+            resume,
+            |step, steps, loss| {
+                if last.elapsed().as_secs_f64() >= 30.0 || step == steps {
+                    last = Instant::now();
+                    job.say(
+                        progress,
+                        &format!("fit: step {step}/{steps}, loss {loss:.4}"),
+                    );
+                    let _ = job.save();
+                }
+                // The probe's estimate was too low: stop in time for the evaluation.
+                if job.clock.left() < reserve {
+                    job.say(
+                        progress,
+                        &format!("fit: stopped at step {step} to keep the budget"),
+                    );
+                    std::ops::ControlFlow::Break(())
+                } else {
+                    std::ops::ControlFlow::Continue(())
+                }
+            },
+        )?;
+        Ok(out)
+    })?;
+    let evaluation: Option<EvalReport> = job.stage("evaluation", |job| {
+        job.say(
+            progress,
+            &format!("evaluating on {} held-out realistic crops", tests.len()),
+        );
+        if tests.is_empty() {
+            return Ok(None);
+        }
+        Ok(Some(super::eval::evaluate(
+            &network,
+            &config.network,
+            &tests,
+            EVAL_LEVEL,
+            |_| {},
+        )?))
+    })?;
+    let name = model
+        .out
+        .file_name()
+        .and_then(|n| n.to_str())
+        .unwrap_or("model")
+        .to_string();
+    let mut manifest = fitted_manifest(
+        name,
+        data.objects,
+        model.command.clone(),
+        config,
+        report,
+        evaluation,
+    );
+    manifest.budget = Some(BudgetRecord {
+        budget_seconds: job.clock.budget,
+        spent_seconds: job.clock.spent(),
+        plan,
+        stages: job.state.stages.clone(),
+    });
+    let dir_refs: Vec<&Path> = dirs.iter().map(PathBuf::as_path).collect();
+    ModelBundle::save(&mut manifest, &network, &dir_refs, &model.out)?;
+    job.save()?;
+    job.say(
+        progress,
+        &format!("bundle written to {}", model.out.display()),
+    );
+    Ok(manifest)
+}
+
+/// Times a few training steps and test images, and sizes the schedule to the time left.
+fn size_fit(
+    job: &Job,
+    mut plan: BudgetPlan,
+    model: &NewModel,
+    training: &super::TrainingSet,
+    tests: &[super::eval::EvalImage],
+) -> Result<BudgetPlan, NewModelError> {
+    const PROBE_STEPS: usize = 8;
+    const MIN_STEPS: usize = 20;
+    let probe = recipe_config(PROBE_STEPS, model.seed ^ 0x9b0b);
+    // The steady rate from the third step on (the first ones start threads and the prefetch),
+    // and the start-up cost before it.
+    let t = Instant::now();
+    let mut after_two = None;
+    let (network, _) = super::train(&probe, training, None, false, |step, _, _| {
+        if step == 2 {
+            after_two = Some(t.elapsed().as_secs_f64());
+        }
+        std::ops::ControlFlow::Continue(())
+    })?;
+    let total = t.elapsed().as_secs_f64();
+    let start_up = after_two.unwrap_or(0.0);
+    plan.probe_fit_step = (total - start_up) / (PROBE_STEPS - 2) as f64;
+    let start_up = (start_up - 2.0 * plan.probe_fit_step).max(0.0);
+    let few = &tests[..tests.len().min(4)];
+    let t = Instant::now();
+    if !few.is_empty() {
+        super::eval::evaluate(&network, &probe.network, few, EVAL_LEVEL, |_| {})?;
+    }
+    plan.probe_eval_image = t.elapsed().as_secs_f64() / few.len().max(1) as f64;
+    plan.eval_images = model.eval_images;
+    let reserve =
+        plan.probe_eval_image * tests.len() as f64 * 1.2 + 2.0 * WRITE_RESERVE_S + start_up;
+    let for_steps = job.clock.left() - reserve;
+    let steps = (for_steps / plan.probe_fit_step).floor().max(0.0) as usize;
+    if steps < MIN_STEPS {
+        return Err(NewModelError::BudgetTooSmall {
+            budget: job.clock.budget,
+            spent: job.clock.spent(),
+            needed: MIN_STEPS as f64 * plan.probe_fit_step + reserve,
+            min_steps: MIN_STEPS,
+            step: plan.probe_fit_step,
+            eval: plan.probe_eval_image,
+        });
+    }
+    plan.fit_steps = model.max_steps.map_or(steps, |m| steps.min(m));
+    Ok(plan)
+}
