@@ -245,8 +245,7 @@ fn name_symmetries(
     config: &DiscoveryConfig,
 ) -> DiscoveredSymmetry {
     let on_axis = |q: &Rotation3<f64>, axis: &Unit<Vector3<f64>>| {
-        q.axis_angle()
-            .is_some_and(|(a, _)| a.dot(axis).abs() > 5f64.to_radians().cos())
+        axis_angle(q).is_some_and(|(a, _)| a.dot(axis).abs() > 5f64.to_radians().cos())
     };
     // The rotations within `within`: those about an axis that is continuous within it replaced
     // by its ring, and a few about one axis that form no cyclic group left out (the minima of a
@@ -397,11 +396,22 @@ impl AxisGroup {
     }
 }
 
+/// The axis and angle (in `[0, π]`) of `r` through its quaternion, which stays exact at 180°
+/// (where the matrix's skew part, and with it nalgebra's `axis_angle`, vanishes); `None` for the
+/// identity.
+fn axis_angle(r: &Rotation3<f64>) -> Option<(Unit<Vector3<f64>>, f64)> {
+    let q = nalgebra::UnitQuaternion::from_rotation_matrix(r);
+    let (w, v) = (q.w, q.imag());
+    let v = if w < 0.0 { -v } else { v };
+    let angle = 2.0 * v.norm().atan2(w.abs());
+    Unit::try_new(v, 1e-12).map(|axis| (axis, angle))
+}
+
 /// The rotations' axes with the angles about each (axes within 5° are one).
 fn axis_groups(rotations: &[Rotation3<f64>]) -> Vec<AxisGroup> {
     let mut groups: Vec<AxisGroup> = Vec::new();
     for r in rotations {
-        let Some((axis, angle)) = r.axis_angle() else {
+        let Some((axis, angle)) = axis_angle(r) else {
             continue;
         };
         if angle < 1f64.to_radians() {
