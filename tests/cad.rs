@@ -35,7 +35,7 @@ fn cube_data() -> (Vec<[f64; 3]>, Vec<[u32; 3]>) {
     (v, f)
 }
 
-fn write_cube_files(dir: &std::path::Path) -> [std::path::PathBuf; 3] {
+fn write_cube_files(dir: &std::path::Path) -> [std::path::PathBuf; 4] {
     let (v, f) = cube_data();
     let obj = dir.join("cube.obj");
     let mut text = String::from("# cube\n");
@@ -75,7 +75,45 @@ fn write_cube_files(dir: &std::path::Path) -> [std::path::PathBuf; 3] {
         .collect();
     let mut file = std::fs::File::create(&stl).unwrap();
     stl_io::write_stl(&mut file, tris.iter()).unwrap();
-    [obj, ply, stl]
+    [obj, ply, stl, write_gltf_cube(dir, &v, &f)]
+}
+
+/// The cube as glTF 2.0: vertices about the origin in a `.bin` buffer, moved to their place by
+/// the node's translation (so the loader must apply node transforms).
+fn write_gltf_cube(dir: &std::path::Path, v: &[[f64; 3]], f: &[[u32; 3]]) -> std::path::PathBuf {
+    let shift = [5.0, -2.0, 1.0];
+    let mut bin = Vec::new();
+    for p in v {
+        for k in 0..3 {
+            bin.extend(((p[k] - shift[k]) as f32).to_le_bytes());
+        }
+    }
+    for t in f {
+        for i in t {
+            bin.extend(i.to_le_bytes());
+        }
+    }
+    std::fs::write(dir.join("cube.bin"), &bin).unwrap();
+    let json = serde_json::json!({
+        "asset": {"version": "2.0"},
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0, "translation": shift}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1}]}],
+        "buffers": [{"uri": "cube.bin", "byteLength": bin.len()}],
+        "bufferViews": [
+            {"buffer": 0, "byteOffset": 0, "byteLength": 96},
+            {"buffer": 0, "byteOffset": 96, "byteLength": 144}
+        ],
+        "accessors": [
+            {"bufferView": 0, "componentType": 5126, "count": 8, "type": "VEC3",
+             "min": [-3.0, -3.0, -3.0], "max": [3.0, 3.0, 3.0]},
+            {"bufferView": 1, "componentType": 5125, "count": 36, "type": "SCALAR"}
+        ]
+    });
+    let path = dir.join("cube.gltf");
+    std::fs::write(&path, serde_json::to_vec_pretty(&json).unwrap()).unwrap();
+    path
 }
 
 /// The triangles of a mesh as sorted coordinate triples, independent of vertex order.
@@ -102,7 +140,7 @@ fn triangle_set(mesh: &Mesh) -> Vec<Vec<[i64; 3]>> {
 }
 
 #[test]
-fn the_same_cube_loads_alike_from_obj_ply_and_stl() {
+fn the_same_cube_loads_alike_from_obj_ply_stl_and_gltf() {
     let dir = tempfile::tempdir().unwrap();
     let files = write_cube_files(dir.path());
     let meshes: Vec<(Mesh, _)> = files
@@ -124,6 +162,7 @@ fn the_same_cube_loads_alike_from_obj_ply_and_stl() {
     }
     assert_eq!(triangle_set(&meshes[0].0), triangle_set(&meshes[1].0));
     assert_eq!(triangle_set(&meshes[0].0), triangle_set(&meshes[2].0));
+    assert_eq!(triangle_set(&meshes[0].0), triangle_set(&meshes[3].0));
 }
 
 fn cube_distance(p: &Vector3<f32>, a: f32) -> f32 {

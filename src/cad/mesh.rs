@@ -239,7 +239,7 @@ pub struct SurfacePoint {
 }
 
 impl Mesh {
-    /// Loads an OBJ, PLY or STL file (by extension) and validates it (non-empty, triangles only,
+    /// Loads an OBJ, PLY, STL or glTF (`.gltf`, `.glb`) file (by extension) and validates it (non-empty, triangles only,
     /// indices in range, finite coordinates). It is not normalised; see [`Mesh::normalised`].
     pub fn load(path: &Path) -> Result<Mesh, CadError> {
         let ext = path
@@ -251,6 +251,7 @@ impl Mesh {
             "obj" => load_obj(path)?,
             "ply" => load_ply(path)?,
             "stl" => load_stl(path)?,
+            "gltf" | "glb" => load_gltf(path)?,
             _ => return Err(CadError::UnknownFormat(path.display().to_string())),
         };
         mesh.validate()?;
@@ -810,6 +811,75 @@ fn load_stl(path: &Path) -> Result<Mesh, CadError> {
             .collect(),
         colors: None,
     })
+}
+
+/// A glTF 2.0 file (`.gltf` with its buffers, or `.glb`): the triangles of every mesh of the
+/// default scene (else the first), placed by their nodes' transforms, with the base colour of
+/// each primitive's material as the colour of its faces.
+fn load_gltf(path: &Path) -> Result<Mesh, CadError> {
+    let (document, buffers, _images) =
+        gltf::import(path).map_err(|e| parse_err(path, e.to_string()))?;
+    let scene = document
+        .default_scene()
+        .or_else(|| document.scenes().next())
+        .ok_or_else(|| parse_err(path, String::from("no scene")))?;
+    let mut mesh = Mesh {
+        source: path.display().to_string(),
+        vertices: Vec::new(),
+        triangles: Vec::new(),
+        colors: None,
+    };
+    let mut face_colours = Vec::new();
+    let mut stack: Vec<(gltf::Node, nalgebra::Matrix4<f32>)> = scene
+        .nodes()
+        .map(|n| (n, nalgebra::Matrix4::identity()))
+        .collect();
+    while let Some((node, parent)) = stack.pop() {
+        let local = nalgebra::Matrix4::from_column_slice(&node.transform().matrix().concat());
+        let world = parent * local;
+        stack.extend(node.children().map(|c| (c, world)));
+        let Some(m) = node.mesh() else { continue };
+        for primitive in m.primitives() {
+            if primitive.mode() != gltf::mesh::Mode::Triangles {
+                return Err(parse_err(
+                    path,
+                    format!("mesh {}: only triangle primitives are read", m.index()),
+                ));
+            }
+            let reader = primitive.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
+            let Some(positions) = reader.read_positions() else {
+                continue;
+            };
+            let base = mesh.vertices.len() as u32;
+            mesh.vertices.extend(positions.map(|p| {
+                let v = world * nalgebra::Vector4::new(p[0], p[1], p[2], 1.0);
+                Vector3::new(v.x, v.y, v.z)
+            }));
+            let count = mesh.vertices.len() as u32 - base;
+            let indices: Vec<u32> = match reader.read_indices() {
+                Some(i) => i.into_u32().collect(),
+                None => (0..count).collect(),
+            };
+            let before = mesh.triangles.len();
+            mesh.triangles.extend(
+                indices
+                    .chunks_exact(3)
+                    .map(|t| [t[0] + base, t[1] + base, t[2] + base]),
+            );
+            let c = primitive
+                .material()
+                .pbr_metallic_roughness()
+                .base_color_factor();
+            let rgb = [c[0], c[1], c[2]].map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8);
+            face_colours.extend(std::iter::repeat_n(rgb, mesh.triangles.len() - before));
+        }
+    }
+    // A node mirrored by a negative scale turns its triangles inside out; the SDF flips a mesh
+    // wound inward as a whole, which holds for the common single-node file.
+    if face_colours.iter().any(|c| *c != [255, 255, 255]) {
+        mesh.colors = Some(MeshColors::PerFace(face_colours));
+    }
+    Ok(mesh)
 }
 
 /// Writes `mesh` as a binary little-endian PLY with per-vertex colours when it has them (the BOP

@@ -10,7 +10,7 @@ use alignist::train::new_model::{NewModel, new_model};
 
 #[derive(clap::Args)]
 pub(crate) struct NewArgs {
-    /// A part's mesh file (.obj, .ply, .stl; closed); repeat per part. The file's stem names the
+    /// A part's mesh file (.obj, .ply, .stl, .gltf, .glb; closed); repeat per part. The file's stem names the
     /// object.
     #[arg(long, required = true)]
     mesh: Vec<PathBuf>,

@@ -11,7 +11,7 @@ pub(crate) struct ObjectArgs {
     /// A SYMSOL shape: tet, cube, icosa, cone, cyl, tetX, cylO, sphereX.
     #[arg(long)]
     shape: Option<String>,
-    /// A mesh file (.obj, .ply, .stl); it is normalised to NOCS.
+    /// A mesh file (.obj, .ply, .stl, .gltf, .glb); it is normalised to NOCS.
     #[arg(long)]
     mesh: Option<PathBuf>,
     /// Symmetry group of --mesh (none, T, O, I, C<n>, D<n>, cone, cylinder), when known; the

@@ -8,7 +8,7 @@ use alignist::experts::symmetry::{DiscoveredSymmetry, DiscoveryConfig};
 
 #[derive(clap::Args)]
 pub(crate) struct SymmetryArgs {
-    /// A mesh file (.obj, .ply, .stl, closed): its exact SDF, centred on its surface centroid.
+    /// A mesh file (.obj, .ply, .stl, .gltf, .glb; closed): its exact SDF, centred on its surface centroid.
     #[arg(long, conflicts_with = "experts")]
     mesh: Option<PathBuf>,
     /// An expert set: its baked SDF expert, with its mode table's cells as extra candidates.
