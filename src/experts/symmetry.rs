@@ -351,8 +351,10 @@ fn closed_extension(
         if near(c, &out) {
             continue;
         }
+        // Its products with every member and with itself (a lone 45° turn is no C8 without 90°).
         let closes = out
             .iter()
+            .chain(std::iter::once(c))
             .all(|s| near(&(c * s), candidates) && near(&(s * c), candidates));
         if closes {
             out.push(*c);

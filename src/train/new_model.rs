@@ -23,7 +23,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::bundle::experts::ExpertSet;
 use crate::bundle::model::ModelBundle;
-use crate::bundle::record::{BudgetPlan, BudgetRecord, EvalReport, TrainConfig};
+use crate::bundle::record::{BudgetPlan, BudgetRecord, EvalReport, ModelManifest, TrainConfig};
 use crate::cad::{LengthUnit, Mesh, Normalisation};
 use crate::data::realism::Realism;
 use crate::encoding::RotationEncoding;
@@ -573,8 +573,6 @@ pub fn new_model(
     })?;
     fit_and_write(&mut job, model, plan, &dirs, resume, progress)
 }
-
-use crate::bundle::record::ModelManifest;
 
 /// The fit stage (probed and sized first), the evaluation and the bundle.
 fn fit_and_write(
