@@ -13,12 +13,8 @@ fn main() {
         )
         .unwrap(),
     );
-    let d = model.network_config().hidden;
-    let _ = d;
     let crop = vec![128u8; (model.input_size() * model.input_size() * 3) as usize];
-    let f1 = model.features(&[&crop]);
-    let fv: Vec<f32> = f1.clone().into_data().try_to_vec::<f32>().unwrap();
-    let dim = fv.len();
+    let f1 = model.features(&[&crop]).swap_remove(0);
     let options = PredictOptions {
         top_k: 5,
         level: Some(3),
@@ -46,18 +42,17 @@ fn main() {
         );
     }
     for (threads, b) in [(1usize, 8usize), (2, 4), (2, 8), (1, 2)] {
-        let flat: Vec<f32> = (0..b).flat_map(|_| fv.iter().copied()).collect();
+        let rows: Vec<Vec<f32>> = vec![f1.clone(); b];
         let t = Instant::now();
         std::thread::scope(|s| {
             for w in 0..threads {
                 let model = model.clone();
-                let flat = flat.clone();
+                let rows = rows.clone();
                 let options = options.clone();
                 s.spawn(move || {
                     for _ in (w..n / b).step_by(threads) {
-                        let f = model.features_tensor_many(&flat, b, dim);
                         let depth = vec![None; b];
-                        model.predict_many(&f, &options, &depth).unwrap();
+                        model.predict_many(&rows, &options, &depth).unwrap();
                     }
                 });
             }

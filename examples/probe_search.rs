@@ -6,8 +6,9 @@
 //! `cargo run --release --example probe_search [BUNDLE] [START] [KEEP] [f32|bf16] [REPEATS] [TAPER]`
 use std::time::Instant;
 
-use alignist::engine::{Engine, EngineConfig, PredictOptions, SearchParams};
+use alignist::engine::{Engine, EngineConfig, Model, PredictOptions, SearchParams};
 use alignist::net::Precision;
+use alignist::so3::to_row_major_f32;
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
@@ -29,22 +30,49 @@ fn main() -> anyhow::Result<()> {
     };
     let repeats: usize = arg(5, "20").parse()?;
     let bundle = alignist::bundle::model::ModelBundle::load(&path)?;
-    let images = alignist::train::data::BundleRenders::of(&bundle, 2).eval_images(
-        bundle.manifest.network.image_size,
-        2,
-        7,
-    );
+    let images: Vec<Vec<u8>> = alignist::train::data::BundleRenders::of(&bundle, 2)
+        .eval_images(bundle.manifest.network.image_size, 2, 7)
+        .into_iter()
+        .map(|im| im.rgb)
+        .collect();
     let model = Engine::load_model(&path, EngineConfig::default())?;
-    let finest = 5u8;
     let options = PredictOptions {
         top_k: 10,
-        level: Some(finest),
+        level: Some(FINEST),
         mode_angle_deg: None,
         ..Default::default()
     };
+    let total = median(
+        (0..repeats)
+            .flat_map(|_| &images)
+            .map(|im| {
+                let t = Instant::now();
+                let f = model.features(&[im]);
+                model
+                    .predict_searching(&f, &options, &search, &[None])
+                    .expect("search");
+                t.elapsed().as_secs_f64() * 1e3
+            })
+            .collect(),
+    );
+    println!("{search:?}, top-10 to level {FINEST}: p50 {total:.1} ms");
+    let parts = time_parts(&model, &search, &images[0], repeats * images.len());
+    println!(
+        "  the rest (cell rotations, softmax, selection, modes): {:.1} ms",
+        total - parts
+    );
+    Ok(())
+}
+
+/// The finest level of the searches.
+const FINEST: u8 = 5;
+
+/// Times the search's parts alone, `runs` times each (median): the encoder, the start level in
+/// full, each refined level with the search's numbers of rotations; returns their sum (ms).
+fn time_parts(model: &Model, search: &SearchParams, crop: &[u8], runs: usize) -> f64 {
     let timed = |f: &mut dyn FnMut()| {
         median(
-            (0..repeats * images.len())
+            (0..runs)
                 .map(|_| {
                     let t = Instant::now();
                     f();
@@ -53,34 +81,19 @@ fn main() -> anyhow::Result<()> {
                 .collect(),
         )
     };
-    let crop = &images[0].rgb;
-    let total = median(
-        (0..repeats)
-            .flat_map(|_| &images)
-            .map(|im| {
-                let t = Instant::now();
-                let f = model.features(&[&im.rgb]);
-                model
-                    .predict_searching(&f, &options, &search, &[None])
-                    .expect("search");
-                t.elapsed().as_secs_f64() * 1e3
-            })
-            .collect(),
-    );
-    println!("{search:?}, top-10 to level {finest}: p50 {total:.1} ms");
     let features = model.features(&[crop]);
     let encoder = timed(&mut || {
         model.features(&[crop]);
     });
     println!("  encoder: {encoder:.1} ms");
-    let start_precision = if search.start_level == finest {
+    let start_precision = if search.start_level == FINEST {
         Precision::F32
     } else {
         search.coarse_precision
     };
     let start = timed(&mut || {
         model
-            .logits_in(start_precision, &features, search.start_level)
+            .logits_in(start_precision, &features[0], search.start_level)
             .expect("start level");
     });
     let start_len = model.grid(search.start_level).map_or(0, |g| g.len());
@@ -89,16 +102,13 @@ fn main() -> anyhow::Result<()> {
         search.start_level
     );
     let mut parts = encoder + start;
-    for (i, level) in (search.start_level + 1..=finest).enumerate() {
+    for (i, level) in (search.start_level + 1..=FINEST).enumerate() {
         let keep = (search.keep as f64 * search.keep_taper.powi(i as i32)).round() as usize;
         let grid = model.grid(level).expect("grid");
         let rotations: Vec<[f32; 9]> = (0..8 * keep as u64)
-            .map(|c| {
-                let r = grid.rotation(c * 97 % grid.len() as u64);
-                std::array::from_fn(|j| r.matrix()[(j / 3, j % 3)] as f32)
-            })
+            .map(|c| to_row_major_f32(&grid.rotation(c * 97 % grid.len() as u64)))
             .collect();
-        let precision = if level == finest {
+        let precision = if level == FINEST {
             Precision::F32
         } else {
             search.coarse_precision
@@ -112,9 +122,5 @@ fn main() -> anyhow::Result<()> {
         );
         parts += t;
     }
-    println!(
-        "  the rest (cell rotations, softmax, selection, modes): {:.1} ms",
-        total - parts
-    );
-    Ok(())
+    parts
 }

@@ -136,7 +136,7 @@ proptest! {
         let options = PredictOptions { top_k, level, mode_angle_deg: angle, ..Default::default() };
         match model.check_predict(&options) {
             Ok(l) => {
-                prop_assert!(top_k >= 1 && l <= 6);
+                prop_assert!(top_k >= 1 && l.level() <= 6 && l.top_k() == top_k);
             }
             Err(EngineError::InvalidArgument { field, .. }) => {
                 prop_assert!(["top_k", "level", "mode_angle_deg"].contains(&field.as_str()), "{field}");

@@ -298,7 +298,7 @@ fn the_default_search_finds_the_exhaustive_maximum_at_level_3() {
         ..Default::default()
     };
     for (i, im) in images.iter().enumerate() {
-        let features = model.features(&[&im.rgb]);
+        let features = model.features(&[&im.rgb]).swap_remove(0);
         let logits = model.logits_at(&features, 3).unwrap();
         let best = logits.iter().copied().fold(f32::MIN, f32::max);
         let top = model.predict(&features, &options, None).unwrap().top[0].cell;
@@ -343,7 +343,7 @@ fn the_manifests_levels_cap_what_the_engine_serves() {
     let model = Engine::load_model(path, config).unwrap();
     assert_eq!(model.config().search_max_level, levels.search_max);
     assert_eq!(model.config().max_full_level, levels.full_max);
-    let features = model.features(&[&vec![128u8; 32 * 32 * 3]]);
+    let features = model.features(&[&vec![128u8; 32 * 32 * 3]]).swap_remove(0);
     let above = PredictOptions {
         top_k: 1,
         level: Some(levels.search_max + 1),

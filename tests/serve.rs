@@ -34,8 +34,8 @@ fn prepared(model: &alignist::engine::Model, png: &[u8]) -> Vec<u8> {
 }
 
 /// Image features of a PNG through the model's own preparation and encoder.
-fn features_of(model: &alignist::engine::Model, png: &[u8]) -> burn::tensor::Tensor<2> {
-    model.features(&[&prepared(model, png)])
+fn features_of(model: &alignist::engine::Model, png: &[u8]) -> Vec<f32> {
+    model.features(&[&prepared(model, png)]).swap_remove(0)
 }
 
 #[test]
@@ -125,7 +125,7 @@ fn a_batched_search_answers_each_image_as_its_own_search_does() {
         .unwrap();
     assert_eq!(many.len(), 3);
     for (i, batched) in many.iter().enumerate() {
-        let one = model.features(&[refs[i]]);
+        let one = model.features(&[refs[i]]).swap_remove(0);
         let single = model.predict(&one, &options, None).unwrap();
         let cells =
             |p: &alignist::engine::Prediction| p.top.iter().map(|c| c.cell).collect::<Vec<_>>();

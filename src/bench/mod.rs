@@ -175,7 +175,7 @@ fn print_peaks(model: &Model) -> f64 {
 /// Prints the full grids of levels 3 and 4 in f32 (against the FMA `peak` and numpy) and in
 /// bfloat16.
 fn full_grid_figures(model: &Model, crop: &[u8], bundle: &Path, peak: f64) {
-    let one = model.features(&[crop]);
+    let one = model.features(&[crop]).swap_remove(0);
     let flops = head_flops_per_rotation(model);
     let mut ours_ms = Vec::new();
     for level in [3u8, 4] {
@@ -227,7 +227,7 @@ fn top_k_latency(model: &Model, crops: &[Vec<u8>]) -> anyhow::Result<f64> {
     for i in 0..30 {
         let crop = &crops[i % crops.len()];
         let t = Instant::now();
-        let f = model.features(&[crop]);
+        let f = model.features(&[crop]).swap_remove(0);
         model.predict(&f, &options, None)?;
         lat.push(t.elapsed().as_secs_f64() * 1e3);
     }
@@ -246,7 +246,7 @@ fn encoder_rates(model: &Model, crops: &[Vec<u8>]) {
             .map(|i| crops[i % crops.len()].as_slice())
             .collect();
         let s = best_of(5, || {
-            let _ = model.features(&refs).into_data();
+            let _ = model.features(&refs);
         });
         println!("encoder at batch {batch}: {:.1} images/s", batch as f64 / s);
     }
@@ -365,7 +365,7 @@ fn in_process_throughput(
                             raw_size: None,
                             crop: None,
                         })?;
-                        let f = model.features(&[&crop]);
+                        let f = model.features(&[&crop]).swap_remove(0);
                         model.predict(&f, options, None)?;
                     }
                     Ok(())

@@ -118,7 +118,7 @@ pub fn study(
     let mut times: Vec<Vec<f64>> = vec![Vec::new(); searches.len()];
     let mut disagreements: Vec<Vec<(usize, bool)>> = vec![Vec::new(); searches.len()];
     for (n, crop) in crops.iter().enumerate() {
-        let features = model.features(&[crop]);
+        let features = model.features(&[crop]).swap_remove(0);
         let logits = model.logits_at(&features, level)?;
         let (best, best_logit) = logits
             .iter()

@@ -81,8 +81,8 @@ struct Cli {
     /// BF16 (emulated, slower than f32, elsewhere). Default: calibrated, else bf16.
     #[arg(long, env = "ALIGNIST_SEARCH_COARSE_PRECISION")]
     search_coarse_precision: Option<Precision>,
-    /// Head worker threads per model, each running one Predict search at a time (default: one
-    /// per core).
+    /// Head worker threads per model, each running one call's head work at a time: a Predict or
+    /// PredictFrame search, a PredictDistribution grid (default: one per core).
     #[arg(long, env = "ALIGNIST_HEAD_WORKERS")]
     head_workers: Option<usize>,
     /// Depth pixels used per detection of a depth image (evenly spaced in its box): more cost
@@ -321,7 +321,6 @@ fn server_config(cli: Cli) -> Result<ServerConfig> {
             .then(|| Duration::from_secs(cli.max_connection_age_s)),
         admission: alignist::serve::admission::AdmissionConfig {
             max_in_flight_bytes: cli.max_in_flight_mib << 20,
-            ..Default::default()
         },
         transport: TransportLimits {
             max_connections: cli.max_connections,

@@ -196,14 +196,18 @@ impl ProjectedGrid {
     pub fn log_weights_in(&self, precision: Precision, features: Tensor<2>) -> Vec<Vec<f32>> {
         feature_rows(features)
             .iter()
-            .map(|f| {
-                self.head.scores_in(
-                    precision,
-                    &self.head.image_term(f),
-                    Rows::Projected(&self.projected),
-                )
-            })
+            .map(|f| self.log_weights_of_row(precision, f))
             .collect()
+    }
+
+    /// `s_θ + s_φ` of every cell for one image's features (a plain row of `D` floats), in
+    /// `precision`.
+    pub fn log_weights_of_row(&self, precision: Precision, features: &[f32]) -> Vec<f32> {
+        self.head.scores_in(
+            precision,
+            &self.head.image_term(features),
+            Rows::Projected(&self.projected),
+        )
     }
 
     /// Each branch's log-weights `(s_θ, s_φ)` of every cell, per image, from image features.

@@ -1,8 +1,8 @@
 //! Admission before work: every call that carries an image takes its share of a budget of
 //! in-flight image bytes before anything is decoded, and gives it back when it is answered. A call
 //! that does not fit is refused at once (RESOURCE_EXHAUSTED, `ADMISSION_FULL`, with a retry
-//! delay) instead of growing the server's memory. Head computations run in a bounded number of
-//! slots.
+//! delay) instead of growing the server's memory. Head computations run on each model's head stage
+//! ([`super::heads`]), sized by one setting (`--head-workers`).
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -18,15 +18,12 @@ pub struct AdmissionConfig {
     /// Most image bytes in flight: the encoded bytes plus the decoded RGB8 size of every
     /// admitted call's image.
     pub max_in_flight_bytes: usize,
-    /// Most head computations (scoring, search) at once.
-    pub head_slots: usize,
 }
 
 impl Default for AdmissionConfig {
     fn default() -> Self {
         Self {
             max_in_flight_bytes: 256 << 20,
-            head_slots: std::thread::available_parallelism().map_or(2, |n| n.get()),
         }
     }
 }
@@ -36,7 +33,6 @@ impl Default for AdmissionConfig {
 pub struct Admission {
     bytes: Arc<Semaphore>,
     capacity_kib: usize,
-    heads: Arc<Semaphore>,
 }
 
 /// A call's admitted share of the budget; returned when dropped (and the gauge lowered).
@@ -70,7 +66,6 @@ impl Admission {
         Admission {
             bytes: Arc::new(Semaphore::new(capacity_kib)),
             capacity_kib,
-            heads: Arc::new(Semaphore::new(config.head_slots.max(1))),
         }
     }
 
@@ -101,18 +96,6 @@ impl Admission {
                 ))
             }
         }
-    }
-
-    /// Waits for a head slot (the wait ends with the call if the caller goes away).
-    pub async fn head_slot(&self) -> Result<OwnedSemaphorePermit, Status> {
-        self.heads.clone().acquire_owned().await.map_err(|_| {
-            refused(
-                Code::Unavailable,
-                Reason::ShuttingDown,
-                "the server is shutting down".into(),
-                Some(Duration::from_millis(100)),
-            )
-        })
     }
 }
 

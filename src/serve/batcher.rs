@@ -21,7 +21,8 @@ pub struct BatchConfig {
     pub max_delay: Duration,
     /// Most requests waiting per model.
     pub queue_capacity: usize,
-    /// Head worker threads per model (Predict's searches run one call per worker at a time).
+    /// Head worker threads per model: every method's head work runs there, one call per worker
+    /// at a time ([`super::heads`]).
     pub head_workers: usize,
 }
 
@@ -236,22 +237,14 @@ fn run(model: Arc<Model>, config: BatchConfig, mut receiver: mpsc::Receiver<Job>
                 continue;
             }
         };
-        let [b, d] = features.dims();
-        let flat = match features.into_data().try_to_vec::<f32>() {
-            Ok(flat) => flat,
-            Err(e) => {
-                // Dropping the jobs answers their callers (UNAVAILABLE); the thread goes on.
-                tracing::error!("encoder output of model '{}' unreadable: {e:?}", model.name);
-                continue;
-            }
-        };
+        let b = features.len();
         metrics::histogram!("alignist_batch_size").record(b as f64);
         metrics::counter!("alignist_batches_total").increment(1);
         metrics::counter!("alignist_batched_images_total").increment(b as u64);
         metrics::histogram!("alignist_encoder_seconds").record(started.elapsed().as_secs_f64());
-        for (i, job) in jobs.into_iter().enumerate() {
+        for (job, features) in jobs.into_iter().zip(features) {
             let _ = job.reply.send(Ok(Encoded {
-                features: flat[i * d..(i + 1) * d].to_vec(),
+                features,
                 queued: started.duration_since(job.enqueued),
                 batch_size: b,
             }));

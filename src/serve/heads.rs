@@ -1,7 +1,8 @@
-//! The head stage: the Predict work (scoring and coarse-to-fine search) of concurrent calls for
-//! one model, on a bounded queue shared by a fixed pool of worker threads (one per core). A full
-//! queue is refused at once; a call whose caller went away is dropped before its work; a panic
-//! fails only its call (INTERNAL) and is counted, and the worker goes on.
+//! The head stage: the head work of every call for one model — Predict's and PredictFrame's
+//! searches and PredictDistribution's full grids — on a bounded queue shared by one fixed pool of
+//! worker threads (`--head-workers`, one per core by default). A full queue is refused at once; a
+//! call whose caller went away is dropped before its work, and stops at its next level or chunk
+//! during it; a panic fails only its call (INTERNAL) and is counted, and the worker goes on.
 //!
 //! Each call runs its own search. Running the searches of concurrent calls in lockstep
 //! ([`Model::predict_many`], one pass of the head per level for all of them) was measured slower
@@ -17,15 +18,15 @@ use tonic::{Code, Status};
 
 use super::BatchConfig;
 use super::status::{Reason, refused, status_of};
-use crate::engine::{Cancel, Model, PredictOptions, Prediction};
+use crate::engine::{
+    Cancel, CheckedPredict, CropDepth, Distribution, EngineError, Model, Prediction,
+};
 
-/// One call's head work.
+/// One call's head work: run on a worker with the model, it answers its caller itself.
 struct HeadJob {
-    features: Vec<f32>,
-    options: PredictOptions,
-    /// The depth points, when depth was given.
-    depth: Option<crate::engine::CropDepth>,
-    reply: oneshot::Sender<Result<Prediction, Status>>,
+    /// Set when the caller went away.
+    cancel: Cancel,
+    work: Box<dyn FnOnce(&Model) + Send>,
 }
 
 /// The head stage of one model.
@@ -62,22 +63,60 @@ impl HeadStage {
         })
     }
 
-    /// The prediction for one image's features. Dropping the returned future (the caller went
-    /// away) cancels the search at its next level or chunk ([`PredictOptions::cancel`]).
+    /// The top-k prediction for one image's features (and its depth, when given).
     pub async fn predict(
         &self,
         features: Vec<f32>,
-        mut options: PredictOptions,
-        depth: Option<crate::engine::CropDepth>,
+        mut options: CheckedPredict,
+        depth: Option<CropDepth>,
     ) -> Result<Prediction, Status> {
+        self.call("predict", move |model, cancel| {
+            options.cancel = cancel.clone();
+            let depth = depth.as_ref().map(|d| d.input(model));
+            let mut answers = model.predict_checked(&[features], &options, &[depth])?;
+            Ok(answers.swap_remove(0))
+        })
+        .await
+    }
+
+    /// The full distribution at `level` for one image's features (and its depth, when given).
+    pub async fn distribution(
+        &self,
+        features: Vec<f32>,
+        level: u8,
+        depth: Option<CropDepth>,
+    ) -> Result<Distribution, Status> {
+        self.call("distribution", move |model, cancel| {
+            let depth = depth.as_ref().map(|d| d.input(model));
+            model.distribution_cancellable(&features, level, depth, cancel)
+        })
+        .await
+    }
+
+    /// Queues `work` and waits for its answer. Dropping the returned future (the caller went
+    /// away) sets the work's [`Cancel`]: work not started is skipped, and running work stops at
+    /// its next level or chunk.
+    async fn call<T: Send + 'static>(
+        &self,
+        method: &'static str,
+        work: impl FnOnce(&Model, &Cancel) -> Result<T, EngineError> + Send + 'static,
+    ) -> Result<T, Status> {
         let (reply, answer) = oneshot::channel();
-        options.cancel = Cancel::new();
-        let guard = options.cancel.on_drop();
+        let cancel = Cancel::new();
+        let guard = cancel.on_drop();
         let job = HeadJob {
-            features,
-            options,
-            depth,
-            reply,
+            cancel: cancel.clone(),
+            work: Box::new(move |model: &Model| {
+                let started = Instant::now();
+                let outcome =
+                    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| work(model, &cancel)));
+                metrics::histogram!("alignist_head_seconds", "method" => method)
+                    .record(started.elapsed().as_secs_f64());
+                let _ = reply.send(match outcome {
+                    Ok(result) => result.map_err(status_of),
+                    Err(panic) => Err(panicked(model, panic.as_ref())),
+                });
+            }),
         };
         self.sender.try_send(job).map_err(|e| match e {
             mpsc::error::TrySendError::Full(_) => refused(
@@ -106,6 +145,19 @@ fn stopped(model: &str) -> Status {
     )
 }
 
+/// The INTERNAL answer of a call whose work panicked (logged and counted).
+fn panicked(model: &Model, panic: &(dyn std::any::Any + Send)) -> Status {
+    let message = super::batcher::panic_message(panic);
+    tracing::error!("head of model '{}' panicked: {message}", model.name);
+    metrics::counter!("alignist_worker_panics_total", "worker" => "head").increment(1);
+    refused(
+        Code::Internal,
+        Reason::ModelFailed,
+        format!("the head of model '{}' failed: {message}", model.name),
+        None,
+    )
+}
+
 fn run(model: Arc<Model>, receiver: Arc<Mutex<mpsc::Receiver<HeadJob>>>) {
     loop {
         // One job at a time: the lock is held only while waiting for the next job.
@@ -114,37 +166,11 @@ fn run(model: Arc<Model>, receiver: Arc<Mutex<mpsc::Receiver<HeadJob>>>) {
             Err(_) => None,
         };
         let Some(job) = job else { return };
-        // A caller that gave up (cancelled, deadline) is not worth scoring.
-        if job.reply.is_closed() {
+        // A caller that gave up (cancelled, deadline) is not worth computing for.
+        if job.cancel.is_cancelled() {
             metrics::counter!("alignist_abandoned_work_total").increment(1);
             continue;
         }
-        answer(&model, job);
+        (job.work)(&model);
     }
-}
-
-/// Runs one call's search and answers it.
-fn answer(model: &Model, job: HeadJob) {
-    let started = Instant::now();
-    let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-        let features = model.features_tensor(&job.features);
-        let depth = job.depth.as_ref().map(|d| d.input(model));
-        model.predict(&features, &job.options, depth)
-    }));
-    metrics::histogram!("alignist_head_seconds").record(started.elapsed().as_secs_f64());
-    let reply = match outcome {
-        Ok(result) => result.map_err(status_of),
-        Err(panic) => {
-            let message = super::batcher::panic_message(panic.as_ref());
-            tracing::error!("head of model '{}' panicked: {message}", model.name);
-            metrics::counter!("alignist_worker_panics_total", "worker" => "head").increment(1);
-            Err(refused(
-                Code::Internal,
-                Reason::ModelFailed,
-                format!("the head of model '{}' failed: {message}", model.name),
-                None,
-            ))
-        }
-    };
-    let _ = job.reply.send(reply);
 }

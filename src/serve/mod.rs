@@ -22,8 +22,8 @@ use tonic::{Request, Response, Status};
 pub use batcher::{BatchConfig, BatchError, Batcher};
 
 use crate::engine::{
-    Cancel, CropBox, CropDepth, DetectionDepth, Engine, ImageRequest, Model, PredictOptions,
-    SeenPoints,
+    Cancel, CheckedPredict, CropBox, CropDepth, DepthRequest, Detection, Engine, FrameQuery,
+    ImageRequest, Model, PredictOptions, SeenPoints,
 };
 
 /// Generated protobuf types and the service's file descriptor set (for reflection).
@@ -447,7 +447,7 @@ fn head_of(served: &Served, model: &Model) -> Result<heads::HeadStage, Status> {
 }
 
 /// Most detections in one PredictFrame request.
-pub const MAX_DETECTIONS: usize = 32;
+pub use crate::engine::MAX_DETECTIONS;
 
 fn small_level(value: u32, field: &str) -> Result<u8, Status> {
     u8::try_from(value)
@@ -477,13 +477,14 @@ impl AlignistService {
             req.depth,
         )?;
         let options = predict_options(req.top_k, req.level, req.mode_angle_deg)?;
-        let level = p.model.check_predict(&options).map_err(status_of)?;
+        let checked = p.model.check_predict(&options).map_err(status_of)?;
+        let level = checked.level();
         let encoded = encode(&mut p).await?;
         let (features, queued) = (encoded.features, encoded.queued);
         let depth = p.depth.take();
         let fused = depth.is_some();
         let compute = Instant::now();
-        let prediction = p.head.predict(features, options, depth).await?;
+        let prediction = p.head.predict(features, checked, depth).await?;
         metrics::histogram!("alignist_compute_seconds", "method" => "Predict")
             .record(compute.elapsed().as_secs_f64());
         Ok(predict_response(
@@ -510,64 +511,42 @@ impl AlignistService {
             admission::image_cost(&image.data, raw_size(&image)?).saturating_add(depth_bytes),
         )?;
         let intrinsics = frame_intrinsics(req.intrinsics)?;
-        let (boxes, objects) = frame_detections(&model, &req.detections)?;
+        let boxes = detection_boxes(&req.detections)?;
         let options = predict_options(req.top_k, req.level, req.mode_angle_deg)?;
-        let level = model.check_predict(&options).map_err(status_of)?;
-        // The answer's size is bounded up front: no more rotations than one Predict may ask.
-        if options.top_k.saturating_mul(boxes.len()) > crate::engine::MAX_TOP_K {
-            return Err(invalid_field(
-                "top_k",
-                format!(
-                    "{} rotations for each of {} detections is over the limit of {} rotations \
-                     in one answer",
-                    options.top_k,
-                    boxes.len(),
-                    crate::engine::MAX_TOP_K
-                ),
-            ));
-        }
+        let checked = model
+            .check_frame(boxes.len(), &options)
+            .map_err(status_of)?;
+        let level = checked.level();
         let batcher = batcher_of(&served, &model)?;
-        let crops = {
-            let model = model.clone();
-            let boxes = boxes.clone();
+        let head = head_of(&served, &model)?;
+        let whole: Vec<_> = req.detections.iter().map(|d| d.r#box).collect();
+        let mut plan = {
+            let (model, detections, depth) = (model.clone(), req.detections, req.depth);
             blocking(move |_| {
-                let request = ImageRequest {
-                    data: &image.data,
-                    raw_size: raw_size(&image)?,
-                    crop: crop_of(&image)?,
+                let query = FrameQuery {
+                    image: ImageRequest {
+                        data: &image.data,
+                        raw_size: raw_size(&image)?,
+                        crop: crop_of(&image)?,
+                    },
+                    intrinsics,
+                    detections: detections
+                        .iter()
+                        .zip(boxes)
+                        .map(|(d, bbox)| Detection {
+                            bbox,
+                            object: &d.object,
+                            mask: (!d.mask.is_empty()).then_some(&d.mask[..]),
+                        })
+                        .collect(),
+                    depth: depth.as_ref().map(depth_request).transpose()?,
                 };
-                model
-                    .prepare_frame(&request, &intrinsics, &boxes)
-                    .map_err(status_of)
+                model.plan_frame(&query).map_err(status_of)
             })
             .await?
         };
-        let rays: Vec<_> = crops.iter().map(|c| c.r_ray).collect();
-        let image_size = crops.first().map(|c| c.image_size);
-        let depth = match req.depth {
-            None => vec![None; boxes.len()],
-            Some(depth) => {
-                let (model, boxes, rays) = (model.clone(), boxes.clone(), rays.clone());
-                let (detections, intrinsics) = (req.detections.clone(), intrinsics);
-                let image_size = image_size
-                    .ok_or_else(|| invalid_field("image", "has no size (it did not decode)"))?;
-                blocking(move |_| {
-                    frame_depth(
-                        &model,
-                        &depth,
-                        image_size,
-                        &intrinsics,
-                        &detections,
-                        &boxes,
-                        &objects_for_depth(&model, &detections)?,
-                        &rays,
-                    )
-                })
-                .await?
-            }
-        };
         let encoded = batcher
-            .encode_many(crops.into_iter().map(|c| c.rgb).collect())
+            .encode_many(std::mem::take(&mut plan.crops))
             .await
             .map_err(batch_status)?;
         for e in &encoded {
@@ -575,18 +554,36 @@ impl AlignistService {
         }
         let queued = encoded.iter().map(|e| e.queued).max().unwrap_or_default();
         let compute = Instant::now();
-        let head = head_of(&served, &model)?;
-        let predictions = predict_boxes(&head, encoded, &depth, &options, &rays).await?;
+        let predictions = predict_boxes(&head, encoded, &plan.depth, &checked).await?;
+        let predictions = plan.in_camera_frame(predictions);
         metrics::histogram!("alignist_compute_seconds", "method" => "PredictFrame")
             .record(compute.elapsed().as_secs_f64());
-        let answered = FrameAnswers {
-            boxes: &boxes,
-            whole: req.detections.iter().map(|d| d.r#box).collect(),
-            rays: &rays,
-            objects: &objects,
-            depth: &depth,
-        };
-        let detections = answered.detections(&model, level, predictions, started, queued);
+        let detections = plan
+            .boxes
+            .iter()
+            .zip(whole)
+            .zip(predictions)
+            .enumerate()
+            .map(|(i, ((b, whole), p))| DetectionPrediction {
+                r#box: whole,
+                bbox: Some(proto::PixelBox {
+                    x: b.x,
+                    y: b.y,
+                    width: b.width,
+                    height: b.height,
+                }),
+                prediction: Some(predict_response(
+                    &model,
+                    plan.objects[i],
+                    level,
+                    &p,
+                    plan.depth[i].is_some(),
+                    started,
+                    queued,
+                )),
+                ray: Some(rotation_message(crate::so3::to_quaternion(&plan.rays[i]))),
+            })
+            .collect();
         Ok(FrameResponse {
             model: model.name.clone(),
             model_version: model.version().to_string(),
@@ -596,109 +593,61 @@ impl AlignistService {
     }
 }
 
-/// What a frame's boxes were answered with, box by box.
-struct FrameAnswers<'a> {
-    boxes: &'a [CropBox],
-    /// The boxes as given in whole pixels (`Detection.box`), echoed as they came.
-    whole: Vec<Option<proto::CropBox>>,
-    rays: &'a [nalgebra::Rotation3<f64>],
-    objects: &'a [Option<usize>],
-    depth: &'a [Option<CropDepth>],
-}
-
-impl FrameAnswers<'_> {
-    /// Each box's answer: its box, its prediction (with the object depth fused, or the one
-    /// named) and its ray.
-    fn detections(
-        &self,
-        model: &Model,
-        level: u8,
-        predictions: Vec<crate::engine::Prediction>,
-        started: Instant,
-        queued: std::time::Duration,
-    ) -> Vec<DetectionPrediction> {
-        predictions
-            .into_iter()
-            .enumerate()
-            .map(|(i, p)| {
-                let (b, depth) = (&self.boxes[i], &self.depth[i]);
-                DetectionPrediction {
-                    r#box: self.whole[i],
-                    bbox: Some(proto::PixelBox {
-                        x: b.x,
-                        y: b.y,
-                        width: b.width,
-                        height: b.height,
-                    }),
-                    prediction: Some(predict_response(
-                        model,
-                        depth.as_ref().map(|d| d.object).or(self.objects[i]),
-                        level,
-                        &p,
-                        depth.is_some(),
-                        started,
-                        queued,
-                    )),
-                    ray: Some(rotation_message(crate::so3::to_quaternion(&self.rays[i]))),
-                }
-            })
-            .collect()
-    }
-}
-
-/// The frame's intrinsics, required and valid.
+/// The frame's intrinsics, required (the engine checks their values).
 fn frame_intrinsics(
     intrinsics: Option<proto::Intrinsics>,
 ) -> Result<crate::engine::Intrinsics, Status> {
     let i = intrinsics.ok_or_else(|| invalid_field("intrinsics", "is required"))?;
-    let intrinsics = crate::engine::Intrinsics {
+    Ok(crate::engine::Intrinsics {
         fx: i.fx,
         fy: i.fy,
         cx: i.cx,
         cy: i.cy,
+    })
+}
+
+/// The box of each detection (`box` or `bbox`, one of them required).
+fn detection_boxes(detections: &[proto::Detection]) -> Result<Vec<CropBox>, Status> {
+    detections
+        .iter()
+        .enumerate()
+        .map(|(i, d)| {
+            let field = format!("detections[{i}].box");
+            box_of(d.r#box, d.bbox, &field)?
+                .ok_or_else(|| invalid_field(&field, "is required (box or bbox)"))
+        })
+        .collect()
+}
+
+/// A frame's depth image as the engine reads it.
+fn depth_request(depth: &proto::DepthImage) -> Result<DepthRequest<'_>, Status> {
+    let raw_size = match (depth.width, depth.height) {
+        (0, 0) => None,
+        (w, h) if w > 0 && h > 0 => Some((w, h)),
+        (w, h) => {
+            return Err(invalid_field(
+                "depth.width",
+                format!(
+                    "depth.width and depth.height must both be set for raw u16 or both 0 for \
+                     PNG (got {w}×{h})"
+                ),
+            ));
+        }
     };
-    intrinsics.validate().map_err(status_of)?;
-    Ok(intrinsics)
+    Ok(DepthRequest {
+        data: &depth.data,
+        raw_size,
+        scale: depth.scale,
+    })
 }
 
-/// The box of each detection (1 ..= [`MAX_DETECTIONS`] of them, each with a box) and its object,
-/// when named.
-fn frame_detections(
-    model: &Model,
-    detections: &[proto::Detection],
-) -> Result<(Vec<CropBox>, Vec<Option<usize>>), Status> {
-    if detections.is_empty() || detections.len() > MAX_DETECTIONS {
-        return Err(invalid_field(
-            "detections",
-            format!(
-                "give 1 ..= {MAX_DETECTIONS} boxes, got {}",
-                detections.len()
-            ),
-        ));
-    }
-    let mut boxes = Vec::with_capacity(detections.len());
-    let mut objects = Vec::with_capacity(detections.len());
-    for (i, d) in detections.iter().enumerate() {
-        let field = format!("detections[{i}].box");
-        let b = box_of(d.r#box, d.bbox, &field)?
-            .ok_or_else(|| invalid_field(&field, "is required (box or bbox)"))?;
-        boxes.push(b);
-        objects.push(match d.object.is_empty() {
-            true => None,
-            false => Some(model.object_index(&d.object).map_err(status_of)?),
-        });
-    }
-    Ok((boxes, objects))
-}
-
-/// Every box's prediction, in the real camera's frame: their head work is queued at once, so
-/// that the boxes share the head stage's batches.
+/// Every box's prediction (in its crop camera's frame): their head work is queued at once, so
+/// that the boxes share the head stage's workers.
 async fn predict_boxes(
     head: &heads::HeadStage,
     encoded: Vec<batcher::Encoded>,
     depth: &[Option<CropDepth>],
-    options: &PredictOptions,
-    rays: &[nalgebra::Rotation3<f64>],
+    options: &CheckedPredict,
 ) -> Result<Vec<crate::engine::Prediction>, Status> {
     /// Aborts the boxes' head calls when the frame call is dropped (its caller went away):
     /// an aborted call drops its future, which cancels its search.
@@ -719,7 +668,7 @@ async fn predict_boxes(
             .collect(),
     );
     let mut predictions = Vec::with_capacity(calls.0.len());
-    for (call, ray) in calls.0.iter_mut().zip(rays) {
+    for call in calls.0.iter_mut() {
         let p = call.await.map_err(|e| {
             status::refused(
                 tonic::Code::Internal,
@@ -728,72 +677,9 @@ async fn predict_boxes(
                 None,
             )
         })??;
-        predictions.push(p.in_camera_frame(ray));
+        predictions.push(p);
     }
     Ok(predictions)
-}
-
-/// Each detection's object for depth fusion: named, or the model's only one.
-fn objects_for_depth(model: &Model, detections: &[proto::Detection]) -> Result<Vec<usize>, Status> {
-    detections
-        .iter()
-        .enumerate()
-        .map(|(i, d)| match (d.object.is_empty(), model.objects.len()) {
-            (true, 1) => Ok(0),
-            (true, n) => Err(invalid_field(
-                &format!("detections[{i}].object"),
-                format!("is required with depth: this model has {n} objects"),
-            )),
-            (false, _) => model.object_index(&d.object).map_err(status_of),
-        })
-        .collect()
-}
-
-/// The depth points of every detection of a frame request ([`Model::frame_depth`]): the
-/// request's depth image and detections, converted.
-#[allow(clippy::too_many_arguments)]
-fn frame_depth(
-    model: &Model,
-    depth: &proto::DepthImage,
-    image_size: (u32, u32),
-    intrinsics: &crate::engine::Intrinsics,
-    detections: &[proto::Detection],
-    boxes: &[CropBox],
-    objects: &[usize],
-    rays: &[nalgebra::Rotation3<f64>],
-) -> Result<Vec<Option<CropDepth>>, Status> {
-    let raw_size = match (depth.width, depth.height) {
-        (0, 0) => None,
-        (w, h) if w > 0 && h > 0 => Some((w, h)),
-        (w, h) => {
-            return Err(invalid_field(
-                "depth.width",
-                format!(
-                    "depth.width and depth.height must both be set for raw u16 or both 0 for \
-                     PNG (got {w}×{h})"
-                ),
-            ));
-        }
-    };
-    let request = crate::engine::DepthRequest {
-        data: &depth.data,
-        raw_size,
-        scale: depth.scale,
-    };
-    let detections: Vec<DetectionDepth> = detections
-        .iter()
-        .enumerate()
-        .map(|(i, d)| DetectionDepth {
-            bbox: &boxes[i],
-            mask: (!d.mask.is_empty()).then_some(&d.mask[..]),
-            object: objects[i],
-            ray: &rays[i],
-        })
-        .collect();
-    let depths = model
-        .frame_depth(&request, image_size, intrinsics, &detections)
-        .map_err(status_of)?;
-    Ok(depths.into_iter().map(Some).collect())
 }
 
 type ChunkStream = Pin<Box<dyn Stream<Item = Result<DistributionChunk, Status>> + Send>>;
@@ -892,18 +778,8 @@ impl AlignistService {
             c => c,
         } as usize;
         let features = encode(&mut p).await?.features;
-        let model = p.model.clone();
-        let depth = p.depth;
-        let _slot = self.admission.head_slot().await?;
         let compute = Instant::now();
-        let distribution = blocking(move |cancel| {
-            let f = model.features_tensor(&features);
-            let fusion = depth.as_ref().map(|d| d.input(&model));
-            model
-                .distribution_cancellable(&f, level, fusion, cancel)
-                .map_err(status_of)
-        })
-        .await?;
+        let distribution = p.head.distribution(features, level, p.depth.take()).await?;
         metrics::histogram!("alignist_compute_seconds", "method" => "PredictDistribution")
             .record(compute.elapsed().as_secs_f64());
         let (tx, rx) = tokio::sync::mpsc::channel(4);

@@ -155,7 +155,7 @@ pub fn evaluate_depth(
     };
     for (n, im) in images.iter().enumerate() {
         let mut figures = [[f64::NAN; 4]; 3];
-        let features = model.features(&[&im.rgb]);
+        let features = model.features(&[&im.rgb]).swap_remove(0);
         for (k, condition) in [None, Some(clean), Some(noise)].into_iter().enumerate() {
             figures[k] = score_image(model, im, &features, &grid, &centres, condition, &mut rng)?;
         }
@@ -185,7 +185,7 @@ pub fn evaluate_depth(
 fn score_image(
     model: &Model,
     im: &DepthEvalImage,
-    features: &burn::tensor::Tensor<2>,
+    features: &[f32],
     grid: &GridLevel,
     centres: &[[f64; 4]],
     noise: Option<DepthNoise>,
