@@ -319,8 +319,9 @@ fn the_default_search_finds_the_exhaustive_maximum_at_level_3() {
     }
 }
 
-/// A bundle is served up to the grid levels its manifest records, never above: the shipped one,
-/// its manifest recording search level 5, is refused a level-6 search by an engine allowing 6.
+/// A bundle is served up to the grid levels its manifest sets, never above: the shipped one,
+/// its manifest set to search level 5, is refused a level-6 search by an engine allowing 6.
+/// Without a cap (what the trainer writes) the server's own settings decide.
 #[test]
 fn the_manifests_levels_cap_what_the_engine_serves() {
     use alignist::engine::{Engine, EngineConfig, EngineError, PredictOptions};
@@ -332,13 +333,19 @@ fn the_manifests_levels_cap_what_the_engine_serves() {
     let manifest_path = path.join("manifest.json");
     let mut manifest: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&manifest_path).unwrap()).unwrap();
+    let config = EngineConfig::default();
+    manifest.as_object_mut().unwrap().remove("levels");
+    std::fs::write(&manifest_path, manifest.to_string()).unwrap();
+    let uncapped = Engine::load_model(path, config).unwrap();
+    assert_eq!(uncapped.config().search_max_level, config.search_max_level);
+    assert_eq!(uncapped.config().max_full_level, config.max_full_level);
     manifest["levels"] = serde_json::json!({ "full_max": 3, "search_max": 5 });
     std::fs::write(&manifest_path, manifest.to_string()).unwrap();
     let levels = alignist::bundle::model::ModelBundle::load(path)
         .unwrap()
         .manifest
-        .levels;
-    let config = EngineConfig::default();
+        .levels
+        .unwrap();
     assert!(config.search_max_level > levels.search_max, "{levels:?}");
     let model = Engine::load_model(path, config).unwrap();
     assert_eq!(model.config().search_max_level, levels.search_max);

@@ -95,11 +95,14 @@ impl ModelBundle {
             return Err(field("objects: the bundle names no object".into()));
         }
         manifest.network.validate().map_err(field)?;
-        for (name, level) in [
-            ("levels.full_max", manifest.levels.full_max),
-            ("levels.search_max", manifest.levels.search_max),
-        ] {
-            crate::net::check_range(name, level, &(0..=crate::so3::MAX_LEVEL)).map_err(field)?;
+        if let Some(levels) = manifest.levels {
+            for (name, level) in [
+                ("levels.full_max", levels.full_max),
+                ("levels.search_max", levels.search_max),
+            ] {
+                crate::net::check_range(name, level, &(0..=crate::so3::MAX_LEVEL))
+                    .map_err(field)?;
+            }
         }
         for (rel, entry) in &manifest.files {
             let path = super::inside(dir, rel).map_err(|e| field(format!("files: {e}")))?;

@@ -58,8 +58,10 @@ pub struct ModelManifest {
     pub input: String,
     /// Objects, in the order the bundle was trained on them.
     pub objects: Vec<BundleObject>,
-    /// Highest grid level served in full, and highest level of the coarse-to-fine search.
-    pub levels: GridLevels,
+    /// A cap on the levels the server serves this bundle at, set by whoever ships it (the
+    /// trainer sets none: the server's own settings decide, docs/DESIGN.md §4).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub levels: Option<GridLevels>,
     /// Training provenance.
     pub provenance: Provenance,
     /// Evaluation on held-out images, when it was run.
@@ -87,7 +89,6 @@ impl ModelManifest {
         name: String,
         network: NetworkConfig,
         objects: Vec<BundleObject>,
-        levels: GridLevels,
         provenance: Provenance,
         evaluation: Option<EvalReport>,
     ) -> ModelManifest {
@@ -97,7 +98,7 @@ impl ModelManifest {
             network,
             input: INPUT_CONVENTION.into(),
             objects,
-            levels,
+            levels: None,
             provenance,
             evaluation,
             calibration: None,
@@ -163,7 +164,7 @@ pub struct TemperatureFit {
     pub command: String,
 }
 
-/// Grid levels of a bundle: the server serves it up to these at most
+/// A cap on a bundle's grid levels: the server serves it up to these at most
 /// (`EngineConfig::within`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct GridLevels {

@@ -31,7 +31,7 @@ pub struct EngineConfig {
     pub max_depth_points: usize,
     /// Depth pixels of a depth image used per detection (evenly spaced in the box).
     pub depth_image_points: usize,
-    /// With `Some(ms)`, the search is chosen at load on this CPU ([`calibrate`]) among the
+    /// With `Some(ms)`, the search is chosen at load on this CPU ([`super::calibrate`]) among the
     /// bundle's studied searches: the most agreeing one predicted within `ms`; with `None`, the
     /// search above is served as it is.
     pub search_budget_ms: Option<f64>,
@@ -89,7 +89,7 @@ impl std::fmt::Display for SearchParams {
 
 impl EngineConfig {
     /// The levels a bundle is served at: this configuration's, capped by the levels its
-    /// manifest records (the trainer writes the engine's defaults there).
+    /// manifest sets (a cap its shipper chose; the trainer sets none).
     pub fn within(&self, levels: &crate::bundle::model::GridLevels) -> EngineConfig {
         EngineConfig {
             max_full_level: self.max_full_level.min(levels.full_max),

@@ -27,8 +27,8 @@ pub struct DepthInput<'a> {
 
 impl DepthInput<'_> {
     /// The fused term of every cell centre of `grid` given (row-major rotations):
-    /// `κ_L·(−U_SDF)` ([`DepthFusion::tempering`]), at `τ = 0` for centred points, at the
-    /// estimate `τ₀(R)` for camera points ([`fusion`]).
+    /// `κ_L·(−U_SDF)` ([`super::DepthFusion::tempering`]), at `τ = 0` for centred points, at the
+    /// estimate `τ₀(R)` for camera points ([`super::fusion`]).
     /// Stops with [`EngineError::Cancelled`] between chunks ([`cancel::cancel_chunk`]) once
     /// `cancel` is set.
     pub fn cell_log_measure(
@@ -51,7 +51,7 @@ impl DepthInput<'_> {
     }
 
     /// The fused term `−U_SDF` of every candidate (row-major rotations): at `τ = 0` for centred
-    /// points, at the estimate `τ₀(R)` for camera points ([`fusion`]).
+    /// points, at the estimate `τ₀(R)` for camera points ([`super::fusion`]).
     pub fn log_measure(&self, rotations: &[[f32; 9]]) -> Vec<f32> {
         let fusion = &self.object.fusion;
         match self.points {
@@ -61,7 +61,7 @@ impl DepthInput<'_> {
     }
 
     /// For camera points, the best-fitting translation of rotation `r` (row-major) and the fused
-    /// term there ([`DepthFusion::fit_translation`]); `None` for centred points.
+    /// term there ([`super::DepthFusion::fit_translation`]); `None` for centred points.
     pub fn fit(&self, r: &[f32; 9]) -> Option<(nalgebra::Vector3<f32>, f32)> {
         match self.points {
             SeenPoints::Centred(_) => None,

@@ -97,7 +97,7 @@ impl Engine {
         self.models.insert(model.name.clone(), model);
     }
 
-    /// Loads one bundle folder, depth fusion included ([`DepthFusion::warm`] for every object).
+    /// Loads one bundle folder, depth fusion included ([`super::DepthFusion::warm`] for every object).
     pub fn load_model(folder: &Path, config: EngineConfig) -> Result<Model, EngineError> {
         let name = folder
             .file_name()

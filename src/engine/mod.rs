@@ -1,6 +1,18 @@
 //! The inference engine: loaded bundles, request images, full distributions, coarse-to-fine top-k,
-//! modes and RGB-D fusion. No transport here: the gRPC service (src/serve) is a thin layer over
-//! [`Engine`], and everything below is testable without a socket.
+//! modes and RGB-D fusion. No transport here: the gRPC service (src/serve) converts its messages
+//! into these calls, and everything is testable without a socket.
+//!
+//! The front door, on a [`Model`] of the [`Engine`], features as plain rows
+//! ([`Model::features`]):
+//! - [`Model::predict`] (one image) and [`Model::predict_checked`] (images whose options were
+//!   checked once by [`Model::check_predict`]): top-k, modes, translations with depth;
+//! - [`Model::predict_frame`]: a camera frame's detections, planned by [`Model::plan_frame`] (crops,
+//!   rays, depth) and answered in the real camera's frame ([`FramePlan::in_camera_frame`]);
+//! - [`Model::distribution`]: a full level.
+//!
+//! Files: `config` (settings), `model` (the model and its scoring), `depth_search` (depth in the
+//! search), `frame` (camera frames), `loader` (the models directory), and the parts they use
+//! (`image`, `depth`, `fusion`, `search`, `calibrate`, `cancel`).
 
 pub mod calibrate;
 pub mod cancel;

@@ -155,7 +155,10 @@ impl Model {
         bundle: ModelBundle,
         config: EngineConfig,
     ) -> Result<Model, EngineError> {
-        let config = config.within(&bundle.manifest.levels);
+        let config = match &bundle.manifest.levels {
+            Some(levels) => config.within(levels),
+            None => config,
+        };
         config.validate()?;
         let device = crate::backend::device_for(crate::backend::Workload::Conv);
         let top = config.search_max_level.max(config.max_full_level);
@@ -204,7 +207,7 @@ impl Model {
         })
     }
 
-    /// The search this model serves chosen on this CPU ([`calibrate::calibrate`]) among the
+    /// The search this model serves chosen on this CPU ([`super::calibrate::calibrate`]) among the
     /// searches of the bundle's study at `folder`, to the default search level, when the
     /// configuration has a budget; logged and kept in [`Model::calibration`].
     pub(super) fn calibrated(mut self, folder: &Path) -> Result<Model, EngineError> {
@@ -312,7 +315,7 @@ impl Model {
     }
 
     /// Decodes a full camera image once and makes each box's perspective crop
-    /// ([`image::prepare_frame`]).
+    /// ([`super::image::prepare_frame`]).
     pub fn prepare_frame(
         &self,
         image: &ImageRequest<'_>,

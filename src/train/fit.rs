@@ -7,9 +7,7 @@ use std::path::{Path, PathBuf};
 
 use crate::bundle::BundleError;
 use crate::bundle::experts::ExpertSet;
-use crate::bundle::model::{
-    BundleObject, GridLevels, ModelBundle, ModelManifest, NETWORK_FILE, Provenance,
-};
+use crate::bundle::model::{BundleObject, ModelBundle, ModelManifest, NETWORK_FILE, Provenance};
 use crate::bundle::record::{EvalReport, InitWeights, TrainConfig, TrainReport};
 use crate::data::realism::{Realism, SceneAssets};
 use crate::data::{BopDataset, DataError};
@@ -312,16 +310,10 @@ pub fn fitted_manifest(
     report: TrainReport,
     evaluation: Option<EvalReport>,
 ) -> ModelManifest {
-    let engine = crate::engine::EngineConfig::default();
     ModelManifest::new(
         name,
         config.network.clone(),
         objects,
-        // The levels the engine serves by default: what the server caps this model to.
-        GridLevels {
-            full_max: engine.max_full_level,
-            search_max: engine.search_max_level,
-        },
         Provenance {
             command,
             train: config,
