@@ -3,7 +3,7 @@
 //! shared by the tests through their files on disk.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
+use std::process::{Command, Output};
 use std::sync::LazyLock;
 
 use alignist::bundle::experts::ExpertSet;
@@ -237,32 +237,56 @@ fn train_cli(args: &[&str]) -> std::process::Output {
         .unwrap()
 }
 
-#[test]
-fn experts_and_score_cli_write_files_that_load_and_refuse_corruption() {
-    let dir = tempfile::tempdir().unwrap();
-    let set_dir = dir.path().join("cube_experts");
+/// `alignist-train experts` on a SYMSOL shape at tiny sizes — `[SDF steps, feature steps, views
+/// (renders per feature step and views of the mode table), bake resolution]` — into `out`;
+/// succeeds or shows why not.
+fn tiny_experts_cli(shape: &str, sizes: [&str; 4], out: &Path) -> Output {
+    let [steps, feature_steps, views, bake] = sizes;
     let out = train_cli(&[
         "experts",
         "--shape",
-        "cube",
+        shape,
         "--steps",
-        "20",
+        steps,
         "--feature-steps",
-        "5",
+        feature_steps,
         "--images",
-        "2",
+        views,
         "--bake-resolution",
-        "16",
+        bake,
         "--table-views",
-        "2",
+        views,
         "--out",
-        set_dir.to_str().unwrap(),
+        out.to_str().unwrap(),
     ]);
     assert!(
         out.status.success(),
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
+    out
+}
+
+/// `alignist-train score` of the expert set at `set_dir` for `rotation`, at level 1, into `csv`.
+fn score_cli(set_dir: &Path, rotation: &str, csv: &Path) -> Output {
+    train_cli(&[
+        "score",
+        "--experts",
+        set_dir.to_str().unwrap(),
+        "--rotation",
+        rotation,
+        "--level",
+        "1",
+        "--out",
+        csv.to_str().unwrap(),
+    ])
+}
+
+#[test]
+fn experts_and_score_cli_write_files_that_load_and_refuse_corruption() {
+    let dir = tempfile::tempdir().unwrap();
+    let set_dir = dir.path().join("cube_experts");
+    let out = tiny_experts_cli("cube", ["20", "5", "2", "16"], &set_dir);
     let report = String::from_utf8_lossy(&out.stderr);
     assert!(
         report.contains("SDF: MAE") && report.contains("lambda_sdf"),
@@ -279,17 +303,7 @@ fn experts_and_score_cli_write_files_that_load_and_refuse_corruption() {
         assert!(set_dir.join(f).exists(), "{f}");
     }
     let csv = dir.path().join("targets.csv");
-    let out = train_cli(&[
-        "score",
-        "--experts",
-        set_dir.to_str().unwrap(),
-        "--rotation",
-        "0.5,0.5,-0.5,0.5",
-        "--level",
-        "1",
-        "--out",
-        csv.to_str().unwrap(),
-    ]);
+    let out = score_cli(&set_dir, "0.5,0.5,-0.5,0.5", &csv);
     assert!(
         out.status.success(),
         "{}",
@@ -304,17 +318,7 @@ fn experts_and_score_cli_write_files_that_load_and_refuse_corruption() {
         assert_eq!(f[0] as usize, i);
         assert!(f[1] <= 0.0 && f[2] <= 0.0 && f[1].is_finite() && f[2].is_finite());
     }
-    let bad_rotation = train_cli(&[
-        "score",
-        "--experts",
-        set_dir.to_str().unwrap(),
-        "--rotation",
-        "1,0,0",
-        "--level",
-        "1",
-        "--out",
-        csv.to_str().unwrap(),
-    ]);
+    let bad_rotation = score_cli(&set_dir, "1,0,0", &csv);
     assert!(!bad_rotation.status.success());
     assert!(String::from_utf8_lossy(&bad_rotation.stderr).contains("--rotation"));
 
@@ -332,17 +336,7 @@ fn experts_and_score_cli_write_files_that_load_and_refuse_corruption() {
         err.contains("keys.safetensors") && err.contains("sha256"),
         "{err}"
     );
-    let out = train_cli(&[
-        "score",
-        "--experts",
-        set_dir.to_str().unwrap(),
-        "--rotation",
-        "1,0,0,0",
-        "--level",
-        "1",
-        "--out",
-        csv.to_str().unwrap(),
-    ]);
+    let out = score_cli(&set_dir, "1,0,0,0", &csv);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("keys.safetensors"));
 }
@@ -351,28 +345,7 @@ fn experts_and_score_cli_write_files_that_load_and_refuse_corruption() {
 fn mismatched_manifests_are_refused_naming_the_field() {
     let dir = tempfile::tempdir().unwrap();
     let set_dir = dir.path().join("x");
-    let out = train_cli(&[
-        "experts",
-        "--shape",
-        "tet",
-        "--steps",
-        "5",
-        "--feature-steps",
-        "2",
-        "--images",
-        "1",
-        "--bake-resolution",
-        "8",
-        "--table-views",
-        "1",
-        "--out",
-        set_dir.to_str().unwrap(),
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    tiny_experts_cli("tet", ["5", "2", "1", "8"], &set_dir);
     let manifest = set_dir.join("manifest.json");
     let original = std::fs::read_to_string(&manifest).unwrap();
     let edit = |from: &str, to: &str| {

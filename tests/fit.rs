@@ -16,64 +16,83 @@ fn s(p: &Path) -> &str {
     p.to_str().unwrap()
 }
 
-#[test]
-fn render_experts_fit_eval_and_load_a_bundle() {
-    let dir = tempfile::tempdir().unwrap();
-    let data = dir.path().join("cube_data");
-    let experts = dir.path().join("cube_experts");
-    let bundle = dir.path().join("models/tiny");
-    run(&[
-        "render",
-        "--shape",
-        "cube",
-        "--count",
-        "12",
-        "--size",
-        "64",
-        "--seed",
-        "1",
-        "--out",
-        s(&data),
-    ]);
-    run(&[
-        "render",
-        "--shape",
-        "cube",
-        "--count",
-        "3",
-        "--size",
-        "64",
-        "--seed",
-        "2",
-        "--split",
-        "test",
-        "--out",
-        s(&data),
-    ]);
-    run(&[
-        "experts",
-        "--shape",
-        "cube",
-        "--steps",
-        "20",
-        "--feature-steps",
-        "4",
-        "--images",
-        "2",
-        "--bake-resolution",
-        "16",
-        "--table-views",
-        "2",
-        "--out",
-        s(&experts),
-    ]);
-    let fit_to = |out: &Path, extra: &[&str]| {
+/// The files of a tiny pipeline: renders of the cube (12 train, 3 test), its experts, a bundle.
+struct Pipeline {
+    dir: tempfile::TempDir,
+    data: std::path::PathBuf,
+    experts: std::path::PathBuf,
+    bundle: std::path::PathBuf,
+}
+
+impl Pipeline {
+    /// Renders the cube's data and trains its experts, at tiny sizes.
+    fn prepare() -> Pipeline {
+        let dir = tempfile::tempdir().unwrap();
+        let data = dir.path().join("cube_data");
+        let experts = dir.path().join("cube_experts");
+        let bundle = dir.path().join("models/tiny");
+        run(&[
+            "render",
+            "--shape",
+            "cube",
+            "--count",
+            "12",
+            "--size",
+            "64",
+            "--seed",
+            "1",
+            "--out",
+            s(&data),
+        ]);
+        run(&[
+            "render",
+            "--shape",
+            "cube",
+            "--count",
+            "3",
+            "--size",
+            "64",
+            "--seed",
+            "2",
+            "--split",
+            "test",
+            "--out",
+            s(&data),
+        ]);
+        run(&[
+            "experts",
+            "--shape",
+            "cube",
+            "--steps",
+            "20",
+            "--feature-steps",
+            "4",
+            "--images",
+            "2",
+            "--bake-resolution",
+            "16",
+            "--table-views",
+            "2",
+            "--out",
+            s(&experts),
+        ]);
+        Pipeline {
+            dir,
+            data,
+            experts,
+            bundle,
+        }
+    }
+
+    /// `fit` of 4 steps (checkpoints every 2, evaluation at level 1) into `out`.
+    fn fit_to(&self, out: &Path, extra: &[&str]) -> Output {
+        let (data, experts) = (&self.data, &self.experts);
         let mut args = vec![
             "fit",
             "--data",
-            s(&data),
+            s(data),
             "--experts",
-            s(&experts),
+            s(experts),
             "--out",
             s(out),
             "--steps",
@@ -93,9 +112,55 @@ fn render_experts_fit_eval_and_load_a_bundle() {
         ];
         args.extend_from_slice(extra);
         run(&args)
-    };
-    let fit = |extra: &[&str]| fit_to(&bundle, extra);
-    let out = fit(&["--fraction", "0.5"]);
+    }
+
+    /// `fit` into the bundle.
+    fn fit(&self, extra: &[&str]) -> Output {
+        self.fit_to(&self.bundle, extra)
+    }
+
+    /// `eval` of the bundle on `images` test images at level 1: the overall figures.
+    fn eval_overall(&self, images: &str) -> serde_json::Value {
+        let (bundle, data) = (&self.bundle, &self.data);
+        let report = self.dir.path().join("report.json");
+        run(&[
+            "eval",
+            "--model",
+            s(bundle),
+            "--data",
+            &format!("cube={}", s(data)),
+            "--level",
+            "1",
+            "--images",
+            images,
+            "--out",
+            s(&report),
+        ]);
+        let json: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+        json["overall"].clone()
+    }
+}
+
+#[test]
+fn render_experts_fit_eval_and_load_a_bundle() {
+    let p = Pipeline::prepare();
+    let eval = a_fit_writes_its_bundle_with_its_evaluation(&p);
+    resume_and_stop_at_finish_a_run(&p);
+    assert_eq!(p.eval_overall("2")["images"], 2);
+    fresh_renders_fit_with_their_loss_and_sampling(&p);
+    the_bundle_read_back_scores_as_fit_held_it(&p, &eval);
+    bad_arguments_are_refused_naming_them(&p);
+    a_corrupt_network_is_refused(&p);
+}
+
+/// `fit --fraction 0.5`: half the training images, its evaluation, its command and a checkpoint
+/// on record. Returns the evaluation.
+fn a_fit_writes_its_bundle_with_its_evaluation(
+    p: &Pipeline,
+) -> alignist::bundle::record::EvalReport {
+    let bundle = &p.bundle;
+    let out = p.fit(&["--fraction", "0.5"]);
     let report = String::from_utf8_lossy(&out.stderr);
     assert!(report.contains("6 training images"), "{report}");
     assert!(
@@ -103,7 +168,7 @@ fn render_experts_fit_eval_and_load_a_bundle() {
         "{report}"
     );
 
-    let loaded = ModelBundle::load(&bundle).unwrap();
+    let loaded = ModelBundle::load(bundle).unwrap();
     let m = &loaded.manifest;
     assert_eq!(m.objects.len(), 1);
     assert_eq!(m.objects[0].name, "cube");
@@ -114,10 +179,16 @@ fn render_experts_fit_eval_and_load_a_bundle() {
     assert!(eval.overall.log_likelihood.is_finite());
     assert!(bundle.with_extension("checkpoints").join("latest").exists());
 
-    // Resuming a finished run trains no more steps.
-    fit(&["--fraction", "0.5", "--resume"]);
+    eval.clone()
+}
+
+/// Resuming a finished run trains no more steps; `--stop-at` leaves a checkpoint and no bundle,
+/// and `--resume` finishes the run from there.
+fn resume_and_stop_at_finish_a_run(p: &Pipeline) {
+    let (bundle, dir) = (&p.bundle, &p.dir);
+    p.fit(&["--fraction", "0.5", "--resume"]);
     assert_eq!(
-        ModelBundle::load(&bundle)
+        ModelBundle::load(bundle)
             .unwrap()
             .manifest
             .provenance
@@ -129,43 +200,26 @@ fn render_experts_fit_eval_and_load_a_bundle() {
     // A time-boxed part of a run: --stop-at leaves a checkpoint and no bundle; --resume
     // finishes the run from there.
     let parted = dir.path().join("parted");
-    let out = fit_to(&parted, &["--stop-at", "2"]);
+    let out = p.fit_to(&parted, &["--stop-at", "2"]);
     assert!(
         String::from_utf8_lossy(&out.stdout).contains("stopped at step 2 of 4"),
         "{out:?}"
     );
     assert!(!parted.join("manifest.json").exists());
     assert!(parted.with_extension("checkpoints").join("latest").exists());
-    fit_to(&parted, &["--resume"]);
+    p.fit_to(&parted, &["--resume"]);
     let resumed = ModelBundle::load(&parted)
         .unwrap()
         .manifest
         .provenance
         .report;
     assert_eq!((resumed.resumed_from, resumed.steps_run), (2, 2));
+}
 
-    // eval on the bundle: the overall figures of its report.
+/// Fresh renders instead of --data, with the L1 loss and half of K from the mode table.
+fn fresh_renders_fit_with_their_loss_and_sampling(p: &Pipeline) {
+    let (bundle, experts, dir) = (&p.bundle, &p.experts, &p.dir);
     let report = dir.path().join("report.json");
-    let eval_overall = |images: &str| -> serde_json::Value {
-        run(&[
-            "eval",
-            "--model",
-            s(&bundle),
-            "--data",
-            &format!("cube={}", s(&data)),
-            "--level",
-            "1",
-            "--images",
-            images,
-            "--out",
-            s(&report),
-        ]);
-        let json: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
-        json["overall"].clone()
-    };
-    assert_eq!(eval_overall("2")["images"], 2);
-
     // Fresh renders instead of --data, with the L1 loss and half of K from the mode table: the
     // results table names each bundle's method as it was trained (it once printed
     // "alignist (GKL)" for every alignist bundle).
@@ -174,7 +228,7 @@ fn render_experts_fit_eval_and_load_a_bundle() {
         "fit",
         "--fresh",
         "--experts",
-        s(&experts),
+        s(experts),
         "--loss",
         "l1",
         "--focused-fraction",
@@ -207,7 +261,7 @@ fn render_experts_fit_eval_and_load_a_bundle() {
     let fresh_eval = fresh_manifest.evaluation.unwrap();
     assert_eq!(fresh_eval.overall.images, 4);
     assert_eq!(fresh_eval.chance_ar30.len(), 1);
-    let table = run(&["results", s(&bundle), s(&fresh)]);
+    let table = run(&["results", s(bundle), s(&fresh)]);
     let table = String::from_utf8_lossy(&table.stdout);
     assert!(
         table.contains("alignist (GKL, mode-focused, cube PE)"),
@@ -234,10 +288,16 @@ fn render_experts_fit_eval_and_load_a_bundle() {
     let json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
     assert_eq!(json["overall"]["images"], 3);
+}
 
+/// The bundle read back scores as the network `fit` held in memory.
+fn the_bundle_read_back_scores_as_fit_held_it(
+    p: &Pipeline,
+    eval: &alignist::bundle::record::EvalReport,
+) {
     // The bundle read back scores as the network `fit` held in memory: evaluating the loaded
     // bundle on the same 3 test images at the same level reproduces the manifest's figures.
-    let json = serde_json::json!({ "overall": eval_overall("3") });
+    let json = serde_json::json!({ "overall": p.eval_overall("3") });
     let again: alignist::so3::metrics::MetricsSummary =
         serde_json::from_value(json["overall"].clone()).unwrap();
     assert_eq!(again.images, eval.overall.images);
@@ -247,13 +307,19 @@ fn render_experts_fit_eval_and_load_a_bundle() {
     // LL sums logs over images and equivalents in a parallel reduction: equal up to the order of
     // the sum (the scores themselves are compared bit for bit in tests/train.rs).
     assert!((again.log_likelihood - eval.overall.log_likelihood).abs() < 1e-12);
+}
+
+/// `eval` of an object the bundle lacks and `fit` with a share above 1 are refused, naming them.
+fn bad_arguments_are_refused_naming_them(p: &Pipeline) {
+    let (bundle, data, experts, dir) = (&p.bundle, &p.data, &p.experts, &p.dir);
+    let report = dir.path().join("report.json");
     let bad = Command::new(env!("CARGO_BIN_EXE_alignist-train"))
         .args([
             "eval",
             "--model",
-            s(&bundle),
+            s(bundle),
             "--data",
-            &format!("tet={}", s(&data)),
+            &format!("tet={}", s(data)),
             "--out",
             s(&report),
         ])
@@ -262,7 +328,7 @@ fn render_experts_fit_eval_and_load_a_bundle() {
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("no object 'tet'"));
     let bad = Command::new(env!("CARGO_BIN_EXE_alignist-train"))
-        .args(["fit", "--fresh", "--experts", s(&experts)])
+        .args(["fit", "--fresh", "--experts", s(experts)])
         .args([
             "--out",
             s(&dir.path().join("never")),
@@ -277,14 +343,17 @@ fn render_experts_fit_eval_and_load_a_bundle() {
         "{}",
         String::from_utf8_lossy(&bad.stderr)
     );
+}
 
-    // A corrupt network file is refused, naming it.
+/// A corrupt network file is refused, naming it.
+fn a_corrupt_network_is_refused(p: &Pipeline) {
+    let bundle = &p.bundle;
     let weights = bundle.join("network.safetensors");
     let mut bytes = std::fs::read(&weights).unwrap();
     let n = bytes.len();
     bytes[n - 3] ^= 0x11;
     std::fs::write(&weights, bytes).unwrap();
-    let err = ModelBundle::load(&bundle)
+    let err = ModelBundle::load(bundle)
         .err()
         .expect("refused")
         .to_string();

@@ -21,6 +21,7 @@ use common::*;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use tonic::Code;
+use tonic::transport::Channel;
 
 /// A PNG through the model's own preparation: the crop its encoder takes.
 fn prepared(model: &alignist::engine::Model, png: &[u8]) -> Vec<u8> {
@@ -192,7 +193,14 @@ async fn serves_predict_distribution_models_health_and_reflection() {
     let ch = channel(&server).await;
     wait_serving(ch.clone()).await;
     let mut client = AlignistClient::new(ch.clone());
+    predict_is_the_top_of_the_streamed_distribution(&mut client).await;
+    models_are_listed_with_their_training(&mut client).await;
+    reflection_lists_the_service(ch.clone()).await;
+    the_cli_predicts_plots_and_checks_health(&server);
+}
 
+/// Predict's top-k, ordered, is the top-k of the full distribution streamed at the same level.
+async fn predict_is_the_top_of_the_streamed_distribution(client: &mut AlignistClient<Channel>) {
     let answer = client
         .predict(predict_request(3, 10, 3))
         .await
@@ -251,7 +259,10 @@ async fn serves_predict_distribution_models_health_and_reflection() {
     top.sort();
     full_top.sort();
     assert_eq!(top, full_top);
+}
 
+/// ListModels and GetModel describe the one model alike, with its training.
+async fn models_are_listed_with_their_training(client: &mut AlignistClient<Channel>) {
     let models = client
         .list_models(ListModelsRequest {})
         .await
@@ -277,7 +288,10 @@ async fn serves_predict_distribution_models_health_and_reflection() {
     let training = one.training.unwrap();
     assert_eq!(training.steps, 3);
     assert!(training.command.contains("fit") && training.log_likelihood.is_nan());
+}
 
+/// Reflection lists the service, so grpcurl and Postman can call it.
+async fn reflection_lists_the_service(ch: Channel) {
     // Reflection lists the service, so grpcurl and Postman can call it.
     use tonic_reflection::pb::v1::server_reflection_client::ServerReflectionClient;
     use tonic_reflection::pb::v1::server_reflection_request::MessageRequest;
@@ -332,7 +346,10 @@ async fn serves_predict_distribution_models_health_and_reflection() {
                 .any(|s| s.name == "alignist.v1.Alignist")
         );
     }
+}
 
+/// The CLI client predicts (JSON and a plot), checks health, and names a missing model.
+fn the_cli_predicts_plots_and_checks_health(server: &Server) {
     // The CLI client against the same server.
     let dir = tempfile::tempdir().unwrap();
     let png = dir.path().join("cube.png");
@@ -387,6 +404,74 @@ async fn bad_input_gets_its_status_code_and_the_server_keeps_serving() {
     wait_serving(ch.clone()).await;
     let mut client = AlignistClient::new(ch.clone());
     let ok = || predict_request(5, 3, 3);
+    for (name, request, code, field) in bad_images(ok).into_iter().chain(bad_options(ok)) {
+        let status = client.predict(request).await.expect_err(name);
+        assert_refused(name, &status, code, field);
+    }
+    let status = client
+        .predict_distribution(DistributionRequest {
+            model: "tiny".into(),
+            image: image(cube_png(5)),
+            level: 4,
+            ..Default::default()
+        })
+        .await
+        .expect_err("level above --max-level");
+    assert_eq!(status.code(), Code::InvalidArgument);
+    assert!(status.message().contains("level"));
+    let status = client
+        .get_model(GetModelRequest {
+            name: "nope".into(),
+        })
+        .await
+        .expect_err("unknown model");
+    assert_eq!(status.code(), Code::NotFound);
+    // Still serving.
+    let answer = client.predict(ok()).await.unwrap().into_inner();
+    assert_eq!(answer.top.len(), 3);
+    let text = common::http_get(&server.metrics).await;
+    assert!(
+        metric(
+            &text,
+            "alignist_requests_total",
+            &["method=\"Predict\"", "code=\"INVALID_ARGUMENT\""]
+        ) >= 8.0,
+        "{text}"
+    );
+}
+
+/// A bad request's status: its code, a message naming `field`, and for field errors a
+/// BadRequest violation naming the field.
+fn assert_refused(name: &str, status: &tonic::Status, code: Code, field: &str) {
+    assert_eq!(status.code(), code, "{name}: {}", status.message());
+    assert!(
+        status.message().contains(field),
+        "{name}: message {:?} does not name {field}",
+        status.message()
+    );
+    // Field errors carry a BadRequest violation naming the field.
+    use tonic_types::StatusExt;
+    if code == Code::InvalidArgument || code == Code::ResourceExhausted {
+        let bad = status
+            .get_details_bad_request()
+            .unwrap_or_else(|| panic!("{name}: no BadRequest details"));
+        assert!(
+            !bad.field_violations.is_empty()
+                && bad
+                    .field_violations
+                    .iter()
+                    .all(|v| !v.field.is_empty() && status.message().starts_with(&v.field)),
+            "{name}: {bad:?} vs {}",
+            status.message()
+        );
+    }
+}
+
+/// Predict requests with a bad image (over the limits of `--max-image-bytes 200000
+/// --max-image-pixels 250000`), each with its code and the field its message names.
+fn bad_images(
+    ok: impl Fn() -> PredictRequest,
+) -> Vec<(&'static str, PredictRequest, Code, &'static str)> {
     let big_png = {
         let mut png = Vec::new();
         image::RgbImage::new(600, 600)
@@ -394,7 +479,7 @@ async fn bad_input_gets_its_status_code_and_the_server_keeps_serving() {
             .unwrap();
         png
     };
-    let cases: Vec<(&str, PredictRequest, Code, &str)> = vec![
+    vec![
         (
             "not an image",
             PredictRequest {
@@ -473,6 +558,15 @@ async fn bad_input_gets_its_status_code_and_the_server_keeps_serving() {
             Code::InvalidArgument,
             "image.crop",
         ),
+    ]
+}
+
+/// Predict requests with a bad model, object, option or depth, each with its code and the field
+/// its message names.
+fn bad_options(
+    ok: impl Fn() -> PredictRequest,
+) -> Vec<(&'static str, PredictRequest, Code, &'static str)> {
+    vec![
         (
             "unknown model",
             PredictRequest {
@@ -535,62 +629,7 @@ async fn bad_input_gets_its_status_code_and_the_server_keeps_serving() {
             Code::InvalidArgument,
             "depth.xyz",
         ),
-    ];
-    for (name, request, code, field) in cases {
-        let status = client.predict(request).await.expect_err(name);
-        assert_eq!(status.code(), code, "{name}: {}", status.message());
-        assert!(
-            status.message().contains(field),
-            "{name}: message {:?} does not name {field}",
-            status.message()
-        );
-        // Field errors carry a BadRequest violation naming the field.
-        use tonic_types::StatusExt;
-        if code == Code::InvalidArgument || code == Code::ResourceExhausted {
-            let bad = status
-                .get_details_bad_request()
-                .unwrap_or_else(|| panic!("{name}: no BadRequest details"));
-            assert!(
-                !bad.field_violations.is_empty()
-                    && bad
-                        .field_violations
-                        .iter()
-                        .all(|v| !v.field.is_empty() && status.message().starts_with(&v.field)),
-                "{name}: {bad:?} vs {}",
-                status.message()
-            );
-        }
-    }
-    let status = client
-        .predict_distribution(DistributionRequest {
-            model: "tiny".into(),
-            image: image(cube_png(5)),
-            level: 4,
-            ..Default::default()
-        })
-        .await
-        .expect_err("level above --max-level");
-    assert_eq!(status.code(), Code::InvalidArgument);
-    assert!(status.message().contains("level"));
-    let status = client
-        .get_model(GetModelRequest {
-            name: "nope".into(),
-        })
-        .await
-        .expect_err("unknown model");
-    assert_eq!(status.code(), Code::NotFound);
-    // Still serving.
-    let answer = client.predict(ok()).await.unwrap().into_inner();
-    assert_eq!(answer.top.len(), 3);
-    let text = common::http_get(&server.metrics).await;
-    assert!(
-        metric(
-            &text,
-            "alignist_requests_total",
-            &["method=\"Predict\"", "code=\"INVALID_ARGUMENT\""]
-        ) >= 8.0,
-        "{text}"
-    );
+    ]
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
@@ -1011,14 +1050,20 @@ fn depth_png(depth: &[f32], width: u32, height: u32, unit: f32) -> Vec<u8> {
     png
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
-async fn frame_requests_fuse_a_depth_image_and_answer_the_translation() {
+/// A depth frame request of the cube for the tiny model, with what it was made from.
+struct DepthCase {
+    frame: RgbdFrame,
+    depth: alignist::serve::proto::DepthImage,
+    request: alignist::serve::proto::FrameRequest,
+    /// Mesh units per normalised unit, and the mesh frame's centre.
+    scale: f64,
+    centre: nalgebra::Vector3<f64>,
+    unit: f32,
+}
+
+/// The cube at a random pose in a 640×480 RGB-D frame, asked with its depth image at level 4.
+async fn depth_case(client: &mut AlignistClient<Channel>) -> DepthCase {
     use alignist::serve::proto::{DepthImage, Detection, FrameRequest, Intrinsics};
-    use alignist::so3::{from_quaternion, geodesic_angle};
-    let server = start_server(&[]);
-    let ch = channel(&server).await;
-    wait_serving(ch.clone()).await;
-    let mut client = AlignistClient::new(ch.clone());
     let info = client
         .get_model(GetModelRequest {
             name: "tiny".into(),
@@ -1032,7 +1077,7 @@ async fn frame_requests_fuse_a_depth_image_and_answer_the_translation() {
     let centre = cube.frame_centre.unwrap();
     let centre = nalgebra::Vector3::new(centre.x, centre.y, centre.z);
 
-    let r_cam = haar_rotations(&mut ChaCha8Rng::seed_from_u64(33), 1)[0];
+    let r_cam = case_rotation();
     let frame = frame_rgbd(r_cam, 300.0, 220.0);
     let unit = 1e-3; // normalised units per depth unit
     let depth = DepthImage {
@@ -1068,6 +1113,44 @@ async fn frame_requests_fuse_a_depth_image_and_answer_the_translation() {
         mode_angle_deg: 0.0,
         depth: Some(depth.clone()),
     };
+    DepthCase {
+        frame,
+        depth,
+        request,
+        scale,
+        centre,
+        unit,
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn frame_requests_fuse_a_depth_image_and_answer_the_translation() {
+    let server = start_server(&[]);
+    let ch = channel(&server).await;
+    wait_serving(ch.clone()).await;
+    let mut client = AlignistClient::new(ch.clone());
+    let case = depth_case(&mut client).await;
+    let t = the_fused_answer_has_the_pose_and_translation(&mut client, &case).await;
+    the_cli_fuses_depth_alike(&server, &case, t);
+    bad_depth_names_its_field(&mut client, &case).await;
+}
+
+/// The fused answer: near the true pose (loosely: the tiny model), with a translation near the
+/// truth; without depth, no translation. Returns the top-1's translation.
+async fn the_fused_answer_has_the_pose_and_translation(
+    client: &mut AlignistClient<Channel>,
+    case: &DepthCase,
+) -> alignist::serve::proto::Vector3 {
+    use alignist::serve::proto::FrameRequest;
+    use alignist::so3::{from_quaternion, geodesic_angle};
+    let DepthCase {
+        frame,
+        request,
+        scale,
+        centre,
+        ..
+    } = case;
+    let (scale, r_cam) = (*scale, case_rotation());
     let answer = client
         .predict_frame(request.clone())
         .await
@@ -1107,6 +1190,19 @@ async fn frame_requests_fuse_a_depth_image_and_answer_the_translation() {
     let plain = plain.detections[0].prediction.as_ref().unwrap();
     assert!(!plain.depth_fused && plain.top[0].translation.is_none());
 
+    *t
+}
+
+/// The CLI's --depth and --depth-scale give the same fusion; --depth without --depth-scale is
+/// refused, naming the flag.
+fn the_cli_fuses_depth_alike(
+    server: &Server,
+    case: &DepthCase,
+    t: alignist::serve::proto::Vector3,
+) {
+    let DepthCase { frame, depth, .. } = case;
+    let k = frame.k;
+    let [x, y, width, height] = frame.bbox;
     // The CLI: --depth and --depth-scale give the same fusion, with a translation per rotation.
     let dir = tempfile::tempdir().unwrap();
     let (rgb_path, depth_path) = (dir.path().join("rgb.png"), dir.path().join("depth.png"));
@@ -1154,8 +1250,38 @@ async fn frame_requests_fuse_a_depth_image_and_answer_the_translation() {
         .unwrap();
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("--depth-scale"));
+}
 
-    // Bad depth: INVALID_ARGUMENT naming the field.
+/// Bad depth: INVALID_ARGUMENT naming the field.
+async fn bad_depth_names_its_field(client: &mut AlignistClient<Channel>, case: &DepthCase) {
+    for (name, req, field) in bad_depths(case) {
+        let status = client.predict_frame(req).await.expect_err(name);
+        assert_eq!(status.code(), Code::InvalidArgument, "{name}: {status:?}");
+        assert!(
+            status.message().contains(field),
+            "{name}: {} does not name {field}",
+            status.message()
+        );
+    }
+}
+
+/// Frame requests with a bad depth image, each with the field its refusal names.
+fn bad_depths(
+    case: &DepthCase,
+) -> Vec<(
+    &'static str,
+    alignist::serve::proto::FrameRequest,
+    &'static str,
+)> {
+    use alignist::serve::proto::{DepthImage, Detection, FrameRequest};
+    let DepthCase {
+        frame,
+        depth,
+        request,
+        unit,
+        ..
+    } = case;
+    let unit = *unit;
     let with_depth = |d: DepthImage| FrameRequest {
         depth: Some(d),
         ..request.clone()
@@ -1167,7 +1293,7 @@ async fn frame_requests_fuse_a_depth_image_and_answer_the_translation() {
             .unwrap();
         png
     };
-    let cases = [
+    let mut cases = vec![
         (
             "8-bit PNG",
             with_depth(DepthImage {
@@ -1191,30 +1317,6 @@ async fn frame_requests_fuse_a_depth_image_and_answer_the_translation() {
                 ..depth.clone()
             }),
             "detections[0].box",
-        ),
-        (
-            "scale 1000× too large",
-            with_depth(DepthImage {
-                scale: depth.scale * 1000.0,
-                ..depth.clone()
-            }),
-            "depth.scale",
-        ),
-        (
-            "scale 1000× too small",
-            with_depth(DepthImage {
-                scale: depth.scale / 1000.0,
-                ..depth.clone()
-            }),
-            "depth.scale",
-        ),
-        (
-            "scale 0",
-            with_depth(DepthImage {
-                scale: 0.0,
-                ..depth.clone()
-            }),
-            "depth.scale",
         ),
         (
             "raw of the wrong length",
@@ -1253,22 +1355,56 @@ async fn frame_requests_fuse_a_depth_image_and_answer_the_translation() {
             "detections[0].box",
         ),
     ];
-    for (name, req, field) in cases {
-        let status = client.predict_frame(req).await.expect_err(name);
-        assert_eq!(status.code(), Code::InvalidArgument, "{name}: {status:?}");
-        assert!(
-            status.message().contains(field),
-            "{name}: {} does not name {field}",
-            status.message()
-        );
-    }
+    cases.extend(bad_depth_scales(depth, &with_depth));
+    cases
+}
+
+/// Frame requests whose depth scale is 0 or 1000× off, each with the field its refusal names.
+fn bad_depth_scales(
+    depth: &alignist::serve::proto::DepthImage,
+    with_depth: &dyn Fn(alignist::serve::proto::DepthImage) -> alignist::serve::proto::FrameRequest,
+) -> Vec<(
+    &'static str,
+    alignist::serve::proto::FrameRequest,
+    &'static str,
+)> {
+    use alignist::serve::proto::DepthImage;
+    vec![
+        (
+            "scale 1000× too large",
+            with_depth(DepthImage {
+                scale: depth.scale * 1000.0,
+                ..depth.clone()
+            }),
+            "depth.scale",
+        ),
+        (
+            "scale 1000× too small",
+            with_depth(DepthImage {
+                scale: depth.scale / 1000.0,
+                ..depth.clone()
+            }),
+            "depth.scale",
+        ),
+        (
+            "scale 0",
+            with_depth(DepthImage {
+                scale: 0.0,
+                ..depth.clone()
+            }),
+            "depth.scale",
+        ),
+    ]
+}
+
+/// The cube's pose in [`depth_case`].
+fn case_rotation() -> nalgebra::Rotation3<f64> {
+    haar_rotations(&mut ChaCha8Rng::seed_from_u64(33), 1)[0]
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn frame_requests_answer_every_box_in_the_camera_frame() {
-    use alignist::data::virtual_crop::{VirtualCamera, perspective_crop};
     use alignist::serve::proto::{Detection, FrameRequest, Intrinsics};
-    use alignist::so3::{from_quaternion, geodesic_angle};
     let server = start_server(&[]);
     let ch = channel(&server).await;
     wait_serving(ch.clone()).await;
@@ -1277,17 +1413,6 @@ async fn frame_requests_answer_every_box_in_the_camera_frame() {
     let r_cam = haar_rotations(&mut ChaCha8Rng::seed_from_u64(21), 1)[0];
     let (png, bbox, k) = frame_png(r_cam, 520.0, 130.0);
     let other = [20u32, 300, 90, 120];
-    let detection = |b: [u32; 4]| Detection {
-        r#box: Some(CropBox {
-            x: b[0],
-            y: b[1],
-            width: b[2],
-            height: b[3],
-        }),
-        object: String::new(),
-        mask: Vec::new(),
-        bbox: None,
-    };
     // A detector's box: sub-pixel, reaching past the frame's left edge (pad, don't refuse).
     let cut = [-25.5, 300.25, 90.5, 120.0];
     let fractional = Detection {
@@ -1306,7 +1431,7 @@ async fn frame_requests_answer_every_box_in_the_camera_frame() {
         model: "tiny".into(),
         image: image(png.clone()),
         intrinsics,
-        detections: vec![detection(bbox), detection(other), fractional],
+        detections: vec![detection_of(bbox), detection_of(other), fractional],
         top_k: 5,
         level: 3,
         mode_angle_deg: 0.0,
@@ -1322,6 +1447,41 @@ async fn frame_requests_answer_every_box_in_the_camera_frame() {
     assert!(answer.detections[2].r#box.is_none());
     let echoed = answer.detections[2].bbox.unwrap();
     assert_eq!([echoed.x, echoed.y, echoed.width, echoed.height], cut);
+    let whole = |b: [u32; 4]| b.map(|v| v as f64);
+    let boxes = [whole(bbox), whole(other), cut];
+    each_box_is_its_crops_answer_turned_by_the_ray(&mut client, &answer, &png, &k, &boxes).await;
+    bad_frames_name_their_field(&mut client, &request).await;
+    the_cli_answers_each_box(&server, &png, &k, bbox);
+    objects_are_described_for_planners(&mut client).await;
+}
+
+/// A detection of the whole-pixel box `b` (`x, y, width, height`), its object unnamed.
+fn detection_of(b: [u32; 4]) -> alignist::serve::proto::Detection {
+    alignist::serve::proto::Detection {
+        r#box: Some(CropBox {
+            x: b[0],
+            y: b[1],
+            width: b[2],
+            height: b[3],
+        }),
+        object: String::new(),
+        mask: Vec::new(),
+        bbox: None,
+    }
+}
+
+/// Each answer of a frame is the crop-only answer for that box's perspective crop, turned by
+/// `R_ray`, from the same model version.
+async fn each_box_is_its_crops_answer_turned_by_the_ray(
+    client: &mut AlignistClient<Channel>,
+    answer: &alignist::serve::proto::FrameResponse,
+    png: &[u8],
+    k: &[f64; 9],
+    boxes: &[[f64; 4]],
+) {
+    use alignist::data::virtual_crop::{VirtualCamera, perspective_crop};
+    use alignist::so3::{from_quaternion, geodesic_angle};
+    let k = *k;
     let sha = client
         .get_model(GetModelRequest {
             name: "tiny".into(),
@@ -1331,15 +1491,8 @@ async fn frame_requests_answer_every_box_in_the_camera_frame() {
         .into_inner()
         .network_sha256;
     assert_eq!(answer.model_version, sha);
-
-    // Each answer is the crop-only answer for that box's perspective crop, turned by R_ray.
-    let rgb = image::load_from_memory(&png).unwrap().to_rgb8();
-    let whole = |b: [u32; 4]| b.map(|v| v as f64);
-    for (d, bf) in answer
-        .detections
-        .iter()
-        .zip([whole(bbox), whole(other), cut])
-    {
+    let rgb = image::load_from_memory(png).unwrap().to_rgb8();
+    for (d, &bf) in answer.detections.iter().zip(boxes) {
         let (crop, view) = perspective_crop(rgb.as_raw(), 640, 480, &k, bf, 32).unwrap();
         assert_eq!(
             view.r_ray,
@@ -1386,8 +1539,15 @@ async fn frame_requests_answer_every_box_in_the_camera_frame() {
             }
         }
     }
+}
 
-    // Bad frames: each INVALID_ARGUMENT names its field.
+/// Bad frames: each INVALID_ARGUMENT names its field.
+async fn bad_frames_name_their_field(
+    client: &mut AlignistClient<Channel>,
+    request: &alignist::serve::proto::FrameRequest,
+) {
+    use alignist::serve::proto::FrameRequest;
+    let detection = detection_of;
     let bad = |f: &dyn Fn(&mut FrameRequest)| {
         let mut r = request.clone();
         f(&mut r);
@@ -1434,11 +1594,14 @@ async fn frame_requests_answer_every_box_in_the_camera_frame() {
             status.message()
         );
     }
+}
 
-    // The CLI: one block per box, rotations in the camera frame.
+/// The CLI: one block per box, rotations in the camera frame; a box without intrinsics is
+/// refused by the CLI itself, naming the flag.
+fn the_cli_answers_each_box(server: &Server, png: &[u8], k: &[f64; 9], bbox: [u32; 4]) {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("frame.png");
-    std::fs::write(&path, &png).unwrap();
+    std::fs::write(&path, png).unwrap();
     let json = cli_json(&[
         "--server",
         &server.grpc,
@@ -1470,8 +1633,10 @@ async fn frame_requests_answer_every_box_in_the_camera_frame() {
         .unwrap();
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("--intrinsics"));
+}
 
-    // Objects are described for planners: the cube's group, its rotations, its frame.
+/// Objects are described for planners: the cube's group, its rotations, its frame.
+async fn objects_are_described_for_planners(client: &mut AlignistClient<Channel>) {
     let models = client
         .list_models(ListModelsRequest {})
         .await

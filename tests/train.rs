@@ -238,15 +238,12 @@ fn ipdf_baseline_trains_on_the_same_network() {
     assert!((losses[0] - (64f64).ln()).abs() < 1.0, "{losses:?}");
 }
 
-#[test]
-fn a_few_hundred_real_steps_lower_the_loss_and_beat_uniform_on_held_out_renders() {
+/// Real (small) experts of the cube (200 SDF and 200 feature steps, 32³ bakes) and fresh renders
+/// of it: a training set of fresh renders.
+fn cube_with_small_experts() -> (TrainingSet, FreshRenders) {
     use alignist::experts::feature::FeatureTrainConfig;
     use alignist::experts::sdf::SdfTrainConfig;
-    use alignist::so3::metrics::chance_accuracy;
-    use alignist::train::eval::evaluate;
     use alignist::train::experts::{ExpertsJob, train_expert_set};
-
-    // Real (small) experts for the cube.
     let shape = Shape::Cube;
     let (mesh, normalisation) = shape.mesh().normalised();
     let experts = train_expert_set(
@@ -293,6 +290,15 @@ fn a_few_hundred_real_steps_lower_the_loss_and_beat_uniform_on_held_out_renders(
         images: Vec::new(),
         fresh: Some(fresh.clone()),
     };
+    (set, fresh)
+}
+
+#[test]
+fn a_few_hundred_real_steps_lower_the_loss_and_beat_uniform_on_held_out_renders() {
+    use alignist::so3::metrics::chance_accuracy;
+    use alignist::train::eval::evaluate;
+    let shape = Shape::Cube;
+    let (set, fresh) = cube_with_small_experts();
     let cfg = TrainConfig {
         steps: 300,
         batch: 16,

@@ -23,7 +23,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::bundle::experts::ExpertSet;
 use crate::bundle::model::ModelBundle;
-use crate::bundle::record::{BudgetPlan, BudgetRecord, EvalReport, ModelManifest, TrainConfig};
+use crate::bundle::record::{
+    BudgetPlan, BudgetRecord, EvalReport, InitWeights, ModelManifest, TrainConfig, TrainReport,
+};
 use crate::cad::{LengthUnit, Mesh, Normalisation};
 use crate::data::realism::Realism;
 use crate::encoding::RotationEncoding;
@@ -162,6 +164,9 @@ pub struct NewModel {
     pub max_expert_steps: Option<usize>,
     /// Seed of the experts and the training data.
     pub seed: u64,
+    /// A bundle whose network starts the fit (a warm start; it must have the recipe's network:
+    /// layout, encoding, crop size), recorded with its checksum in the manifest.
+    pub init: Option<PathBuf>,
     /// The command line, for the manifests.
     pub command: String,
 }
@@ -544,6 +549,11 @@ pub fn new_model(
         )));
     }
     let parts = load_parts(model)?;
+    // A warm start that does not fit the recipe is refused before any work.
+    let init = match &model.init {
+        Some(dir) => Some(super::fit::init_weights(dir, &recipe_config(1, 0).network)?),
+        None => None,
+    };
     let mut job = open_job(model, resume)?;
     job.say(
         progress,
@@ -571,7 +581,7 @@ pub fn new_model(
     let dirs = job.stage("experts", |job| {
         train_experts(job, &parts, &plan, model, progress)
     })?;
-    fit_and_write(&mut job, model, plan, &dirs, resume, progress)
+    fit_and_write(&mut job, model, plan, &dirs, init, resume, progress)
 }
 
 /// The fit stage (probed and sized first), the evaluation and the bundle.
@@ -580,6 +590,7 @@ fn fit_and_write(
     model: &NewModel,
     mut plan: BudgetPlan,
     dirs: &[PathBuf],
+    init: Option<InitWeights>,
     resume: bool,
     progress: &(dyn Fn(&str) + Sync),
 ) -> Result<ModelManifest, NewModelError> {
@@ -621,67 +632,29 @@ fn fit_and_write(
         job.state.plan = Some(plan.clone());
         job.save()?;
     }
-    let config = recipe_config(plan.fit_steps, model.seed);
+    let config = TrainConfig {
+        init,
+        ..recipe_config(plan.fit_steps, model.seed)
+    };
     job.say(
         progress,
         &format!(
-            "fit: {} steps of batch {} × K {} ({:.3} s per step in the probe), focused share {} → {}",
-            plan.fit_steps, RECIPE.batch, RECIPE.k, plan.probe_fit_step, RECIPE.focused_start,
-            RECIPE.focused_end
+            "fit: {} steps of batch {} × K {} ({:.3} s per step in the probe), focused share {} → {}{}",
+            plan.fit_steps,
+            RECIPE.batch,
+            RECIPE.k,
+            plan.probe_fit_step,
+            RECIPE.focused_start,
+            RECIPE.focused_end,
+            config
+                .init
+                .as_ref()
+                .map_or(String::new(), |i| format!(", warm start from {}", i.path))
         ),
     );
-    let checkpoints = job.dir.join("checkpoints");
-    std::fs::create_dir_all(&checkpoints).map_err(|e| NewModelError::Io {
-        path: checkpoints.display().to_string(),
-        message: e.to_string(),
-    })?;
     let reserve = plan.probe_eval_image * tests.len() as f64 * 1.2 + WRITE_RESERVE_S;
-    let (network, report) = job.stage("fit", |job| {
-        let mut last = Instant::now();
-        let out = super::train(
-            &config,
-            &training,
-            Some(&checkpoints),
-            resume,
-            |step, steps, loss| {
-                if last.elapsed().as_secs_f64() >= 30.0 || step == steps {
-                    last = Instant::now();
-                    job.say(
-                        progress,
-                        &format!("fit: step {step}/{steps}, loss {loss:.4}"),
-                    );
-                    let _ = job.save();
-                }
-                // The probe's estimate was too low: stop in time for the evaluation.
-                if job.clock.left() < reserve {
-                    job.say(
-                        progress,
-                        &format!("fit: stopped at step {step} to keep the budget"),
-                    );
-                    std::ops::ControlFlow::Break(())
-                } else {
-                    std::ops::ControlFlow::Continue(())
-                }
-            },
-        )?;
-        Ok(out)
-    })?;
-    let evaluation: Option<EvalReport> = job.stage("evaluation", |job| {
-        job.say(
-            progress,
-            &format!("evaluating on {} held-out realistic crops", tests.len()),
-        );
-        if tests.is_empty() {
-            return Ok(None);
-        }
-        Ok(Some(super::eval::evaluate(
-            &network,
-            &config.network,
-            &tests,
-            EVAL_LEVEL,
-            |_| {},
-        )?))
-    })?;
+    let (network, report) = run_fit(job, &config, &training, reserve, resume, progress)?;
+    let evaluation = evaluate_stage(job, &network, &config, &tests, progress)?;
     let name = model
         .out
         .file_name()
@@ -710,6 +683,79 @@ fn fit_and_write(
         &format!("bundle written to {}", model.out.display()),
     );
     Ok(manifest)
+}
+
+/// The evaluation stage: the network on the held-out realistic crops at [`EVAL_LEVEL`].
+fn evaluate_stage(
+    job: &mut Job,
+    network: &crate::net::Network,
+    config: &TrainConfig,
+    tests: &[super::eval::EvalImage],
+    progress: &(dyn Fn(&str) + Sync),
+) -> Result<Option<EvalReport>, NewModelError> {
+    job.stage("evaluation", |job| {
+        job.say(
+            progress,
+            &format!("evaluating on {} held-out realistic crops", tests.len()),
+        );
+        if tests.is_empty() {
+            return Ok(None);
+        }
+        Ok(Some(super::eval::evaluate(
+            network,
+            &config.network,
+            tests,
+            EVAL_LEVEL,
+            |_| {},
+        )?))
+    })
+}
+
+/// The fit stage: `config`'s schedule with checkpoints in the job's folder, progress every 30 s,
+/// stopped early when less than `reserve` seconds of the budget are left (the probe's estimate
+/// was too low).
+fn run_fit(
+    job: &mut Job,
+    config: &TrainConfig,
+    training: &super::TrainingSet,
+    reserve: f64,
+    resume: bool,
+    progress: &(dyn Fn(&str) + Sync),
+) -> Result<(crate::net::Network, TrainReport), NewModelError> {
+    let checkpoints = job.dir.join("checkpoints");
+    std::fs::create_dir_all(&checkpoints).map_err(|e| NewModelError::Io {
+        path: checkpoints.display().to_string(),
+        message: e.to_string(),
+    })?;
+    job.stage("fit", |job| {
+        let mut last = Instant::now();
+        let out = super::train(
+            config,
+            training,
+            Some(&checkpoints),
+            resume,
+            |step, steps, loss| {
+                if last.elapsed().as_secs_f64() >= 30.0 || step == steps {
+                    last = Instant::now();
+                    job.say(
+                        progress,
+                        &format!("fit: step {step}/{steps}, loss {loss:.4}"),
+                    );
+                    let _ = job.save();
+                }
+                if job.clock.left() < reserve {
+                    job.say(
+                        progress,
+                        &format!("fit: stopped at step {step} to keep the budget"),
+                    );
+                    std::ops::ControlFlow::Break(())
+                } else {
+                    std::ops::ControlFlow::Continue(())
+                }
+            },
+        )?;
+        Ok(out)
+    })
 }
 
 /// Times a few training steps and test images, and sizes the schedule to the time left.

@@ -41,6 +41,10 @@ pub(crate) struct NewArgs {
     /// Seed of the experts and of the training renders.
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Start the network from this bundle's weights (a warm start; it must have the recipe's
+    /// network: tiny layout, cube encoding, 32 px crops), e.g. training/warm-starts/symsol1-realistic.
+    #[arg(long)]
+    init: Option<PathBuf>,
 }
 
 /// A time like `2h`, `45m`, `90s`, `1.5h` or a number of seconds.
@@ -83,6 +87,7 @@ pub(crate) fn new_cmd(args: &NewArgs) -> Result<()> {
         max_steps: args.max_steps,
         max_expert_steps: args.max_expert_steps,
         seed: args.seed,
+        init: args.init.clone(),
         command: std::env::args().collect::<Vec<_>>().join(" "),
     };
     let manifest = new_model(&model, args.resume, &|line| eprintln!("{line}"))
