@@ -201,6 +201,48 @@ fn a_killed_job_resumes_to_the_same_model() {
 }
 
 #[test]
+fn a_warm_start_is_checked_before_any_work_and_recorded() {
+    let root = tempfile::tempdir().unwrap();
+    let part = write_part(root.path(), "block", 0.04);
+    let out = root.path().join("models/blocks");
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    let (part_s, out_s) = (s(&part), s(&out));
+    let missing = s(&root.path().join("no-such-bundle"));
+    let refused = Command::new(env!("CARGO_BIN_EXE_alignist-train"))
+        .args(new_args(&part_s, &out_s, "20m", &["--init", &missing]))
+        .output()
+        .unwrap();
+    assert!(!refused.status.success());
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(err.contains("no-such-bundle"), "{err}");
+    assert!(
+        !root.path().join("models/blocks.job").exists(),
+        "a refused warm start started a job"
+    );
+    // The test model has the recipe's network (tiny, cube encoding, 32 px): the fit starts from
+    // its weights, which the manifest records with their checksum.
+    let init = s(&models_dir().join("tiny"));
+    train(&new_args(
+        &part_s,
+        &out_s,
+        "20m",
+        &["--init", &init, "--max-steps", "20"],
+    ));
+    let m = manifest(&out);
+    let recorded = &m["provenance"]["train"]["init"];
+    assert!(
+        recorded["path"].as_str().unwrap().starts_with(&init),
+        "{recorded}"
+    );
+    let tiny = manifest(&models_dir().join("tiny"));
+    assert_eq!(
+        recorded["file"]["sha256"],
+        tiny["files"]["network.safetensors"]["sha256"]
+    );
+    assert_eq!(m["provenance"]["report"]["steps_run"], 20);
+}
+
+#[test]
 fn a_part_in_millimetres_gives_the_experts_of_the_same_part_in_metres() {
     use alignist::experts::sdf::{SdfTrainConfig, eval_sdf, train_sdf};
     let root = tempfile::tempdir().unwrap();

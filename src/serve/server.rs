@@ -40,7 +40,7 @@ pub struct ServerConfig {
     /// Connections older than this are closed gracefully (over `drain_timeout`), so that
     /// clients spread onto new replicas (`None`: connections live as long as clients keep them).
     pub max_connection_age: Option<Duration>,
-    /// Limits of the work in flight (image bytes, head slots).
+    /// Limits of the work in flight (image bytes).
     pub admission: super::admission::AdmissionConfig,
     /// Connections and request bodies: counts, timeouts, bytes.
     pub transport: TransportLimits,
