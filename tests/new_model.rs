@@ -88,6 +88,16 @@ async fn a_part_becomes_a_served_model_within_its_budget() {
     let sampling = &m["provenance"]["train"]["method"]["sampling"];
     assert_eq!(sampling["focused"], 192);
     assert_eq!(sampling["focused_end"], 12);
+    // The recipe's default warm start, on record with its checksum.
+    let init = &m["provenance"]["train"]["init"];
+    assert!(
+        init["path"]
+            .as_str()
+            .unwrap()
+            .contains("training/warm-starts/symsol1-realistic"),
+        "{init}"
+    );
+    assert_eq!(init["file"]["sha256"].as_str().unwrap().len(), 64);
     // A part drawn in metres keeps its unit and surface-centroid frame.
     let experts = manifest(&out.join("experts/block"));
     assert_eq!(experts["object"]["normalisation"]["units"], "metre");

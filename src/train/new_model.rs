@@ -61,7 +61,8 @@ pub struct Recipe {
     pub supersample: u32,
 }
 
-/// The recipe: batch 16 × K 256 at 32 px, peak lr 1e-3, the focused share 3/4 → 1/20.
+/// The recipe: batch 16 × K 256 at 32 px, peak lr 1e-3, the focused share 3/4 → 1/20 (the
+/// warm start, [`NewModel::init`], is the binary's default: `training/warm-starts`).
 pub const RECIPE: Recipe = Recipe {
     image_size: 32,
     batch: 16,
