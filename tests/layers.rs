@@ -234,3 +234,162 @@ fn the_scan_reads_grouped_and_nested_paths() {
     assert_eq!(found[1].1.as_deref(), Some("grid"));
     assert_eq!(code_of("a // crate::x\nb"), "a \nb");
 }
+
+/// `text` with every comment, string and character literal blanked (newlines kept), so that
+/// braces count as code.
+fn blanked(text: &str) -> String {
+    let chars: Vec<char> = text.chars().collect();
+    let mut out = String::with_capacity(text.len());
+    let mut i = 0;
+    let keep = |c: char| if c == '\n' { '\n' } else { ' ' };
+    while i < chars.len() {
+        let c = chars[i];
+        let next = chars.get(i + 1).copied();
+        if c == '/' && next == Some('/') {
+            while i < chars.len() && chars[i] != '\n' {
+                out.push(' ');
+                i += 1;
+            }
+        } else if c == '/' && next == Some('*') {
+            let mut depth = 0;
+            while i < chars.len() {
+                if chars[i] == '/' && chars.get(i + 1) == Some(&'*') {
+                    depth += 1;
+                } else if chars[i] == '*' && chars.get(i + 1) == Some(&'/') {
+                    depth -= 1;
+                    out.push_str("  ");
+                    i += 2;
+                    if depth == 0 {
+                        break;
+                    }
+                    continue;
+                }
+                out.push(keep(chars[i]));
+                i += 1;
+            }
+        } else if c == 'r' && (next == Some('"') || next == Some('#')) && {
+            let hashes = chars[i + 1..].iter().take_while(|&&h| h == '#').count();
+            chars.get(i + 1 + hashes) == Some(&'"')
+        } {
+            // A raw string: r#"…"# with as many hashes to close as to open.
+            let hashes = chars[i + 1..].iter().take_while(|&&h| h == '#').count();
+            i += 2 + hashes;
+            out.push_str(&" ".repeat(2 + hashes));
+            while i < chars.len() {
+                if chars[i] == '"' && chars[i + 1..].iter().take(hashes).all(|&h| h == '#') {
+                    out.push_str(&" ".repeat(1 + hashes));
+                    i += 1 + hashes;
+                    break;
+                }
+                out.push(keep(chars[i]));
+                i += 1;
+            }
+        } else if c == '"' {
+            out.push(' ');
+            i += 1;
+            while i < chars.len() && chars[i] != '"' {
+                if chars[i] == '\\' {
+                    out.push(' ');
+                    i += 1;
+                }
+                if i < chars.len() {
+                    out.push(keep(chars[i]));
+                    i += 1;
+                }
+            }
+            out.push(' ');
+            i += 1;
+        } else if c == '\''
+            && (chars.get(i + 2) == Some(&'\'')
+                || (next == Some('\\') && chars.get(i + 3) == Some(&'\'')))
+        {
+            // A character literal ('{', '\n'); a lifetime ('a) has no closing quote.
+            let len = if next == Some('\\') { 4 } else { 3 };
+            out.push_str(&" ".repeat(len));
+            i += len;
+        } else {
+            out.push(c);
+            i += 1;
+        }
+    }
+    out
+}
+
+/// Every function of `text` longer than `most` lines: `(name, first line, lines)`.
+fn long_functions(text: &str, most: usize) -> Vec<(String, usize, usize)> {
+    let code = blanked(text);
+    let lines: Vec<&str> = code.lines().collect();
+    let mut long = Vec::new();
+    for (start, line) in lines.iter().enumerate() {
+        let words: Vec<&str> = line.split_whitespace().collect();
+        let Some(at) = words.iter().position(|w| *w == "fn") else {
+            continue;
+        };
+        let Some(name) = words.get(at + 1).map(|w| ident(w)) else {
+            continue;
+        };
+        if name.is_empty() {
+            continue;
+        }
+        // From the signature to the brace that closes the body (none: a declaration).
+        let mut depth = 0i64;
+        let mut opened = false;
+        for (end, l) in lines.iter().enumerate().skip(start) {
+            for ch in l.chars() {
+                match ch {
+                    '{' => {
+                        depth += 1;
+                        opened = true;
+                    }
+                    '}' => depth -= 1,
+                    ';' if !opened && depth == 0 => break,
+                    _ => {}
+                }
+            }
+            if (opened && depth == 0) || (!opened && l.trim_end().ends_with(';')) {
+                if opened && end - start + 1 > most {
+                    long.push((name.to_string(), start + 1, end - start + 1));
+                }
+                break;
+            }
+        }
+    }
+    long
+}
+
+/// No function in `src/`, `tests/`, `examples/` or `benches/` is over 100 lines
+/// (docs/DESIGN.md §3): long ones are split into named steps.
+#[test]
+fn no_function_is_over_100_lines() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let mut files = Vec::new();
+    for dir in ["src", "tests", "examples", "benches"] {
+        if root.join(dir).is_dir() {
+            rust_files(&root.join(dir), &mut files);
+        }
+    }
+    let mut long = Vec::new();
+    for file in &files {
+        let text = std::fs::read_to_string(file).unwrap();
+        for (name, line, lines) in long_functions(&text, 100) {
+            let rel = file.strip_prefix(root).unwrap().display();
+            long.push(format!("{rel}:{line} {name} ({lines} lines)"));
+        }
+    }
+    assert!(
+        long.is_empty(),
+        "functions over 100 lines:\n{}",
+        long.join("\n")
+    );
+}
+
+#[test]
+fn the_length_scan_skips_braces_in_strings_and_counts_bodies() {
+    let body: String = (0..101)
+        .map(|i| format!("    let x{i} = \"}}\";\n"))
+        .collect();
+    let text = format!("fn long() {{\n{body}}}\nfn short() {{ '{{'; }}\nfn decl();\n");
+    let long = long_functions(&text, 100);
+    assert_eq!(long, vec![("long".to_string(), 1, 103)]);
+    assert!(long_functions(&text, 103).is_empty());
+}

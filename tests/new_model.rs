@@ -107,8 +107,13 @@ async fn a_part_becomes_a_served_model_within_its_budget() {
     );
     assert!(experts["symmetry"]["label"].is_string());
 
-    // Served as it is, and answering a camera frame.
-    let server = start_server_on(&models, &[]);
+    the_model_is_served_and_answers_a_frame(&models).await;
+}
+
+/// The models folder served as it is: the part listed in metres with its discovered symmetry,
+/// and a camera frame answered.
+async fn the_model_is_served_and_answers_a_frame(models: &Path) {
+    let server = start_server_on(models, &[]);
     let ch = channel(&server).await;
     wait_serving(ch.clone()).await;
     let mut client = AlignistClient::new(ch);
