@@ -200,6 +200,28 @@ impl ProjectedGrid {
             .collect()
     }
 
+    /// [`ProjectedGrid::log_weights_of_row`] in chunks of `rows` cells, calling `between` before
+    /// each: long levels stop at the next chunk when it errs (a caller that went away).
+    pub fn log_weights_of_row_in_chunks<E>(
+        &self,
+        precision: Precision,
+        features: &[f32],
+        rows: usize,
+        mut between: impl FnMut() -> Result<(), E>,
+    ) -> Result<Vec<f32>, E> {
+        let image_term = self.head.image_term(features);
+        let width = self.head.width();
+        let mut out = Vec::with_capacity(self.grid.len());
+        for chunk in self.projected.chunks(rows.max(1) * width) {
+            between()?;
+            out.extend(
+                self.head
+                    .scores_in(precision, &image_term, Rows::Projected(chunk)),
+            );
+        }
+        Ok(out)
+    }
+
     /// `s_θ + s_φ` of every cell for one image's features (a plain row of `D` floats), in
     /// `precision`.
     pub fn log_weights_of_row(&self, precision: Precision, features: &[f32]) -> Vec<f32> {

@@ -5,6 +5,8 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 
+use crate::fit::{ProgressLog, log_progress};
+
 use crate::object::ObjectArgs;
 use alignist::experts::energy::{KeyNorm, SdfNorm};
 use alignist::experts::feature::FeatureTrainConfig;
@@ -209,26 +211,29 @@ pub(crate) fn experts_cmd(args: &ExpertsArgs) -> Result<()> {
     let job = args.job()?;
     let style = ProgressStyle::with_template("{prefix:>9} {bar:40} {pos}/{len}  {msg}  eta {eta}")
         .expect("static progress template");
-    let mut bar: Option<(String, ProgressBar)> = None;
+    let mut bar: Option<(String, ProgressBar, ProgressLog)> = None;
     let started = std::time::Instant::now();
     let mut set = train_expert_set(job, &mut |phase, step, steps, loss| {
-        if bar.as_ref().is_none_or(|(p, _)| p != phase) {
-            if let Some((_, b)) = bar.take() {
+        if bar.as_ref().is_none_or(|(p, _, _)| p != phase) {
+            if let Some((_, b, _)) = bar.take() {
                 b.finish();
             }
             let b = ProgressBar::new(steps as u64).with_style(style.clone());
             b.set_prefix(phase.to_string());
-            bar = Some((phase.to_string(), b));
+            let log = ProgressLog::labelled(&format!("{phase}: "));
+            bar = Some((phase.to_string(), b, log));
         }
-        if let Some((_, b)) = &bar {
+        if let Some((_, b, log)) = &mut bar {
             b.set_position(step as u64);
             if step > 0 {
                 b.set_message(format!("loss {loss:.4}"));
+                // Lines for logs, where no bar is drawn.
+                log_progress(log, step, steps, loss);
             }
         }
     })
     .context("training the experts")?;
-    if let Some((_, b)) = bar.take() {
+    if let Some((_, b, _)) = bar.take() {
         b.finish();
     }
     set.save(&args.out)

@@ -383,10 +383,17 @@ pub(crate) struct ProgressLog {
     last: std::time::Instant,
     first_step: Option<usize>,
     on_terminal: bool,
+    /// Printed before each line (a phase's name, or nothing).
+    label: String,
 }
 
 impl ProgressLog {
-    fn new() -> Self {
+    pub(crate) fn new() -> Self {
+        Self::labelled("")
+    }
+
+    /// A log whose lines start with `label` (e.g. `sdf: `).
+    pub(crate) fn labelled(label: &str) -> Self {
         use std::io::IsTerminal;
         let now = std::time::Instant::now();
         ProgressLog {
@@ -394,6 +401,7 @@ impl ProgressLog {
             last: now,
             first_step: None,
             on_terminal: std::io::stderr().is_terminal(),
+            label: label.to_string(),
         }
     }
 }
@@ -411,7 +419,8 @@ pub(crate) fn log_progress(log: &mut ProgressLog, step: usize, steps: usize, los
     let elapsed = log.started.elapsed().as_secs_f64();
     let per_step = elapsed / (step - first).max(1) as f64;
     eprintln!(
-        "step {step}/{steps}  loss {loss:.4}  {:.0} ms/step  elapsed {:.0} s  left {:.0} s",
+        "{}step {step}/{steps}  loss {loss:.4}  {:.0} ms/step  elapsed {:.0} s  left {:.0} s",
+        log.label,
         per_step * 1e3,
         elapsed,
         per_step * (steps - step) as f64
