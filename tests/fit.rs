@@ -59,23 +59,7 @@ impl Pipeline {
             "--out",
             s(&data),
         ]);
-        run(&[
-            "experts",
-            "--shape",
-            "cube",
-            "--steps",
-            "20",
-            "--feature-steps",
-            "4",
-            "--images",
-            "2",
-            "--bake-resolution",
-            "16",
-            "--table-views",
-            "2",
-            "--out",
-            s(&experts),
-        ]);
+        common::tiny_cube_experts(&experts);
         Pipeline {
             dir,
             data,

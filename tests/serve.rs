@@ -39,6 +39,62 @@ fn features_of(model: &alignist::engine::Model, png: &[u8]) -> Vec<f32> {
     model.features(&[&prepared(model, png)]).swap_remove(0)
 }
 
+/// The engine's frame front door without a socket: each box's answer is the crop-only answer of
+/// its planned crop, turned by its ray.
+#[test]
+fn the_engines_predict_frame_answers_each_planned_crop_in_the_camera_frame() {
+    use alignist::engine::{Detection, FrameQuery, Intrinsics};
+    let engine = Engine::load_dir(models_dir(), EngineConfig::default()).unwrap();
+    let model = engine.model("tiny").unwrap();
+    let r_cam = haar_rotations(&mut ChaCha8Rng::seed_from_u64(21), 1)[0];
+    let (png, b, k) = frame_png(r_cam, 520.0, 130.0);
+    let query = FrameQuery {
+        image: ImageRequest {
+            data: &png,
+            raw_size: None,
+            crop: None,
+        },
+        intrinsics: Intrinsics {
+            fx: k[0],
+            fy: k[4],
+            cx: k[2],
+            cy: k[5],
+        },
+        detections: [b, [20, 300, 90, 120]]
+            .iter()
+            .map(|b| Detection {
+                bbox: alignist::engine::CropBox::pixels(b[0], b[1], b[2], b[3]),
+                object: "",
+                mask: None,
+            })
+            .collect(),
+        depth: None,
+    };
+    let options = PredictOptions {
+        top_k: 3,
+        level: Some(3),
+        ..Default::default()
+    };
+    let (plan, answers) = model.predict_frame(&query, &options).unwrap();
+    assert_eq!((plan.crops.len(), answers.len()), (2, 2));
+    for ((crop, ray), answer) in plan.crops.iter().zip(&plan.rays).zip(&answers) {
+        let features = model.features(&[crop]).swap_remove(0);
+        let alone = model.predict(&features, &options, None).unwrap();
+        let turned = alone.in_camera_frame(ray);
+        // The frame's crops share one encoder batch: equal cells, probabilities within 1e-4.
+        let cells =
+            |p: &alignist::engine::Prediction| p.top.iter().map(|c| c.cell).collect::<Vec<_>>();
+        assert_eq!(cells(answer), cells(&turned));
+        for (a, t) in answer.top.iter().zip(&turned.top) {
+            assert!((a.probability - t.probability).abs() <= 1e-4 * t.probability.max(1e-12));
+        }
+        for (a, t) in answer.rotations.iter().zip(&turned.rotations) {
+            let angle = alignist::so3::quaternion_angle(a, t);
+            assert!(angle < 1e-9, "{angle}");
+        }
+    }
+}
+
 #[test]
 fn coarse_to_fine_top1_is_the_exhaustive_argmax_at_level_4() {
     let engine = Engine::load_dir(models_dir(), EngineConfig::default()).unwrap();
