@@ -69,12 +69,15 @@ impl Default for TransportLimits {
 struct ConnState {
     /// It has sent its handshake bytes: no longer evictable.
     handshaken: AtomicBool,
-    /// Evicted: its next poll fails.
+    /// Its slot under the cap is given back, by eviction or by its end, whichever came first
+    /// (exactly one of them counts it off). Once evicted, its next poll fails.
     evicted: AtomicBool,
     waker: Mutex<Option<Waker>>,
 }
 
 impl ConnState {
+    /// Marks the connection evicted and wakes it; false if it is past its handshake or its slot
+    /// was given back already.
     fn evict(&self) -> bool {
         if self.handshaken.load(Ordering::SeqCst) || self.evicted.swap(true, Ordering::SeqCst) {
             return false;
@@ -97,13 +100,16 @@ struct Registry {
 }
 
 impl Registry {
-    /// Evicts the oldest connection that has not sent its handshake bytes; false if none.
+    /// Evicts the oldest connection that has not sent its handshake bytes and gives its slot
+    /// back at once (its task closes the socket when next polled, which under load can come
+    /// after the next accepts); false if none.
     fn evict_oldest_pending(&self) -> bool {
         let mut pending = self.pending.lock().unwrap_or_else(|e| e.into_inner());
         while let Some(weak) = pending.pop_front() {
             if let Some(conn) = weak.upgrade()
                 && conn.evict()
             {
+                self.release();
                 metrics::counter!("alignist_connections_closed_total", "reason" => "evicted")
                     .increment(1);
                 return true;
@@ -125,14 +131,26 @@ impl Registry {
     }
 }
 
-/// Counts an open connection until dropped.
+impl Registry {
+    /// One connection's slot given back.
+    fn release(&self) {
+        let open = self.open.fetch_sub(1, Ordering::SeqCst) - 1;
+        metrics::gauge!("alignist_connections_open").set(open as f64);
+    }
+}
+
+/// Holds an open connection's slot until dropped, unless an eviction gave it back first.
 #[derive(Debug)]
-struct Open(Arc<Registry>);
+struct Open {
+    registry: Arc<Registry>,
+    state: Arc<ConnState>,
+}
 
 impl Drop for Open {
     fn drop(&mut self) {
-        let open = self.0.open.fetch_sub(1, Ordering::SeqCst) - 1;
-        metrics::gauge!("alignist_connections_open").set(open as f64);
+        if !self.state.evicted.swap(true, Ordering::SeqCst) {
+            self.registry.release();
+        }
     }
 }
 
@@ -184,11 +202,14 @@ impl BoundedIncoming {
         pending.push_back(Arc::downgrade(&state));
         Some(GuardedIo {
             inner: stream,
-            state,
+            state: state.clone(),
             received: 0,
             deadline: Box::pin(tokio::time::sleep(self.limits.handshake_timeout)),
             idle_timeout: self.limits.idle_timeout,
-            _open: Open(registry.clone()),
+            _open: Open {
+                registry: registry.clone(),
+                state,
+            },
         })
     }
 }
