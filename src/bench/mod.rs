@@ -41,10 +41,11 @@ pub fn head_flops_per_rotation(model: &Model) -> f64 {
     2.0 * per_branch
 }
 
-/// The fused head's library at its best: a 4096×256 · 256×256 f32 product in row tiles of
+/// The heads' library GEMM (`dense::gemm`: the `gemm` crate, or matrixmultiply when the kernels
+/// are capped to `kernels`) at its best: a 4096×256 · 256×256 f32 product in row tiles of
 /// `tile` rows, one tile per task over the cores, as the head runs its layers; GFLOP/s, best
 /// of 20.
-pub fn matmul_peak_gflops(tile: usize) -> f64 {
+pub fn matmul_peak_gflops(kernels: crate::net::Kernels, tile: usize) -> f64 {
     let (m, k, n) = (4096usize, 256usize, 256usize);
     let a: Vec<f32> = (0..m * k)
         .map(|i| ((i * 7919) % 1000) as f32 / 1e3)
@@ -58,25 +59,14 @@ pub fn matmul_peak_gflops(tile: usize) -> f64 {
             .zip(a.par_chunks(tile * k))
             .for_each(|(c, a)| {
                 let rows = a.len() / k;
-                // SAFETY: `a` is rows×k, `b` k×n and `c` rows×n, row-major, not aliased.
-                unsafe {
-                    matrixmultiply::sgemm(
-                        rows,
-                        k,
-                        n,
-                        1.0,
-                        a.as_ptr(),
-                        k as isize,
-                        1,
-                        b.as_ptr(),
-                        n as isize,
-                        1,
-                        0.0,
-                        c.as_mut_ptr(),
-                        n as isize,
-                        1,
-                    );
-                }
+                crate::net::dense::gemm(
+                    kernels,
+                    [rows, k, n],
+                    crate::net::dense::Strided::rows(a, k),
+                    crate::net::dense::Strided::rows(&b, n),
+                    0.0,
+                    c,
+                );
             });
     });
     2.0 * (m * k * n) as f64 / s / 1e9
@@ -137,12 +127,14 @@ pub fn bench(
     grpc_vs_in_process(model, bundle, &png, in_process_p50)
 }
 
-/// Prints the matmul peak of matrixmultiply, the FMA peak of this CPU and the load-time
+/// Prints the matmul peak of the library GEMM, the FMA peak of this CPU and the load-time
 /// calibration; returns the widest FMA peak (GFLOP/s).
 fn print_peaks(model: &Model) -> f64 {
-    let library = matmul_peak_gflops(crate::net::tiles::TILE_ROWS);
+    let kernels = model.config().kernels;
+    let library = matmul_peak_gflops(kernels, crate::net::tiles::TILE_ROWS);
     println!(
-        "matmul peak of matrixmultiply (4096×256·256×256 f32 in tiles of {} rows over the cores): {library:.1} GFLOP/s",
+        "matmul peak of the library GEMM, {} (4096×256·256×256 f32 in tiles of {} rows over the cores): {library:.1} GFLOP/s",
+        crate::net::dense::library_name(kernels),
         crate::net::tiles::TILE_ROWS
     );
     let widest = peak::fma_peak(true);

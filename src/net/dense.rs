@@ -1,7 +1,12 @@
-//! Linear layers as plain row-major matrices, and the one strided GEMM every hand-written head
-//! path (inference tiles, the training head's forward and backward) calls.
+//! Linear layers as plain row-major matrices, and the one strided library GEMM every hand-written
+//! head path without its own kernel (the training head's forward and backward, the portable
+//! inference tiles) calls: the `gemm` crate, on 512-bit FMAs where the core has AVX-512, or
+//! matrixmultiply's 256-bit kernel when the kernels are capped (`--kernels`/`ALIGNIST_KERNELS`
+//! `avx2` or `portable`, [`Kernels`]).
 
 use burn::tensor::Tensor;
+
+use super::native::Kernels;
 
 /// One linear layer, row-major `[inputs, outputs]` weights (burn's `Linear` layout: `y = x·W + b`).
 #[derive(Debug, Clone)]
@@ -28,12 +33,14 @@ impl Dense {
         }
     }
 
-    /// `out[r] = x[r]·W + b` for the `rows` rows of `x` (row-major), single-threaded.
-    pub(crate) fn apply(&self, x: &[f32], rows: usize, out: &mut [f32]) {
+    /// `out[r] = x[r]·W + b` for the `rows` rows of `x` (row-major), single-threaded, on the
+    /// library GEMM `kernels` allows.
+    pub(crate) fn apply(&self, kernels: Kernels, x: &[f32], rows: usize, out: &mut [f32]) {
         for row in out[..rows * self.outputs].chunks_exact_mut(self.outputs) {
             row.copy_from_slice(&self.bias);
         }
         gemm(
+            kernels,
             [rows, self.inputs, self.outputs],
             Strided::rows(x, self.inputs),
             Strided::rows(&self.weight, self.outputs),
@@ -89,12 +96,22 @@ impl<'a> Strided<'a> {
     }
 }
 
-/// `c = beta·c + a·b` for `[m, k]·[k, n]` operands, `c` row-major `[m, n]` (matrixmultiply's GEMM,
-/// on the calling thread; it picks the widest kernel the core has).
+/// The library [`gemm`] runs on for `kernels`.
+pub(crate) fn library_name(kernels: Kernels) -> &'static str {
+    match kernels.allows_avx512() {
+        true => "the gemm crate",
+        false => "matrixmultiply",
+    }
+}
+
+/// `c = beta·c + a·b` for `[m, k]·[k, n]` operands, `c` row-major `[m, n]`, on the calling
+/// thread: the `gemm` crate (its widest kernel on this core) unless `kernels` are capped below
+/// AVX-512, then matrixmultiply's (256-bit at most).
 ///
 /// # Panics
 /// When an operand is smaller than its shape: a caller's bug, never input-dependent.
 pub(crate) fn gemm(
+    kernels: Kernels,
     [m, k, n]: [usize; 3],
     a: Strided<'_>,
     b: Strided<'_>,
@@ -108,9 +125,37 @@ pub(crate) fn gemm(
     if m == 0 || n == 0 {
         return;
     }
-    // SAFETY: the assertion above keeps every index the GEMM reads (`i·row_step + j·column_step`
-    // for `i < rows`, `j < columns`) inside `a` and `b`, and every index it writes inside `c`;
-    // `c` is a unique borrow, so it aliases neither operand.
+    if kernels.allows_avx512() {
+        // SAFETY: the assertion above keeps every index the GEMM reads (`i·row_step +
+        // j·column_step` for `i < rows`, `j < columns`) inside `a` and `b`, and every index it
+        // writes inside `c`; `c` is a unique borrow, so it aliases neither operand. With
+        // `read_dst` false `c` is only written (`dst := beta·dst + 1·a·b` otherwise).
+        unsafe {
+            gemm::gemm(
+                m,
+                n,
+                k,
+                c.as_mut_ptr(),
+                1,
+                n as isize,
+                beta != 0.0,
+                a.data.as_ptr(),
+                a.column_step as isize,
+                a.row_step as isize,
+                b.data.as_ptr(),
+                b.column_step as isize,
+                b.row_step as isize,
+                beta,
+                1.0,
+                false,
+                false,
+                false,
+                gemm::Parallelism::None,
+            );
+        }
+        return;
+    }
+    // SAFETY: as above.
     unsafe {
         matrixmultiply::sgemm(
             m,

@@ -2,14 +2,15 @@
 //! same weights as [`DualHead`], read once into plain row-major matrices, evaluated in row tiles
 //! that stay in the core's cache. For each tile of rotations: `x = relu(P_R + W_I·f + b)` (the
 //! rotation projections `P_R` precomputed per grid level), then per branch three
-//! `h ← relu(h·W + b)` GEMMs (matrixmultiply's AVX-512 kernel, one thread per tile, tiles spread
-//! over the cores) with bias and ReLU applied to the tile in place, and the last `256 → 1` layer
+//! `h ← relu(h·W + b)` GEMMs (the project's kernels of [`super::native`], else the library GEMM
+//! of [`super::dense`]; one thread per tile, tiles spread over the cores) with bias and ReLU applied to the tile in place, and the last `256 → 1` layer
 //! as a dot product. No intermediate leaves the tile, so the head runs near the library's matmul
 //! peak. The burn network stays the reference (training, tests).
 
 use rayon::prelude::*;
 
 use super::DualHead;
+use super::dense;
 use super::bf16::Bf16Kernel;
 use super::native::{F32Avx2, F32Avx512, Kernels, NativeHead};
 pub use super::tiles::{Precision, Rows, TILE_ROWS};
@@ -71,6 +72,8 @@ pub struct FusedHead {
     weights: HeadWeights,
     /// Round every GEMM's input to bfloat16 (the emulation of [`Bf16Head`]).
     round_inputs: bool,
+    /// The kernels allowed, also for the library GEMM of the portable path.
+    kernels: Kernels,
     /// The same head in bfloat16 (`None` in the emulation itself).
     bf16: Option<Box<Bf16Head>>,
     /// The same head on the f32 512-bit kernel, where the core has it and the kernels allowed
@@ -99,6 +102,7 @@ impl FusedHead {
             f32_native: F32Native::new(&weights, kernels).map(Box::new),
             weights,
             round_inputs: false,
+            kernels,
         }
     }
 
@@ -106,10 +110,11 @@ impl FusedHead {
     /// GEMM's input (encodings included) rounded too: the emulation of [`Bf16Head`] on the f32
     /// GEMM. The image half of the first layer stays f32, as in the native kernel, and so do
     /// projections made beforehand by the f32 head (a search's start level).
-    fn rounded_to_bf16(weights: &HeadWeights) -> FusedHead {
+    fn rounded_to_bf16(weights: &HeadWeights, kernels: Kernels) -> FusedHead {
         FusedHead {
             weights: weights.rounded_to_bf16(),
             round_inputs: true,
+            kernels,
             bf16: None,
             f32_native: None,
         }
@@ -121,7 +126,7 @@ impl FusedHead {
         self.bf16.as_ref().is_some_and(|b| b.is_native())
     }
 
-    /// Whether [`Precision::F32`] runs on one of the project's kernels (else on matrixmultiply's).
+    /// Whether [`Precision::F32`] runs on one of the project's kernels (else on the library GEMM).
     pub fn f32_native(&self) -> bool {
         self.f32_native.is_some()
     }
@@ -132,7 +137,7 @@ impl FusedHead {
             "f32: {}, bf16: {}",
             self.f32_native
                 .as_ref()
-                .map_or("matrixmultiply (portable)", |k| k.name()),
+                .map_or(dense::library_name(self.kernels), |k| k.name()),
             if self.bf16_native() {
                 "AVX-512 BF16 kernel"
             } else {
@@ -159,7 +164,7 @@ impl FusedHead {
     /// The image half of the first layer, `W_I·f + b_I`, for one image's features.
     pub fn image_term(&self, features: &[f32]) -> Vec<f32> {
         let mut out = vec![0.0; self.weights.width];
-        self.weights.image.apply(features, 1, &mut out);
+        self.weights.image.apply(self.kernels, features, 1, &mut out);
         out
     }
 
@@ -172,7 +177,11 @@ impl FusedHead {
         let mut out = vec![0.0; n * w];
         out.par_chunks_mut(TILE_ROWS * w)
             .zip(encodings.par_chunks(TILE_ROWS * e))
-            .for_each(|(out, enc)| self.weights.rotation.apply(enc, enc.len() / e, out));
+            .for_each(|(out, enc)| {
+                self.weights
+                    .rotation
+                    .apply(self.kernels, enc, enc.len() / e, out)
+            });
         out
     }
 
@@ -256,7 +265,7 @@ impl FusedHead {
                     1 => (&a[..], &mut b[..]),
                     _ => (&b[..], &mut a[..]),
                 };
-                layer.apply(input, rows, output);
+                layer.apply(self.kernels, input, rows, output);
                 relu(&mut output[..rows * w]);
                 // The last hidden layer feeds the f32 dot product, as in the native kernel.
                 if self.round_inputs && l + 1 < branch.hidden.len() {
@@ -303,13 +312,18 @@ impl Bf16Head {
             .then(|| NativeHead::new(head))
             .flatten()
             .map(|native| Bf16Head(Path::Native(Box::new(native))))
-            .unwrap_or_else(|| Bf16Head(Path::Emulated(Box::new(FusedHead::rounded_to_bf16(head)))))
+            .unwrap_or_else(|| {
+                Bf16Head(Path::Emulated(Box::new(FusedHead::rounded_to_bf16(
+                    head, kernels,
+                ))))
+            })
     }
 
     /// The emulation, on any core.
     pub fn emulated(head: &FusedHead) -> Bf16Head {
         Bf16Head(Path::Emulated(Box::new(FusedHead::rounded_to_bf16(
             &head.weights,
+            head.kernels,
         ))))
     }
 

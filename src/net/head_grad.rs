@@ -1,6 +1,7 @@
 //! The dual-branch head's forward and backward for training, by hand (paper Sec. 3.3; the
 //! losses' gradients are in [`super::loss`]): the arithmetic of burn's autodiff through
-//! [`DualHead::forward`], on plain row-major f32 matrices and matrixmultiply's GEMM, without the
+//! [`DualHead::forward`], on plain row-major f32 matrices and the library GEMM ([`dense::gemm`]:
+//! 512-bit where the core has AVX-512 unless `ALIGNIST_KERNELS` caps it), without the
 //! autodiff graph's per-op tensors.
 //!
 //! Forward, per chunk of rows (a rotation of an image): `x₀ = relu(enc·W_R + b_R + f·W_I + b_I)`,
@@ -19,6 +20,7 @@ use rayon::prelude::*;
 
 use super::DualHead;
 use super::dense::{Dense, Strided, gemm};
+use super::native::Kernels;
 
 /// Rows of one task (a chunk's activations, 7 × 256 rows × 256 × 4 B, stay in a core's L2).
 const CHUNK_ROWS: usize = 256;
@@ -37,6 +39,8 @@ pub struct TrainingHead {
     branches: [Vec<Dense>; 2],
     /// Weight and bias ids in the order image, rotation, shape layers, feature layers.
     ids: Vec<(ParamId, Option<ParamId>)>,
+    /// The library GEMM's kernels (`ALIGNIST_KERNELS`).
+    kernels: Kernels,
 }
 
 /// One chunk's activations.
@@ -99,9 +103,10 @@ impl LayerGrad {
     }
 
     /// `dW += inputᵀ·dz`, `db += Σ_rows dz` for `rows` rows.
-    fn accumulate(&mut self, input: &[f32], dz: &[f32], rows: usize) {
+    fn accumulate(&mut self, kernels: Kernels, input: &[f32], dz: &[f32], rows: usize) {
         let (inputs, outputs) = (self.weight.len() / self.bias.len(), self.bias.len());
         gemm(
+            kernels,
             [inputs, rows, outputs],
             Strided::columns(input, inputs),
             Strided::rows(dz, outputs),
@@ -171,6 +176,7 @@ impl TrainingHead {
             rotation: Dense::of(rotation),
             branches,
             ids,
+            kernels: Kernels::from_env(),
         }
     }
 
@@ -197,14 +203,14 @@ impl TrainingHead {
             "rotation encodings"
         );
         let mut image_term = vec![0.0; images * width];
-        self.image.apply(&features, images, &mut image_term);
+        self.image.apply(self.kernels, &features, images, &mut image_term);
         let chunks = encodings
             .par_chunks(CHUNK_ROWS * e)
             .enumerate()
             .map(|(c, enc)| {
                 let (start, rows) = (c * CHUNK_ROWS, enc.len() / e);
                 let mut x0 = vec![0.0; rows * width];
-                self.rotation.apply(enc, rows, &mut x0);
+                self.rotation.apply(self.kernels, enc, rows, &mut x0);
                 for (r, row) in x0.chunks_exact_mut(width).enumerate() {
                     let image = &image_term[(start + r) / per_image * width..][..width];
                     for (x, i) in row.iter_mut().zip(image) {
@@ -216,12 +222,12 @@ impl TrainingHead {
                     let mut outs: Vec<Vec<f32>> = Vec::with_capacity(hidden.len());
                     for layer in hidden {
                         let mut h = vec![0.0; rows * layer.outputs];
-                        layer.apply(outs.last().unwrap_or(&x0), rows, &mut h);
+                        layer.apply(self.kernels, outs.last().unwrap_or(&x0), rows, &mut h);
                         relu_in_place(&mut h);
                         outs.push(h);
                     }
                     let mut s = vec![0.0; rows];
-                    output[0].apply(outs.last().unwrap_or(&x0), rows, &mut s);
+                    output[0].apply(self.kernels, outs.last().unwrap_or(&x0), rows, &mut s);
                     (outs, s)
                 };
                 let (shape_hidden, shape) = branch(&self.branches[0]);
@@ -283,9 +289,10 @@ impl TrainingHead {
             }
         }
         let mut image = LayerGrad::zeros(&self.image);
-        image.accumulate(&pass.features, &total.image_rows, pass.images);
+        image.accumulate(self.kernels, &pass.features, &total.image_rows, pass.images);
         let mut features = vec![0.0; pass.images * self.image.inputs];
         gemm(
+            self.kernels,
             [pass.images, self.image.outputs, self.image.inputs],
             Strided::rows(&total.image_rows, self.image.outputs),
             self.image.transposed(),
@@ -327,10 +334,11 @@ impl TrainingHead {
             let mut dz = d[chunk.start..chunk.start + rows].to_vec();
             for l in (0..layers.len()).rev() {
                 let layer = &layers[l];
-                grads[l].accumulate(inputs[l], &dz, rows);
+                grads[l].accumulate(self.kernels, inputs[l], &dz, rows);
                 let transposed = [rows, layer.outputs, layer.inputs];
                 if l == 0 {
                     gemm(
+                        self.kernels,
                         transposed,
                         Strided::rows(&dz, layer.outputs),
                         layer.transposed(),
@@ -340,6 +348,7 @@ impl TrainingHead {
                 } else {
                     let mut previous = vec![0.0; rows * layer.inputs];
                     gemm(
+                        self.kernels,
                         transposed,
                         Strided::rows(&dz, layer.outputs),
                         layer.transposed(),
@@ -354,7 +363,7 @@ impl TrainingHead {
         mask_by(&mut dx0, &chunk.x0);
         let e = self.rotation.inputs;
         let enc = &pass.encodings[chunk.start * e..(chunk.start + rows) * e];
-        sums.rotation.accumulate(enc, &dx0, rows);
+        sums.rotation.accumulate(self.kernels, enc, &dx0, rows);
         for (r, row) in dx0.chunks_exact(width).enumerate() {
             let image = (chunk.start + r) / pass.per_image;
             for (t, d) in sums.image_rows[image * width..][..width]

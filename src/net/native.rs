@@ -9,7 +9,8 @@
 //! - [`F32Avx2`]: f32 on 256-bit FMAs (AVX2 + FMA), blocks of 6 rows × 16 columns.
 //! - [`Bf16Kernel`](super::bf16): `VDPBF16PS` on AVX-512 BF16 cores.
 //!
-//! The portable path is matrixmultiply's GEMM, for cores with neither (or when asked for).
+//! The portable path is the library GEMM of [`dense`](super::dense), for cores with neither (or
+//! when asked for).
 //!
 //! Weights are packed as `[panel][group][NR][GROUP]`: `GROUP` consecutive inputs per 32-bit lane
 //! (2 for bfloat16 pairs, 1 for f32), `NR` columns per panel.
@@ -28,7 +29,7 @@ pub enum Kernels {
     Widest,
     /// At most 256-bit f32 FMAs; bfloat16 emulated.
     Avx2,
-    /// matrixmultiply's GEMM only; bfloat16 emulated.
+    /// matrixmultiply's GEMM only (256-bit at most); bfloat16 emulated.
     Portable,
 }
 
