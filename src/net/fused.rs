@@ -10,8 +10,8 @@
 use rayon::prelude::*;
 
 use super::DualHead;
-use super::dense;
 use super::bf16::Bf16Kernel;
+use super::dense;
 use super::native::{F32Avx2, F32Avx512, Kernels, NativeHead};
 pub use super::tiles::{Precision, Rows, TILE_ROWS};
 use super::tiles::{by_tiles, round_bf16};
@@ -164,7 +164,9 @@ impl FusedHead {
     /// The image half of the first layer, `W_I·f + b_I`, for one image's features.
     pub fn image_term(&self, features: &[f32]) -> Vec<f32> {
         let mut out = vec![0.0; self.weights.width];
-        self.weights.image.apply(self.kernels, features, 1, &mut out);
+        self.weights
+            .image
+            .apply(self.kernels, features, 1, &mut out);
         out
     }
 

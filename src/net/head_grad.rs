@@ -23,7 +23,7 @@ use super::dense::{Dense, Strided, gemm};
 use super::native::Kernels;
 
 /// Rows of one task (a chunk's activations, 7 × 256 rows × 256 × 4 B, stay in a core's L2).
-const CHUNK_ROWS: usize = 256;
+const CHUNK_ROWS: usize = 512;
 
 /// Lanes the weight gradients are summed in: each lane runs its chunks in order into its own
 /// sums, and the lanes are added in order at the end (deterministic for any thread count).
@@ -147,10 +147,10 @@ fn relu_in_place(x: &mut [f32]) {
 
 /// `d ← d ⊙ [activation > 0]`: the ReLU's backward.
 fn mask_by(d: &mut [f32], activation: &[f32]) {
+    // Branch-free (a select the compiler vectorises): a branch per element, taken at random by
+    // half the units, cost more than the GEMM beside it.
     for (d, a) in d.iter_mut().zip(activation) {
-        if *a <= 0.0 {
-            *d = 0.0;
-        }
+        *d = if *a > 0.0 { *d } else { 0.0 };
     }
 }
 
@@ -203,7 +203,8 @@ impl TrainingHead {
             "rotation encodings"
         );
         let mut image_term = vec![0.0; images * width];
-        self.image.apply(self.kernels, &features, images, &mut image_term);
+        self.image
+            .apply(self.kernels, &features, images, &mut image_term);
         let chunks = encodings
             .par_chunks(CHUNK_ROWS * e)
             .enumerate()
