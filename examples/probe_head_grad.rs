@@ -16,7 +16,7 @@ fn main() {
         .with_hidden(width)
         .with_layers(layers)
         .init(&device);
-    let values = |t: Tensor<2>| t.into_data().convert::<f32>().to_vec::<f32>().unwrap();
+    let values = |t: Tensor<2>| t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap();
     let features = values(Tensor::random(
         [images, image_dim],
         Distribution::Normal(0.0, 1.0),
