@@ -1,9 +1,10 @@
 //! The tiny encoder's training forward and backward on the conv backend at the training bench's
-//! shape (batch 16, 32 px), each of its convolutions alone first: ms per pass, median of 20 after
+//! shape (batch 16, 32 px) on burn and by hand (`net::encoder_grad`), and with `--convs` each of
+//! burn's convolutions alone first: ms per pass, median of 20 after
 //! 5 warm-up passes. For profiling (`perf record`) the encoder alone. `cargo run --release --example probe_encoder`
 use std::time::Instant;
 
-use alignist::net::{EncoderConfig, ResNetLayout};
+use alignist::net::{EncoderConfig, ResNetLayout, TrainingEncoder};
 use burn::tensor::{Distribution, Tensor};
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -12,7 +13,9 @@ fn median(mut v: Vec<f64>) -> f64 {
 }
 
 fn main() {
-    conv_shapes();
+    if std::env::args().any(|a| a == "--convs") {
+        conv_shapes();
+    }
     let device = alignist::backend::device_for(alignist::backend::Workload::Conv).autodiff();
     device.seed(1);
     let encoder = EncoderConfig::new(ResNetLayout::Tiny).init(&device);
@@ -35,8 +38,38 @@ fn main() {
         }
     }
     println!(
-        "tiny encoder, batch 16, 32 px ({}): forward {:.1} ms, backward {:.1} ms (medians of 20)",
+        "tiny encoder, batch 16, 32 px, burn ({}): forward {:.1} ms, backward {:.1} ms (medians of 20)",
         alignist::backend::backend_for(alignist::backend::Workload::Conv),
+        median(forward),
+        median(backward)
+    );
+    let (mut forward, mut backward) = (Vec::new(), Vec::new());
+    let crops: Vec<Vec<u8>> = (0..16)
+        .map(|i| {
+            (0..32 * 32 * 3)
+                .map(|j| ((j * 7 + i * 13) % 251) as u8)
+                .collect()
+        })
+        .collect();
+    let crops: Vec<&[u8]> = crops.iter().map(|c| c.as_slice()).collect();
+    let d = vec![0.01f32; 16 * ResNetLayout::Tiny.feature_dim()];
+    for i in 0..25 {
+        let t = Instant::now();
+        let model = TrainingEncoder::of(&encoder).expect("the tiny layout");
+        let pass = model.forward(&crops, 32);
+        let fwd = t.elapsed().as_secs_f64() * 1e3;
+        let t = Instant::now();
+        let grads = model.backward(&pass, &d);
+        let mut params = burn::optim::GradientsParams::new();
+        grads.register(&model, &encoder, &mut params, &device);
+        let bwd = t.elapsed().as_secs_f64() * 1e3;
+        if i >= 5 {
+            forward.push(fwd);
+            backward.push(bwd);
+        }
+    }
+    println!(
+        "tiny encoder, batch 16, 32 px, by hand (net::encoder_grad): forward {:.1} ms, backward {:.1} ms (medians of 20)",
         median(forward),
         median(backward)
     );

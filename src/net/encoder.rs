@@ -87,6 +87,11 @@ impl ConvBn {
         self.bn.forward(self.conv.forward(x))
     }
 
+    /// The convolution and its BatchNorm (the hand-written training path reads them).
+    pub(crate) fn parts(&self) -> (&Conv2d, &BatchNorm) {
+        (&self.conv, &self.bn)
+    }
+
     fn sync_running_stats(&self) {
         let _ = self.bn.running_mean.value_sync();
         let _ = self.bn.running_var.value_sync();
@@ -125,6 +130,11 @@ impl Block {
         let shortcut =
             (stride != 1 || c_in != c_out).then(|| ConvBn::new(c_in, c_out, 1, stride, device));
         Block { layers, shortcut }
+    }
+
+    /// The main path's conv + BatchNorm pairs and the projection shortcut.
+    pub(crate) fn parts(&self) -> (&[ConvBn], Option<&ConvBn>) {
+        (&self.layers, self.shortcut.as_ref())
     }
 
     fn forward(&self, x: Tensor<4>) -> Tensor<4> {
@@ -207,6 +217,11 @@ impl Encoder {
                 s.sync_running_stats();
             }
         }
+    }
+
+    /// The stem, whether a max-pool follows it, and the residual blocks.
+    pub(crate) fn parts(&self) -> (&ConvBn, bool, &[Block]) {
+        (&self.stem, self.stem_pool.is_some(), &self.blocks)
     }
 
     /// `[B, 3, H, W]` → `[B, feature_dim]`.

@@ -4,6 +4,7 @@
 pub mod bf16;
 pub(crate) mod dense;
 pub mod encoder;
+pub mod encoder_grad;
 pub mod fused;
 pub mod head;
 pub mod head_grad;
@@ -14,6 +15,7 @@ pub mod tiles;
 mod weights;
 
 pub use encoder::{Encoder, EncoderConfig, ResNetLayout};
+pub use encoder_grad::{EncoderGrads, EncoderPass, TrainingEncoder};
 pub use fused::{Bf16Head, FusedHead};
 pub use head::{BranchScores, DualHead, HeadConfig};
 pub use head_grad::{HeadGrads, HeadPass, TrainingHead};

@@ -22,8 +22,8 @@ pub use crate::bundle::record::{StepProfile, TrainReport};
 use crate::experts::energy::{BakedExperts, LogTargets};
 use crate::experts::modes::ModeTable;
 use crate::net::{
-    HeadPass, LossGrad, TrainingHead, gkl_loss, gkl_loss_grad, ipdf_loss, ipdf_loss_grad,
-    l1_measure_loss, l1_measure_loss_grad,
+    HeadGrads, HeadPass, LossGrad, TrainingEncoder, TrainingHead, gkl_loss, gkl_loss_grad,
+    ipdf_loss, ipdf_loss_grad, l1_measure_loss, l1_measure_loss_grad,
 };
 use crate::net::{Network, images_tensor};
 use crate::so3::to_row_major_f32;
@@ -59,6 +59,30 @@ impl HeadPath {
         match std::env::var("ALIGNIST_TRAIN_HEAD").as_deref() {
             Ok("burn") => HeadPath::Burn,
             _ => HeadPath::Fused,
+        }
+    }
+}
+
+/// Which code runs the encoder's forward and backward when the head is hand-written
+/// ([`HeadPath::Fused`]). Both compute the same gradients and running statistics (within float
+/// rounding: `tests/encoder_grad.rs`); `ALIGNIST_TRAIN_ENCODER=burn` selects burn's autodiff, to
+/// measure one against the other. Layouts the hand-written encoder does not run (a stem
+/// max-pool, bottleneck blocks) train on burn's either way.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum EncoderPath {
+    /// The hand-written forward and backward ([`TrainingEncoder`]) where the layout allows.
+    #[default]
+    Fused,
+    /// burn's autodiff.
+    Burn,
+}
+
+impl EncoderPath {
+    /// `ALIGNIST_TRAIN_ENCODER` (`fused` or `burn`), else [`EncoderPath::Fused`].
+    pub fn from_env() -> EncoderPath {
+        match std::env::var("ALIGNIST_TRAIN_ENCODER").as_deref() {
+            Ok("burn") => EncoderPath::Burn,
+            _ => EncoderPath::Fused,
         }
     }
 }
@@ -329,6 +353,7 @@ struct Run<'a> {
     samplers: &'a [ModeSampler],
     device: &'a Device,
     head: HeadPath,
+    encoder: EncoderPath,
 }
 
 /// One step's inputs, drawn from the step's own seed alone (so a batch prepared on another thread,
@@ -394,13 +419,22 @@ impl Run<'_> {
     ) -> Result<(Network, f64), TrainError> {
         let (config, device) = (self.config, self.device);
         let started = Instant::now();
-        let crops: Vec<&[u8]> = batch.images.iter().map(|im| im.rgb.as_slice()).collect();
-        let images = images_tensor(&crops, config.network.image_size as usize, device);
-        let features = network.encoder.forward(images);
-        profile.encoder_forward += started.elapsed().as_secs_f64();
-        let (loss_value, grads) = match self.head {
-            HeadPath::Burn => self.burn_head(&network, features, batch, step, profile)?,
-            HeadPath::Fused => self.fused_head(&network, features, batch, step, profile)?,
+        let hand_encoder = match (self.head, self.encoder) {
+            (HeadPath::Fused, EncoderPath::Fused) => TrainingEncoder::of(&network.encoder),
+            _ => None,
+        };
+        let (loss_value, grads) = match hand_encoder {
+            Some(encoder) => self.fused_network(&network, &encoder, batch, step, profile)?,
+            None => {
+                let crops: Vec<&[u8]> = batch.images.iter().map(|im| im.rgb.as_slice()).collect();
+                let images = images_tensor(&crops, config.network.image_size as usize, device);
+                let features = network.encoder.forward(images);
+                profile.encoder_forward += started.elapsed().as_secs_f64();
+                match self.head {
+                    HeadPath::Burn => self.burn_head(&network, features, batch, step, profile)?,
+                    HeadPath::Fused => self.fused_head(&network, features, batch, step, profile)?,
+                }
+            }
         };
         let started = Instant::now();
         let network = optim.step(learning_rate(config, step), network, grads);
@@ -434,24 +468,22 @@ impl Run<'_> {
         Ok((loss_value, grads))
     }
 
-    /// The loss and the head's gradients on the hand-written head ([`TrainingHead`]); the
-    /// encoder's by burn's backward of `Σ F ⊙ dF`, whose gradient with respect to the features
-    /// `F` is the head's `dF`.
-    fn fused_head(
+    /// The head's forward, the loss and the head's backward by hand, from the image features
+    /// (`[images, image_dim]`): the loss, the head read for the step, and its gradients.
+    fn hand_head(
         &self,
         network: &Network,
-        features: Tensor<2>,
+        features: Vec<f32>,
         batch: Batch,
         step: usize,
         profile: &mut StepProfile,
-    ) -> Result<(f64, GradientsParams), TrainError> {
+    ) -> Result<(f64, TrainingHead, HeadGrads), TrainError> {
         let started = Instant::now();
         let head = TrainingHead::of(&network.head);
-        let dims = features.dims();
         let images = batch.rotations.len();
         let flat: Vec<[f32; 9]> = batch.rotations.into_iter().flatten().collect();
         let pass = head.forward(
-            crate::net::dense::read(features.clone()),
+            features,
             self.config.network.encoding.encode(&flat),
             images,
             flat.len() / images.max(1),
@@ -463,6 +495,49 @@ impl Run<'_> {
         let started = Instant::now();
         let head_grads = head.backward(&pass, d_scores.each_ref().map(|d| d.as_deref()));
         profile.head_backward += started.elapsed().as_secs_f64();
+        Ok((loss_value, head, head_grads))
+    }
+
+    /// The whole step's forward and backward by hand ([`TrainingEncoder`], [`TrainingHead`]):
+    /// the loss and every gradient; the encoder's BatchNorm running statistics are updated.
+    fn fused_network(
+        &self,
+        network: &Network,
+        encoder: &TrainingEncoder,
+        batch: Batch,
+        step: usize,
+        profile: &mut StepProfile,
+    ) -> Result<(f64, GradientsParams), TrainError> {
+        let started = Instant::now();
+        let crops: Vec<&[u8]> = batch.images.iter().map(|im| im.rgb.as_slice()).collect();
+        let pass = encoder.forward(&crops, self.config.network.image_size as usize);
+        profile.encoder_forward += started.elapsed().as_secs_f64();
+        let features = pass.features().to_vec();
+        let (loss_value, head, head_grads) =
+            self.hand_head(network, features, batch, step, profile)?;
+        let started = Instant::now();
+        let encoder_grads = encoder.backward(&pass, &head_grads.features);
+        let mut grads = GradientsParams::new();
+        encoder_grads.register(encoder, &network.encoder, &mut grads, self.device);
+        head_grads.register(&head, &mut grads, self.device);
+        profile.backward += started.elapsed().as_secs_f64();
+        Ok((loss_value, grads))
+    }
+
+    /// The loss and the head's gradients on the hand-written head ([`TrainingHead`]); the
+    /// encoder's (burn's encoder) by burn's backward of `Σ F ⊙ dF`, whose gradient with respect
+    /// to the features `F` is the head's `dF`.
+    fn fused_head(
+        &self,
+        network: &Network,
+        features: Tensor<2>,
+        batch: Batch,
+        step: usize,
+        profile: &mut StepProfile,
+    ) -> Result<(f64, GradientsParams), TrainError> {
+        let dims = features.dims();
+        let read = crate::net::dense::read(features.clone());
+        let (loss_value, head, head_grads) = self.hand_head(network, read, batch, step, profile)?;
         let started = Instant::now();
         let d_features = Tensor::<2>::from_data(
             TensorData::new(head_grads.features.clone(), dims),
@@ -498,6 +573,7 @@ pub fn train(
         samplers: &samplers,
         device: &device,
         head: HeadPath::from_env(),
+        encoder: EncoderPath::from_env(),
     };
     let tail_from = config.steps - config.steps.div_ceil(10);
     let (mut tail_sum, mut tail_n) = (0.0, 0usize);

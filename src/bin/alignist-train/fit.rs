@@ -444,7 +444,7 @@ pub(crate) fn print_profile(p: &alignist::train::trainer::StepProfile) {
         ("encoder forward", p.encoder_forward),
         ("head forward + loss", p.head_forward),
         ("head backward", p.head_backward),
-        ("burn backward", p.backward),
+        ("encoder backward", p.backward),
         ("optimiser", p.optimiser),
     ] {
         println!("    {name:<18} {v:8.1}  {:5.1} %", share(v));
