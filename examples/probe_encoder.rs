@@ -1,6 +1,6 @@
 //! The tiny encoder's training forward and backward on the conv backend at the training bench's
-//! shape (batch 16, 32 px) on burn and by hand (`net::encoder_grad`), and with `--convs` each of
-//! burn's convolutions alone first: ms per pass, median of 20 after
+//! shape (batch 16, 32 px) on burn and by hand (`net::encoder_grad`), with `--convs` each of
+//! burn's convolutions alone first, with `--hand` the hand-written path alone: ms per pass, median of 20 after
 //! 5 warm-up passes. For profiling (`perf record`) the encoder alone. `cargo run --release --example probe_encoder`
 use std::time::Instant;
 
@@ -20,7 +20,8 @@ fn main() {
     device.seed(1);
     let encoder = EncoderConfig::new(ResNetLayout::Tiny).init(&device);
     let (mut forward, mut backward) = (Vec::new(), Vec::new());
-    for i in 0..25 {
+    let burn_too = !std::env::args().any(|a| a == "--hand");
+    for i in 0..if burn_too { 25 } else { 0 } {
         let x: Tensor<4> = Tensor::random([16, 3, 32, 32], Distribution::Default, &device);
         let t = Instant::now();
         let f = encoder.forward(x);
@@ -37,12 +38,14 @@ fn main() {
             backward.push(bwd);
         }
     }
-    println!(
-        "tiny encoder, batch 16, 32 px, burn ({}): forward {:.1} ms, backward {:.1} ms (medians of 20)",
-        alignist::backend::backend_for(alignist::backend::Workload::Conv),
-        median(forward),
-        median(backward)
-    );
+    if burn_too {
+        println!(
+            "tiny encoder, batch 16, 32 px, burn ({}): forward {:.1} ms, backward {:.1} ms (medians of 20)",
+            alignist::backend::backend_for(alignist::backend::Workload::Conv),
+            median(forward),
+            median(backward)
+        );
+    }
     let (mut forward, mut backward) = (Vec::new(), Vec::new());
     let crops: Vec<Vec<u8>> = (0..16)
         .map(|i| {

@@ -134,3 +134,33 @@ fn layouts_with_a_stem_pool_are_left_to_burn() {
     let resnet18 = EncoderConfig::new(ResNetLayout::Resnet18).init(&device);
     assert!(TrainingEncoder::of(&resnet18).is_none());
 }
+
+#[test]
+fn the_encoder_gradients_do_not_depend_on_the_thread_count() {
+    let device = alignist::backend::device_for(alignist::backend::Workload::Conv).autodiff();
+    let (a, b) = encoders(&device, 8);
+    let crops: Vec<Vec<u8>> = (0..7)
+        .map(|i| {
+            stream(i + 40, SIZE * SIZE * 3)
+                .iter()
+                .map(|v| (v * 255.0) as u8)
+                .collect()
+        })
+        .collect();
+    let crops: Vec<&[u8]> = crops.iter().map(|c| c.as_slice()).collect();
+    let d: Vec<f32> = stream(3, 7 * ResNetLayout::Tiny.feature_dim());
+    let run = |encoder: &Encoder, threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let model = TrainingEncoder::of(encoder).unwrap();
+            let pass = model.forward(&crops, SIZE);
+            (pass.features().to_vec(), model.backward(&pass, &d).units)
+        })
+    };
+    let (one, three) = (run(&a, 1), run(&b, 3));
+    assert_eq!(one.0, three.0, "features");
+    assert_eq!(one.1, three.1, "gradients");
+}

@@ -25,6 +25,9 @@ use super::dense::{Strided, gemm, read};
 use super::encoder::{ConvBn, Encoder};
 use super::native::Kernels;
 
+/// Lanes the weight gradients of a convolution are summed in (images split in order).
+const WEIGHT_LANES: usize = 4;
+
 /// A batch of activations, `[images, channels, height, width]` row-major.
 #[derive(Debug, Clone)]
 struct Act {
@@ -312,43 +315,46 @@ impl Unit {
     ) -> (Vec<f32>, Option<Act>) {
         let (ho, wo) = self.out_side(x.side);
         let (n, m) = (self.columns(), ho * wo);
-        let per_image: Vec<(Vec<f32>, Vec<f32>)> = dy
-            .par_chunks(self.c_out * m)
-            .zip(x.data.par_chunks(x.per_image()))
-            .map_init(
-                || (vec![0.0; n * m], vec![0.0; n * m]),
-                |(cols, d_cols), (dy, x_img)| {
-                    im2col(self, x_img, x.side, cols);
-                    let mut dw = vec![0.0; self.c_out * n];
-                    let (d, c) = (Strided::rows(dy, m), Strided::columns(cols, m));
-                    gemm(kernels, [self.c_out, m, n], d, c, 0.0, &mut dw);
-                    let mut dx = Vec::new();
+        let mut dx = vec![0.0; if want_dx { x.data.len() } else { 0 }];
+        // Images in fixed lanes, each summing its images' dW in order (beta 1): the sum does not
+        // depend on the thread count.
+        let per_lane = x.images.div_ceil(WEIGHT_LANES).max(1);
+        let mut dx_lanes: Vec<&mut [f32]> = match want_dx {
+            true => dx.chunks_mut(per_lane * x.per_image()).collect(),
+            false => Vec::new(),
+        };
+        dx_lanes.resize_with(x.images.div_ceil(per_lane), || &mut []);
+        let lanes: Vec<Vec<f32>> = dy
+            .par_chunks(per_lane * self.c_out * m)
+            .zip(x.data.par_chunks(per_lane * x.per_image()))
+            .zip(dx_lanes.into_par_iter())
+            .map(|((dy, x_lane), dx_lane)| {
+                let (mut cols, mut d_cols) = (vec![0.0; n * m], vec![0.0; n * m]);
+                let mut dw = vec![0.0; self.c_out * n];
+                let images = dy.chunks(self.c_out * m).zip(x_lane.chunks(x.per_image()));
+                for (i, (dy, x_img)) in images.enumerate() {
+                    im2col(self, x_img, x.side, &mut cols);
+                    let (d, c) = (Strided::rows(dy, m), Strided::columns(&cols, m));
+                    gemm(kernels, [self.c_out, m, n], d, c, 1.0, &mut dw);
                     if want_dx {
-                        let wt = Strided::columns(&self.weight, n);
-                        gemm(
-                            kernels,
-                            [n, self.c_out, m],
-                            wt,
-                            Strided::rows(dy, m),
-                            0.0,
-                            d_cols,
-                        );
-                        dx = vec![0.0; x.per_image()];
-                        col2im(self, d_cols, x.side, &mut dx);
+                        let (wt, d) = (Strided::columns(&self.weight, n), Strided::rows(dy, m));
+                        gemm(kernels, [n, self.c_out, m], wt, d, 0.0, &mut d_cols);
+                        let dx_img = &mut dx_lane[i * x.per_image()..][..x.per_image()];
+                        col2im(self, &d_cols, x.side, dx_img);
                     }
-                    (dw, dx)
-                },
-            )
+                }
+                dw
+            })
             .collect();
         let mut d_weight = vec![0.0; self.c_out * n];
-        for (dw, _) in &per_image {
+        for dw in &lanes {
             d_weight.iter_mut().zip(dw).for_each(|(t, v)| *t += v);
         }
         let dx = want_dx.then(|| Act {
             images: x.images,
             channels: x.channels,
             side: x.side,
-            data: per_image.into_iter().flat_map(|(_, dx)| dx).collect(),
+            data: dx,
         });
         (d_weight, dx)
     }
