@@ -350,7 +350,7 @@ impl Unit {
         for dw in &lanes {
             d_weight.iter_mut().zip(dw).for_each(|(t, v)| *t += v);
         }
-        let dx = want_dx.then(|| Act {
+        let dx = want_dx.then_some(Act {
             images: x.images,
             channels: x.channels,
             side: x.side,
