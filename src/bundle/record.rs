@@ -399,7 +399,8 @@ pub struct StepProfile {
     pub encoder_forward: f64,
     /// Rotation encoding, head forward and the loss.
     pub head_forward: f64,
-    /// burn's backward: the encoder's, and the head's on burn's head path (the `burn` head path of the trainer).
+    /// The encoder's backward (hand-written or burn's), and the head's on burn's head path; with
+    /// the gradients' registration for the optimiser.
     pub backward: f64,
     /// The hand-written head's backward (the hand-written head path of the trainer; 0 on burn's).
     #[serde(default)]
