@@ -51,11 +51,18 @@ fn encoders(device: &Device, seed: u64) -> (Encoder, Encoder) {
 
 #[test]
 fn the_hand_written_encoder_trains_as_burns_autodiff() {
+    // 16 px: every stage halves evenly; 9 px: odd sides, windows cut by the edges (9, 5, 3, 2).
+    for size in [SIZE, 9] {
+        check(size);
+    }
+}
+
+fn check(size: usize) {
     let device = alignist::backend::device_for(alignist::backend::Workload::Conv).autodiff();
     let (reference, ours) = encoders(&device, 5);
     let crops: Vec<Vec<u8>> = (0..IMAGES)
         .map(|i| {
-            stream(i as u64 + 1, SIZE * SIZE * 3)
+            stream(i as u64 + 1, size * size * 3)
                 .iter()
                 .map(|v| (v * 255.0) as u8)
                 .collect()
@@ -66,16 +73,16 @@ fn the_hand_written_encoder_trains_as_burns_autodiff() {
     let d: Vec<f32> = stream(99, IMAGES * dim).iter().map(|v| v - 0.5).collect();
 
     // burn: the loss Σ F ⊙ d, whose gradient with respect to the features is d.
-    let features = reference.forward(images_tensor(&crops, SIZE, &device));
+    let features = reference.forward(images_tensor(&crops, size, &device));
     let d_tensor = Tensor::<2>::from_data(TensorData::new(d.clone(), [IMAGES, dim]), &device);
     let burn_features = values(features.clone());
     let mut burn_grads =
         GradientsParams::from_grads((features * d_tensor).sum().backward(), &reference);
 
     let model = TrainingEncoder::of(&ours).expect("the tiny layout runs by hand");
-    let pass = model.forward(&crops, SIZE);
+    let pass = model.forward(&crops, size);
     let e = relative(pass.features(), &burn_features, 1e-6);
-    assert!(e <= 1e-4, "features off by {e:.2e}");
+    assert!(e <= 1e-4, "{size} px: features off by {e:.2e}");
     let grads = model.backward(&pass, &d);
     let mut our_grads = GradientsParams::new();
     let ours_ids = model.param_ids();
@@ -104,10 +111,10 @@ fn the_hand_written_encoder_trains_as_burns_autodiff() {
         ];
         for (which, pair) in ["weight", "gamma", "beta"].iter().zip(pairs) {
             let (Some(r), Some(o)) = pair else {
-                panic!("unit {unit}: a {which} gradient is missing");
+                panic!("{size} px, unit {unit}: a {which} gradient is missing");
             };
             let e = relative(&o, &r, 1e-3);
-            assert!(e <= 1e-4, "unit {unit}: {which} gradient off by {e:.2e}");
+            assert!(e <= 1e-4, "{size} px, unit {unit}: {which} gradient off by {e:.2e}");
         }
     }
 
@@ -118,13 +125,13 @@ fn the_hand_written_encoder_trains_as_burns_autodiff() {
         values(
             e.clone()
                 .valid()
-                .forward(images_tensor(&crops, SIZE, &inner)),
+                .forward(images_tensor(&crops, size, &inner)),
         )
     };
     let e = relative(&inference(&ours), &inference(&reference), 1e-6);
     assert!(
         e <= 1e-4,
-        "inference features (running statistics) off by {e:.2e}"
+        "{size} px: inference features (running statistics) off by {e:.2e}"
     );
 }
 

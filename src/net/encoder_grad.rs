@@ -109,7 +109,7 @@ fn inside(unit: &Unit, w: usize, wo: usize, dx: usize) -> (usize, usize) {
 }
 
 /// Visits each im2col row `r` (channel, dy, dx) and output row `oy` whose input row lies inside
-/// the image: `visit(r, oy, input_row_start, (lo, hi))` with the valid outputs `lo..hi`, whose
+/// the image and has at least one valid output: `visit(r, oy, input_row_start, (lo, hi))` with the valid outputs `lo..hi`, whose
 /// inputs are `input_row_start + ox·stride + dx − pad`.
 fn for_each_tap(
     unit: &Unit,
@@ -121,6 +121,9 @@ fn for_each_tap(
     for r in 0..unit.columns() {
         let (ci, dy, dx) = (r / (k * k), r / k % k, r % k);
         let range = inside(unit, w, wo, dx);
+        if range.0 >= range.1 {
+            continue;
+        }
         for oy in 0..ho {
             let Some(iy) = (oy * unit.stride + dy)
                 .checked_sub(pad)
