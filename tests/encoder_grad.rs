@@ -114,7 +114,10 @@ fn check(size: usize) {
                 panic!("{size} px, unit {unit}: a {which} gradient is missing");
             };
             let e = relative(&o, &r, 1e-3);
-            assert!(e <= 1e-4, "{size} px, unit {unit}: {which} gradient off by {e:.2e}");
+            assert!(
+                e <= 1e-4,
+                "{size} px, unit {unit}: {which} gradient off by {e:.2e}"
+            );
         }
     }
 

@@ -6,7 +6,7 @@
 
 use burn::tensor::Tensor;
 
-use super::native::Kernels;
+use super::kernels::Kernels;
 
 /// One linear layer, row-major `[inputs, outputs]` weights (burn's `Linear` layout: `y = x·W + b`).
 #[derive(Debug, Clone)]

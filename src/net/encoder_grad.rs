@@ -23,7 +23,7 @@ use rayon::prelude::*;
 
 use super::dense::{Strided, gemm, read};
 use super::encoder::{ConvBn, Encoder};
-use super::native::Kernels;
+use super::kernels::Kernels;
 
 /// Lanes the weight gradients of a convolution are summed in (images split in order).
 const WEIGHT_LANES: usize = 4;

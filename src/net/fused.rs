@@ -3,7 +3,7 @@
 //! that stay in the core's cache. For each tile of rotations: `x = relu(P_R + W_I·f + b)` (the
 //! rotation projections `P_R` precomputed per grid level), then per branch three
 //! `h ← relu(h·W + b)` GEMMs (the project's kernels of [`super::native`], else the library GEMM
-//! of [`super::dense`]; one thread per tile, tiles spread over the cores) with bias and ReLU applied to the tile in place, and the last `256 → 1` layer
+//! of `net::dense`; one thread per tile, tiles spread over the cores) with bias and ReLU applied to the tile in place, and the last `256 → 1` layer
 //! as a dot product. No intermediate leaves the tile, so the head runs near the library's matmul
 //! peak. The burn network stays the reference (training, tests).
 
@@ -12,7 +12,8 @@ use rayon::prelude::*;
 use super::DualHead;
 use super::bf16::Bf16Kernel;
 use super::dense;
-use super::native::{F32Avx2, F32Avx512, Kernels, NativeHead};
+use super::kernels::Kernels;
+use super::native::{F32Avx2, F32Avx512, NativeHead};
 pub use super::tiles::{Precision, Rows, TILE_ROWS};
 use super::tiles::{by_tiles, round_bf16};
 use super::weights::HeadWeights;

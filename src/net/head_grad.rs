@@ -1,6 +1,6 @@
 //! The dual-branch head's forward and backward for training, by hand (paper Sec. 3.3; the
 //! losses' gradients are in [`super::loss`]): the arithmetic of burn's autodiff through
-//! [`DualHead::forward`], on plain row-major f32 matrices and the library GEMM ([`dense::gemm`]:
+//! [`DualHead::forward`], on plain row-major f32 matrices and the library GEMM (`dense::gemm`:
 //! 512-bit where the core has AVX-512 unless `ALIGNIST_KERNELS` caps it), without the
 //! autodiff graph's per-op tensors.
 //!
@@ -20,7 +20,7 @@ use rayon::prelude::*;
 
 use super::DualHead;
 use super::dense::{Dense, Strided, gemm};
-use super::native::Kernels;
+use super::kernels::Kernels;
 
 /// Rows of one task (a chunk's activations, 7 × 256 rows × 256 × 4 B, stay in a core's L2).
 const CHUNK_ROWS: usize = 512;

@@ -8,6 +8,7 @@ pub mod encoder_grad;
 pub mod fused;
 pub mod head;
 pub mod head_grad;
+pub mod kernels;
 pub mod loss;
 pub mod native;
 pub mod network;
@@ -19,11 +20,11 @@ pub use encoder_grad::{EncoderGrads, EncoderPass, TrainingEncoder};
 pub use fused::{Bf16Head, FusedHead};
 pub use head::{BranchScores, DualHead, HeadConfig};
 pub use head_grad::{HeadGrads, HeadPass, TrainingHead};
+pub use kernels::Kernels;
 pub use loss::{
     LossGrad, gkl_loss, gkl_loss_grad, ipdf_loss, ipdf_loss_grad, l1_measure_loss,
     l1_measure_loss_grad,
 };
-pub use native::Kernels;
 pub use network::{
     NETWORK_LIMITS, Network, NetworkConfig, NetworkLimits, ProjectedGrid, check_range,
     images_tensor,

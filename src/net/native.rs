@@ -9,7 +9,7 @@
 //! - [`F32Avx2`]: f32 on 256-bit FMAs (AVX2 + FMA), blocks of 6 rows × 16 columns.
 //! - [`Bf16Kernel`](super::bf16): `VDPBF16PS` on AVX-512 BF16 cores.
 //!
-//! The portable path is the library GEMM of [`dense`](super::dense), for cores with neither (or
+//! The portable path is the library GEMM of `net::dense`, for cores with neither (or
 //! when asked for).
 //!
 //! Weights are packed as `[panel][group][NR][GROUP]`: `GROUP` consecutive inputs per 32-bit lane
@@ -20,76 +20,6 @@ use std::marker::PhantomData;
 use super::dense::Dense;
 use super::tiles::{Rows, TILE_ROWS, by_tiles};
 use super::weights::HeadWeights;
-
-/// The widest kernels a head may use; each falls back to the next narrower one the core has.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub enum Kernels {
-    /// The widest the core has: AVX-512 (f32, and bfloat16 with AVX-512 BF16), else AVX2; the
-    /// library GEMM is the `gemm` crate (512-bit where the core has AVX-512).
-    #[default]
-    Widest,
-    /// The project's kernels at most 256-bit; bfloat16 emulated; the library GEMM is
-    /// matrixmultiply (which picks its own kernel at run time, 512-bit on AVX-512 cores).
-    Avx2,
-    /// No kernel of the project's: matrixmultiply's GEMM only; bfloat16 emulated.
-    Portable,
-}
-
-impl Kernels {
-    /// The environment variable that caps the kernels (`ALIGNIST_KERNELS=avx2`).
-    pub const ENV: &'static str = "ALIGNIST_KERNELS";
-
-    /// The name used by flags and the environment (`widest`, `avx2`, `portable`).
-    pub fn name(self) -> &'static str {
-        match self {
-            Kernels::Widest => "widest",
-            Kernels::Avx2 => "avx2",
-            Kernels::Portable => "portable",
-        }
-    }
-
-    /// The kernels `ALIGNIST_KERNELS` names ([`Kernels::Widest`] when it is unset, or, with a
-    /// warning, when it names none).
-    pub fn from_env() -> Kernels {
-        match std::env::var(Self::ENV) {
-            Ok(name) => name.parse().unwrap_or_else(|e| {
-                tracing::warn!("{}: {e}; using the widest kernels", Self::ENV);
-                Kernels::Widest
-            }),
-            Err(_) => Kernels::Widest,
-        }
-    }
-
-    /// Whether the 512-bit kernels may run.
-    pub fn allows_avx512(self) -> bool {
-        self == Kernels::Widest
-    }
-
-    /// Whether the project's own kernels may run.
-    pub fn allows_own(self) -> bool {
-        self != Kernels::Portable
-    }
-}
-
-impl std::fmt::Display for Kernels {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.name())
-    }
-}
-
-impl std::str::FromStr for Kernels {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s {
-            "widest" => Ok(Kernels::Widest),
-            "avx2" => Ok(Kernels::Avx2),
-            "portable" => Ok(Kernels::Portable),
-            other => Err(format!(
-                "unknown kernels `{other}` (widest, avx2 or portable)"
-            )),
-        }
-    }
-}
 
 /// A GEMM kernel of the driver: its element type and its block shape.
 pub(super) trait Kernel: Send + Sync {
