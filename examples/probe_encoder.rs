@@ -58,7 +58,8 @@ fn main() {
     let d = vec![0.01f32; 16 * ResNetLayout::Tiny.feature_dim()];
     for i in 0..25 {
         let t = Instant::now();
-        let model = TrainingEncoder::of(&encoder).expect("the tiny layout");
+        let model = TrainingEncoder::of(&encoder, alignist::net::Kernels::default())
+            .expect("the tiny layout");
         let pass = model.forward(&crops, 32);
         let fwd = t.elapsed().as_secs_f64() * 1e3;
         let t = Instant::now();

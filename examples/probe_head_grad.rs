@@ -32,7 +32,7 @@ fn main() {
         Distribution::Normal(0.0, 1e-3),
         &device,
     ));
-    let training = TrainingHead::of(&head);
+    let training = TrainingHead::of(&head, alignist::net::Kernels::default());
     let (mut forward, mut backward) = (Vec::new(), Vec::new());
     for _ in 0..35 {
         let t = Instant::now();

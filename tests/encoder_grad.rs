@@ -2,7 +2,9 @@
 //! through `Encoder::forward`: the same features, the same gradients of every convolution and
 //! BatchNorm (within 1e-4 relative), and the same running statistics after the step.
 
-use alignist::net::{Encoder, EncoderConfig, ResNetLayout, TrainingEncoder, images_tensor};
+use alignist::net::{
+    Encoder, EncoderConfig, Kernels, ResNetLayout, TrainingEncoder, images_tensor,
+};
 use burn::module::Module;
 use burn::optim::GradientsParams;
 use burn::tensor::{Device, Tensor, TensorData};
@@ -79,7 +81,8 @@ fn check(size: usize) {
     let mut burn_grads =
         GradientsParams::from_grads((features * d_tensor).sum().backward(), &reference);
 
-    let model = TrainingEncoder::of(&ours).expect("the tiny layout runs by hand");
+    let model =
+        TrainingEncoder::of(&ours, Kernels::default()).expect("the tiny layout runs by hand");
     let pass = model.forward(&crops, size);
     let e = relative(pass.features(), &burn_features, 1e-6);
     assert!(e <= 1e-4, "{size} px: features off by {e:.2e}");
@@ -88,7 +91,9 @@ fn check(size: usize) {
     let ours_ids = model.param_ids();
     grads.register(&model, &ours, &mut our_grads, &device);
 
-    let reference_ids = TrainingEncoder::of(&reference).unwrap().param_ids();
+    let reference_ids = TrainingEncoder::of(&reference, Kernels::default())
+        .unwrap()
+        .param_ids();
     assert_eq!(
         reference_ids.len(),
         1 + 2 * 4 + 3,
@@ -142,7 +147,7 @@ fn check(size: usize) {
 fn layouts_with_a_stem_pool_are_left_to_burn() {
     let device = alignist::backend::device_for(alignist::backend::Workload::Conv).autodiff();
     let resnet18 = EncoderConfig::new(ResNetLayout::Resnet18).init(&device);
-    assert!(TrainingEncoder::of(&resnet18).is_none());
+    assert!(TrainingEncoder::of(&resnet18, Kernels::default()).is_none());
 }
 
 #[test]
@@ -165,7 +170,7 @@ fn the_encoder_gradients_do_not_depend_on_the_thread_count() {
             .build()
             .unwrap();
         pool.install(|| {
-            let model = TrainingEncoder::of(encoder).unwrap();
+            let model = TrainingEncoder::of(encoder, Kernels::default()).unwrap();
             let pass = model.forward(&crops, SIZE);
             (pass.features().to_vec(), model.backward(&pass, &d).units)
         })

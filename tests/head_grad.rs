@@ -3,8 +3,8 @@
 //! 1e-4 relative, for each loss, and for a branch left out of the loss.
 
 use alignist::net::{
-    DualHead, HeadConfig, TrainingHead, gkl_loss, gkl_loss_grad, ipdf_loss, ipdf_loss_grad,
-    l1_measure_loss, l1_measure_loss_grad,
+    DualHead, HeadConfig, Kernels, TrainingHead, gkl_loss, gkl_loss_grad, ipdf_loss,
+    ipdf_loss_grad, l1_measure_loss, l1_measure_loss_grad,
 };
 use burn::module::ParamId;
 use burn::optim::GradientsParams;
@@ -112,7 +112,7 @@ fn burn_side(c: &Case, loss: Loss) -> Side {
 
 /// The hand-written head's loss, gradients (registered the trainer's way) and features' gradient.
 fn fused_side(c: &Case, loss: Loss) -> (Side, Vec<(ParamId, Option<ParamId>)>) {
-    let head = TrainingHead::of(&c.head);
+    let head = TrainingHead::of(&c.head, Kernels::default());
     let pass = head.forward(
         values(c.features.clone()),
         values(c.encodings.clone()),
@@ -261,7 +261,7 @@ fn the_gradients_do_not_depend_on_the_thread_count() {
             .build()
             .unwrap()
             .install(|| {
-                let head = TrainingHead::of(&c.head);
+                let head = TrainingHead::of(&c.head, Kernels::default());
                 let pass = head.forward(
                     values(c.features.clone()),
                     values(c.encodings.clone()),

@@ -1,8 +1,9 @@
 //! Linear layers as plain row-major matrices, and the one strided library GEMM every hand-written
-//! head path without its own kernel (the training head's forward and backward, the portable
-//! inference tiles) calls: the `gemm` crate, on 512-bit FMAs where the core has AVX-512, or
-//! matrixmultiply's 256-bit kernel when the kernels are capped (`--kernels`/`ALIGNIST_KERNELS`
-//! `avx2` or `portable`, [`Kernels`]).
+//! path without a kernel of its own calls (the inference head's image term and rotation
+//! projections, the portable inference tiles, the training head and encoder): the `gemm` crate,
+//! on 512-bit FMAs where the core has AVX-512, or matrixmultiply (which picks its own kernel at
+//! run time) when the kernels are capped (`--kernels`/`ALIGNIST_KERNELS` `avx2` or `portable`,
+//! [`Kernels`]).
 
 use burn::tensor::Tensor;
 

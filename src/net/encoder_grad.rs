@@ -433,9 +433,10 @@ pub struct TrainingEncoder {
 }
 
 impl TrainingEncoder {
-    /// Reads `encoder`'s weights, or `None` when its layout is not one this path runs (a stem
-    /// max-pool, bottleneck blocks, a frozen BatchNorm): burn's autodiff trains those.
-    pub fn of(encoder: &Encoder) -> Option<TrainingEncoder> {
+    /// Reads `encoder`'s weights for GEMMs on `kernels`, or `None` when its layout is not one
+    /// this path runs (a stem max-pool, bottleneck blocks, a frozen BatchNorm): burn's autodiff
+    /// trains those.
+    pub fn of(encoder: &Encoder, kernels: Kernels) -> Option<TrainingEncoder> {
         let (stem, stem_pool, blocks) = encoder.parts();
         if stem_pool {
             return None;
@@ -462,7 +463,7 @@ impl TrainingEncoder {
         Some(TrainingEncoder {
             units,
             blocks: indices,
-            kernels: Kernels::from_env(),
+            kernels,
         })
     }
 
@@ -473,17 +474,11 @@ impl TrainingEncoder {
 
     /// The forward pass over RGB8 crops of `size`² (values / 255, as [`super::images_tensor`]).
     pub fn forward(&self, crops: &[&[u8]], size: usize) -> EncoderPass {
-        let mut data = Vec::with_capacity(crops.len() * 3 * size * size);
-        for rgb in crops {
-            for c in 0..3 {
-                data.extend(rgb.chunks_exact(3).map(|p| p[c] as f32 / 255.0));
-            }
-        }
         let images = Act {
             images: crops.len(),
             channels: 3,
             side: (size, size),
-            data,
+            data: super::network::images_nchw(crops, size),
         };
         let (mut stem_out, stem) = self.units[0].forward(self.kernels, &images);
         relu(&mut stem_out);

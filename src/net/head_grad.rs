@@ -39,7 +39,7 @@ pub struct TrainingHead {
     branches: [Vec<Dense>; 2],
     /// Weight and bias ids in the order image, rotation, shape layers, feature layers.
     ids: Vec<(ParamId, Option<ParamId>)>,
-    /// The library GEMM's kernels (`ALIGNIST_KERNELS`).
+    /// The library GEMM's kernels.
     kernels: Kernels,
 }
 
@@ -155,8 +155,8 @@ fn mask_by(d: &mut [f32], activation: &[f32]) {
 }
 
 impl TrainingHead {
-    /// Reads `head`'s current weights.
-    pub fn of(head: &DualHead) -> Self {
+    /// Reads `head`'s current weights, for GEMMs on `kernels`.
+    pub fn of(head: &DualHead, kernels: Kernels) -> Self {
         let (image, rotation, shape, feature) = head.parts();
         let mut ids = vec![ids_of(image), ids_of(rotation)];
         let branches = [shape, feature].map(|b| {
@@ -176,7 +176,7 @@ impl TrainingHead {
             rotation: Dense::of(rotation),
             branches,
             ids,
-            kernels: Kernels::from_env(),
+            kernels,
         }
     }
 

@@ -139,13 +139,20 @@ impl Network {
 
 /// Images as `[B, 3, S, S]` in `[0, 1]` from RGB8 crops.
 pub fn images_tensor(crops: &[&[u8]], size: usize, device: &Device) -> Tensor<4> {
+    let data = images_nchw(crops, size);
+    Tensor::from_data(TensorData::new(data, [crops.len(), 3, size, size]), device)
+}
+
+/// RGB8 crops of `size`² as the network's input values: `[crops, 3, size, size]` row-major,
+/// each value / 255.
+pub fn images_nchw(crops: &[&[u8]], size: usize) -> Vec<f32> {
     let mut data = Vec::with_capacity(crops.len() * 3 * size * size);
     for rgb in crops {
         for c in 0..3 {
             data.extend(rgb.chunks_exact(3).map(|p| p[c] as f32 / 255.0));
         }
     }
-    Tensor::from_data(TensorData::new(data, [crops.len(), 3, size, size]), device)
+    data
 }
 
 /// The grid's rotation projections, computed once per level (`[N, hidden]`), scored by the fused

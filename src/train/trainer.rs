@@ -354,6 +354,8 @@ struct Run<'a> {
     device: &'a Device,
     head: HeadPath,
     encoder: EncoderPath,
+    /// The hand-written paths' GEMM kernels (`ALIGNIST_KERNELS`, read once per run).
+    kernels: crate::net::Kernels,
 }
 
 /// One step's inputs, drawn from the step's own seed alone (so a batch prepared on another thread,
@@ -420,11 +422,17 @@ impl Run<'_> {
         let (config, device) = (self.config, self.device);
         let started = Instant::now();
         let hand_encoder = match (self.head, self.encoder) {
-            (HeadPath::Fused, EncoderPath::Fused) => TrainingEncoder::of(&network.encoder),
+            (HeadPath::Fused, EncoderPath::Fused) => {
+                TrainingEncoder::of(&network.encoder, self.kernels)
+            }
             _ => None,
         };
         let (loss_value, grads) = match hand_encoder {
-            Some(encoder) => self.fused_network(&network, &encoder, batch, step, profile)?,
+            Some(encoder) => {
+                // Reading the weights is part of the encoder's forward.
+                profile.encoder_forward += started.elapsed().as_secs_f64();
+                self.fused_network(&network, &encoder, batch, step, profile)?
+            }
             None => {
                 let crops: Vec<&[u8]> = batch.images.iter().map(|im| im.rgb.as_slice()).collect();
                 let images = images_tensor(&crops, config.network.image_size as usize, device);
@@ -479,7 +487,7 @@ impl Run<'_> {
         profile: &mut StepProfile,
     ) -> Result<(f64, TrainingHead, HeadGrads), TrainError> {
         let started = Instant::now();
-        let head = TrainingHead::of(&network.head);
+        let head = TrainingHead::of(&network.head, self.kernels);
         let images = batch.rotations.len();
         let flat: Vec<[f32; 9]> = batch.rotations.into_iter().flatten().collect();
         let pass = head.forward(
@@ -574,6 +582,7 @@ pub fn train(
         device: &device,
         head: HeadPath::from_env(),
         encoder: EncoderPath::from_env(),
+        kernels: crate::net::Kernels::from_env(),
     };
     let tail_from = config.steps - config.steps.div_ceil(10);
     let (mut tail_sum, mut tail_n) = (0.0, 0usize);
