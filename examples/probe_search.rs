@@ -3,7 +3,8 @@
 //! repeatedly, prints its p50, then times its parts alone with the same numbers of rotations: the
 //! encoder, the start level in full, each refined level, and the rest (cell rotations, softmax,
 //! selection, modes) as the difference.
-//! `cargo run --release --example probe_search [BUNDLE] [START] [KEEP] [f32|bf16] [REPEATS] [TAPER]`
+//! `cargo run --release --example probe_search [BUNDLE] [START] [KEEP] [f32|bf16|f16] [REPEATS]
+//! [TAPER] [KEEP_MASS]` (with a keep by mass, the parts are timed at the most cells kept).
 use std::time::Instant;
 
 use alignist::engine::{Engine, EngineConfig, Model, PredictOptions, SearchParams};
@@ -22,7 +23,7 @@ fn main() -> anyhow::Result<()> {
     let search = SearchParams {
         start_level: arg(2, "2").parse()?,
         keep: arg(3, "1024").parse()?,
-        keep_mass: None,
+        keep_mass: args.get(7).map(|m| m.parse()).transpose()?,
         keep_taper: arg(6, "0.5").parse()?,
         coarse_precision: arg(4, "bf16")
             .parse::<Precision>()

@@ -2,7 +2,7 @@
 
 use alignist::encoding::RotationEncoding;
 use alignist::net::{
-    EncoderConfig, HeadConfig, ResNetLayout, gkl_loss, ipdf_loss, l1_measure_loss,
+    EncoderConfig, HeadConfig, Precision, ResNetLayout, gkl_loss, ipdf_loss, l1_measure_loss,
 };
 use burn::tensor::{Device, Distribution, Tensor, TensorData};
 
@@ -178,7 +178,7 @@ fn assert_fused_matches(
     encoding: &RotationEncoding,
     d: &Device,
 ) {
-    use alignist::net::{FusedHead, Kernels, Precision, Rows};
+    use alignist::net::{FusedHead, Kernels, Rows};
     for kernels in [Kernels::Widest, Kernels::Avx2, Kernels::Portable] {
         let fused = FusedHead::with_kernels(head, kernels);
         eprintln!("{kernels}: {}", fused.kernel_paths());
@@ -394,15 +394,22 @@ fn bf16_rounding_is_to_the_nearest_even() {
     }
 }
 
-/// The bfloat16 head (native `VDPBF16PS` where the core has it) against its emulation on the f32
-/// GEMM, which rounds the same values, and against the f32 head: row counts around the kernel's
-/// 6-row block and the tile, a width that pads to the 64-column panel, and the shipped head.
-fn assert_bf16_close(fused: &alignist::net::FusedHead, encoding: &RotationEncoding, what: &str) {
-    use alignist::net::Bf16Head;
-    use alignist::net::{Precision, Rows};
-    let emulated = Bf16Head::emulated(fused);
+/// A head in a reduced precision (bfloat16: native `VDPBF16PS` where the core has it; f16:
+/// native `VFMADD231PH`) against its emulation on the f32 GEMM, which rounds the same values,
+/// and against the f32 head: row counts around the kernels' 6- and 12-row blocks and the tile, a
+/// width that pads to the 64-column panel, and the shipped head.
+fn assert_reduced_close(
+    fused: &alignist::net::FusedHead,
+    encoding: &RotationEncoding,
+    precision: alignist::net::Precision,
+    tolerance: Tolerance,
+    what: &str,
+) {
+    use alignist::net::ReducedHead;
+    use alignist::net::Rows;
+    let emulated = ReducedHead::emulated(fused, precision);
     let tile = alignist::net::tiles::TILE_ROWS;
-    for rows in [1, 5, 6, 7, tile - 1, tile, tile + 1, 2 * tile + 3] {
+    for rows in [1, 5, 6, 7, 12, 13, tile - 1, tile, tile + 1, 2 * tile + 3] {
         let rotations = spread_rotations(rows, 0.0);
         let features: Vec<f32> = (0..fused.image_dim())
             .map(|i| ((i * 37 + rows) % 17) as f32 / 17.0)
@@ -413,14 +420,14 @@ fn assert_bf16_close(fused: &alignist::net::FusedHead, encoding: &RotationEncodi
         let f32_scores = fused.branch_scores(&image, &projected);
         // The rows as f32 projections (a search's start level) and as encodings (the finer
         // levels, where the projection runs in bfloat16 inside the tiles).
-        let in_bf16 = |rows: Rows<'_>| {
+        let reduced = |rows: Rows<'_>| {
             (
-                fused.branch_scores_in(Precision::Bf16, &image, rows),
+                fused.branch_scores_in(precision, &image, rows),
                 emulated.branch_scores(&image, rows),
             )
         };
-        let from_projections = in_bf16(Rows::Projected(&projected));
-        let from_encodings = in_bf16(Rows::Encoded(&encodings));
+        let from_projections = reduced(Rows::Projected(&projected));
+        let from_encodings = reduced(Rows::Encoded(&encodings));
         for (branch, exact, got, emulated) in [
             (
                 "shape",
@@ -452,24 +459,25 @@ fn assert_bf16_close(fused: &alignist::net::FusedHead, encoding: &RotationEncodi
             let (mut worst, mut mean) = (0.0f32, 0.0f32);
             for i in 0..rows {
                 let (g, e, x) = (got[i], emulated[i], exact[i]);
-                // The same rounded products, summed in another order: a rounding to bfloat16
-                // may flip between layers, so they agree to a few bfloat16 steps, not exactly.
+                // The same rounded products, summed in another order (the f16 kernel: partly in
+                // f16): a rounding may flip between layers, so they agree closely, not exactly.
                 assert!(
-                    (g - e).abs() <= 4e-3 * x.abs().max(scale),
-                    "{what} {branch}, {rows} rows, row {i}: bf16 {g} against its emulation {e}"
+                    (g - e).abs() <= tolerance.emulated * x.abs().max(scale),
+                    "{what} {branch}, {rows} rows, row {i}: {precision} {g} against its emulation {e}"
                 );
                 worst = worst.max((g - x).abs() / x.abs().max(scale));
                 mean += (g - e).abs() / scale / rows as f32;
             }
             // Most rows agree far more closely than the worst one.
             assert!(
-                mean <= 5e-4,
+                mean <= tolerance.emulated_mean,
                 "{what} {branch}, {rows} rows: mean gap to the emulation {mean}"
             );
-            // bfloat16 keeps 8 significant bits: within a few % of the f32 scores.
+            // bfloat16 keeps 8 significant bits; f16 11, but sums chunks in f16: within a few %
+            // of the f32 scores.
             assert!(
-                worst <= 0.03,
-                "{what} {branch}, {rows} rows: {worst} from f32"
+                worst <= tolerance.f32,
+                "{what} {branch}, {rows} rows: {precision} {worst} from f32"
             );
         }
     }
@@ -485,7 +493,15 @@ fn the_bf16_head_agrees_with_its_emulation_and_stays_near_f32() {
         .with_layers(4)
         .init(&d)
         .with_output_biases(-2.5, 1.5);
-    assert_bf16_close(&FusedHead::new(&head), &encoding, "width 40");
+    let precision = Precision::Bf16;
+    let tolerance = Tolerance::BF16;
+    assert_reduced_close(
+        &FusedHead::new(&head),
+        &encoding,
+        precision,
+        tolerance,
+        "width 40",
+    );
     let bundle = alignist::bundle::model::ModelBundle::load(std::path::Path::new(concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/models/symsol1"
@@ -494,11 +510,80 @@ fn the_bf16_head_agrees_with_its_emulation_and_stays_near_f32() {
     let fused = FusedHead::new(&bundle.network.head);
     eprintln!(
         "bfloat16 on this core: {}",
-        if fused.bf16_native() {
+        if fused.native(precision) {
             "native (AVX-512 BF16)"
         } else {
             "emulated"
         }
     );
-    assert_bf16_close(&fused, &bundle.manifest.network.encoding, "shipped");
+    let encoding = &bundle.manifest.network.encoding;
+    assert_reduced_close(&fused, encoding, precision, tolerance, "shipped");
+}
+
+/// The same for f16. Its 11 significant bits round the products 8 times more finely than
+/// bfloat16, but the native kernel sums up to 128 of them in f16, so it is as near f32 as
+/// bfloat16 on its worst rows and further from its emulation (which sums in f32).
+#[test]
+fn the_f16_head_agrees_with_its_emulation_and_stays_near_f32() {
+    use alignist::net::FusedHead;
+    let d = device();
+    let encoding = RotationEncoding::Cube;
+    let head = HeadConfig::new(32, encoding.dim())
+        .with_hidden(40)
+        .with_layers(4)
+        .init(&d)
+        .with_output_biases(-2.5, 1.5);
+    let precision = Precision::F16;
+    let tolerance = Tolerance::F16;
+    assert_reduced_close(
+        &FusedHead::new(&head),
+        &encoding,
+        precision,
+        tolerance,
+        "width 40",
+    );
+    let bundle = alignist::bundle::model::ModelBundle::load(std::path::Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/models/symsol1"
+    )))
+    .unwrap();
+    let fused = FusedHead::new(&bundle.network.head);
+    eprintln!(
+        "f16 on this core: {}",
+        if fused.native(precision) {
+            "native (AVX-512 FP16)"
+        } else {
+            "emulated"
+        }
+    );
+    let encoding = &bundle.manifest.network.encoding;
+    assert_reduced_close(&fused, encoding, precision, tolerance, "shipped");
+}
+
+/// How far a reduced-precision head may be from its emulation and from f32, relative to a
+/// score's size (at least the mean |score|).
+#[derive(Clone, Copy)]
+struct Tolerance {
+    /// Every row, to the emulation.
+    emulated: f32,
+    /// The mean over the rows, to the emulation.
+    emulated_mean: f32,
+    /// Every row, to f32.
+    f32: f32,
+}
+
+impl Tolerance {
+    /// The same rounded products summed in f32 in another order: a few bfloat16 steps.
+    const BF16: Tolerance = Tolerance {
+        emulated: 4e-3,
+        emulated_mean: 5e-4,
+        f32: 0.03,
+    };
+    /// The native kernel sums in f16 within chunks, the emulation in f32 (measured on the
+    /// shipped head: worst 0.8 % from f32, mean gap to the emulation 0.3 %).
+    const F16: Tolerance = Tolerance {
+        emulated: 0.02,
+        emulated_mean: 5e-3,
+        f32: 0.02,
+    };
 }

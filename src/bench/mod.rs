@@ -103,8 +103,8 @@ pub fn bench(
         rayon::current_num_threads(),
         crops.len()
     );
-    let peak = print_peaks(&model);
-    full_grid_figures(&model, &crops[0], bundle, peak);
+    let peaks = print_peaks(&model);
+    full_grid_figures(&model, &crops[0], bundle, &peaks);
     // The coarse-to-fine search against the exhaustive level-5 argmax.
     let figures = search::study(&model, crops, &search::candidates(), 5, 10)?;
     search::print(&figures, &model.config().search(), objects);
@@ -127,9 +127,18 @@ pub fn bench(
     grpc_vs_in_process(model, bundle, &png, in_process_p50)
 }
 
-/// Prints the matmul peak of the library GEMM, the FMA peak of this CPU and the load-time
-/// calibration; returns the widest FMA peak (GFLOP/s).
-fn print_peaks(model: &Model) -> f64 {
+/// The probed peaks the head's rates are compared with, in GFLOP/s.
+struct Peaks {
+    /// The widest f32 FMA.
+    f32: f64,
+    /// `VDPBF16PS` and `VFMADD231PH`, where the core has them.
+    bf16: Option<f64>,
+    f16: Option<f64>,
+}
+
+/// Prints the matmul peak of the library GEMM, the FMA peaks of this CPU and the load-time
+/// calibration; returns the peaks.
+fn print_peaks(model: &Model) -> Peaks {
     let kernels = model.config().kernels;
     let library = matmul_peak_gflops(kernels, crate::net::tiles::TILE_ROWS);
     println!(
@@ -146,7 +155,21 @@ fn print_peaks(model: &Model) -> f64 {
         narrow.gflops,
         model.kernel_paths()
     );
-    let peak = widest.gflops;
+    let (f16, bf16) = (
+        peak::reduced_peak(peak::ReducedOp::F16Fma),
+        peak::reduced_peak(peak::ReducedOp::Bf16Dot),
+    );
+    let shown = |g: Option<f64>| g.map_or("not on this CPU".into(), |g| format!("{g:.1} GFLOP/s"));
+    println!(
+        "reduced-precision peaks (probe, 512-bit): f16 FMA (VFMADD231PH) {}, bfloat16 dot (VDPBF16PS) {}",
+        shown(f16),
+        shown(bf16)
+    );
+    let peaks = Peaks {
+        f32: widest.gflops,
+        bf16,
+        f16,
+    };
     match model.calibration() {
         Some(c) => println!(
             "calibration ({:.0} ms): {} — agreement {}, predicted {:.1} ms, measured {:.1} ms, budget {} ms; {}",
@@ -161,12 +184,12 @@ fn print_peaks(model: &Model) -> f64 {
         ),
         None => println!("calibration: none"),
     }
-    peak
+    peaks
 }
 
-/// Prints the full grids of levels 3 and 4 in f32 (against the FMA `peak` and numpy) and in
-/// bfloat16.
-fn full_grid_figures(model: &Model, crop: &[u8], bundle: &Path, peak: f64) {
+/// Prints the full grids of levels 3 and 4 in f32 (against the FMA `peak` and numpy), in
+/// bfloat16 and in f16.
+fn full_grid_figures(model: &Model, crop: &[u8], bundle: &Path, peaks: &Peaks) {
     let one = model.features(&[crop]).swap_remove(0);
     let flops = head_flops_per_rotation(model);
     let mut ours_ms = Vec::new();
@@ -182,28 +205,38 @@ fn full_grid_figures(model: &Model, crop: &[u8], bundle: &Path, peak: f64) {
             "full grid level {level} ({grid_len} rotations): {:.1} ms, {:.2} M rotations/s, {gflops:.1} GFLOP/s, head: {:.0} % of the FMA peak",
             s * 1e3,
             rate / 1e6,
-            100.0 * gflops / peak
+            100.0 * gflops / peaks.f32
         );
     }
     numpy_ratio(bundle, &ours_ms);
-    // The same grids in bfloat16 (the coarse levels of the search).
-    for &(level, f32_ms) in &ours_ms {
-        let grid_len = model.grid(level).map_or(0, |g| g.len());
-        let s = best_of(3, || {
-            let _ = model.logits_in(Precision::Bf16, &one, level);
-        });
-        println!(
-            "full grid level {level} in bf16 ({}): {:.1} ms, {:.2} M rotations/s, {:.1} GFLOP/s, {:.2}× the f32 head",
-            if model.bf16_native() {
-                "AVX-512 BF16"
-            } else {
-                "emulated on the f32 GEMM"
-            },
-            s * 1e3,
-            grid_len as f64 / s / 1e6,
-            grid_len as f64 / s * flops / 1e9,
-            f32_ms / (s * 1e3)
-        );
+    // The same grids in bfloat16 and f16 (the coarse levels of the search).
+    for (precision, instructions, peak) in [
+        (Precision::Bf16, "AVX-512 BF16", peaks.bf16),
+        (Precision::F16, "AVX-512 FP16", peaks.f16),
+    ] {
+        for &(level, f32_ms) in &ours_ms {
+            let grid_len = model.grid(level).map_or(0, |g| g.len());
+            let s = best_of(3, || {
+                let _ = model.logits_in(precision, &one, level);
+            });
+            let gflops = grid_len as f64 / s * flops / 1e9;
+            let native = model.native(precision);
+            println!(
+                "full grid level {level} in {precision} ({}): {:.1} ms, {:.2} M rotations/s, {gflops:.1} GFLOP/s{}, {:.2}× the f32 head",
+                if native {
+                    instructions
+                } else {
+                    "emulated on the f32 GEMM"
+                },
+                s * 1e3,
+                grid_len as f64 / s / 1e6,
+                match peak.filter(|_| native) {
+                    Some(p) => format!(" ({:.0} % of its instruction's peak)", 100.0 * gflops / p),
+                    None => String::new(),
+                },
+                f32_ms / (s * 1e3)
+            );
+        }
     }
 }
 

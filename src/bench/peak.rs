@@ -1,6 +1,8 @@
 //! The machine's FMA peak: independent fused multiply-adds on the widest vectors the core has
 //! (512-bit where it has AVX-512F, else 256-bit with FMA), on every thread of the pool at once.
-//! "% of peak" in the bench is against this figure, not against one library's GEMM.
+//! "% of peak" in the bench is against this figure, not against one library's GEMM. Also the
+//! peaks of the reduced-precision instructions the heads use where the core has them (f16
+//! `VFMADD231PH`, bfloat16 `VDPBF16PS`): their rates differ between CPUs more than f32's do.
 
 use std::time::Instant;
 
@@ -131,4 +133,117 @@ unsafe fn fma256(seed: f32) -> f32 {
     // SAFETY: `lanes` holds 8 floats.
     unsafe { _mm256_storeu_ps(lanes.as_mut_ptr(), sum) };
     lanes.iter().sum()
+}
+
+/// A reduced-precision instruction the heads use, for [`reduced_peak`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ReducedOp {
+    /// `VFMADD231PH` on 512-bit vectors (AVX-512 FP16): 32 multiply-adds.
+    F16Fma,
+    /// `VDPBF16PS` on 512-bit vectors (AVX-512 BF16): 32 multiply-adds into 16 f32 lanes.
+    Bf16Dot,
+}
+
+/// The rate of `op` over the pool's threads in GFLOP/s (a multiply-add counts two; best of 5
+/// runs), or `None` where the core lacks it.
+pub fn reduced_peak(op: ReducedOp) -> Option<f64> {
+    #[cfg(target_arch = "x86_64")]
+    {
+        let has = |f: bool| f && std::is_x86_feature_detected!("avx512f");
+        let available = match op {
+            ReducedOp::F16Fma => has(std::is_x86_feature_detected!("avx512fp16")),
+            ReducedOp::Bf16Dot => has(std::is_x86_feature_detected!("avx512bf16")),
+        };
+        if !available {
+            return None;
+        }
+        let threads = rayon::current_num_threads();
+        let chains = match op {
+            ReducedOp::F16Fma => CHAINS_F16,
+            ReducedOp::Bf16Dot => CHAINS_512,
+        };
+        let flops_per_run = (ITERS * chains * 64) as f64;
+        let mut best = f64::MAX;
+        for _ in 0..6 {
+            let t = Instant::now();
+            let sum: f32 = (0..threads)
+                .into_par_iter()
+                // SAFETY: the features were checked above.
+                .map(|i| unsafe {
+                    match op {
+                        ReducedOp::F16Fma => f16_chains(i as i16),
+                        ReducedOp::Bf16Dot => bf16_chains(i as i32),
+                    }
+                })
+                .sum();
+            best = best.min(t.elapsed().as_secs_f64());
+            std::hint::black_box(sum);
+        }
+        Some(flops_per_run * threads as f64 / best / 1e9)
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        let _ = op;
+        None
+    }
+}
+
+/// Independent f16 accumulators: LLVM keeps f16 vectors in 16 of the 32 zmm registers and
+/// spilled 3 of 16 chains to the stack, which made the probe measure store forwarding.
+const CHAINS_F16: usize = 12;
+
+/// [`ITERS`] rounds of [`CHAINS_F16`] independent `VFMADD231PH`.
+///
+/// # Safety
+/// The core has AVX-512F, AVX-512BW and AVX-512 FP16.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw,avx512fp16")]
+unsafe fn f16_chains(seed: i16) -> f32 {
+    use std::arch::x86_64::*;
+    // acc ← acc·a + b with a a little below 1 and b small, as f16 bits: acc settles near
+    // b / (1 − a), a normal number (subnormal operands may take a slow path). The seed keeps the
+    // threads' work distinct.
+    let a = _mm512_castsi512_ph(_mm512_set1_epi16(0x3bf0 - seed));
+    let b = _mm512_castsi512_ph(_mm512_set1_epi16(0x1400));
+    let mut acc = [_mm512_castsi512_ph(_mm512_set1_epi16(0x3800)); CHAINS_F16];
+    for _ in 0..ITERS {
+        for acc in acc.iter_mut() {
+            *acc = _mm512_fmadd_ph(*acc, a, b);
+        }
+    }
+    let mut sum = _mm512_setzero_ps();
+    for acc in &acc {
+        let low = _mm512_castsi512_si256(_mm512_castph_si512(*acc));
+        sum = _mm512_add_ps(sum, _mm512_cvtxph_ps(_mm256_castsi256_ph(low)));
+    }
+    _mm512_reduce_add_ps(sum)
+}
+
+/// [`ITERS`] rounds of [`CHAINS_512`] independent `VDPBF16PS`.
+///
+/// # Safety
+/// The core has AVX-512F and AVX-512 BF16.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bf16")]
+unsafe fn bf16_chains(seed: i32) -> f32 {
+    use std::arch::x86_64::*;
+    // Pairs of bfloat16 0.99 and 1/256 (normal numbers) times pairs of 2⁻³¹.
+    // SAFETY: both are 512 bits of plain data.
+    let (a, b): (__m512bh, __m512bh) = unsafe {
+        (
+            std::mem::transmute::<__m512i, __m512bh>(_mm512_set1_epi32(0x3f7d_3b80 + seed)),
+            std::mem::transmute::<__m512i, __m512bh>(_mm512_set1_epi32(0x3000_3000)),
+        )
+    };
+    let mut acc = [_mm512_set1_ps(0.5); CHAINS_512];
+    for _ in 0..ITERS {
+        for acc in acc.iter_mut() {
+            *acc = _mm512_dpbf16_ps(*acc, a, b);
+        }
+    }
+    let mut sum = acc[0];
+    for acc in &acc[1..] {
+        sum = _mm512_add_ps(sum, *acc);
+    }
+    _mm512_reduce_add_ps(sum)
 }

@@ -39,7 +39,7 @@ pub struct SearchFigures {
 /// The searches the study compares: start level 1 or 2, keep 32–512, keeps chosen by mass, and
 /// keeps that halve (wide where a wrong region is chosen, narrow inside the chosen ones) or
 /// double at each finer level, all in f32; then the wider ones with the coarse levels in
-/// bfloat16.
+/// bfloat16, and in f16.
 pub fn candidates() -> Vec<SearchParams> {
     let flat = |start_level, keep, keep_mass| SearchParams {
         start_level,
@@ -84,6 +84,21 @@ pub fn candidates() -> Vec<SearchParams> {
     out.push(tapered(1, 1024, 0.5));
     for keep in [512, 768, 1024] {
         out.push(bf16(tapered(2, keep, 0.5)));
+    }
+    // Half-precision twins, for cores with AVX-512 FP16 (where bfloat16 may be slow).
+    let f16 = |search: SearchParams| SearchParams {
+        coarse_precision: Precision::F16,
+        ..search
+    };
+    out.push(f16(flat(1, 512, None)));
+    for keep in [256, 512] {
+        out.push(f16(flat(2, keep, None)));
+    }
+    for keep in [512, 1024] {
+        out.push(f16(tapered(1, keep, 0.5)));
+    }
+    for keep in [512, 768, 1024] {
+        out.push(f16(tapered(2, keep, 0.5)));
     }
     out
 }

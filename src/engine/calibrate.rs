@@ -6,8 +6,8 @@
 //! number per level), and picks, among the searches whose agreement reaches the target, the most
 //! agreeing one predicted within the budget (ties: the fastest); when none fits, the fastest of
 //! them, flagged as over budget. It never picks a search below the target. Without a study it
-//! keeps the configured search's shape and only chooses its coarse precision (bfloat16 ranks
-//! cells like f32, up to rounding, so the f32 twin is taken to agree at least as well). The
+//! keeps the configured search's shape and only chooses its coarse precision (bfloat16 and f16
+//! rank cells like f32, up to rounding, so each twin is taken to agree as well). The
 //! chosen search is then run for real and its latency reported beside the prediction.
 
 use std::collections::BTreeMap;
@@ -164,7 +164,7 @@ fn candidates(
                 })
             })
             .collect(),
-        None => [Precision::F32, Precision::Bf16]
+        None => [Precision::F32, Precision::Bf16, Precision::F16]
             .map(|coarse_precision| Candidate {
                 params: SearchParams {
                     coarse_precision,

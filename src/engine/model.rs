@@ -714,9 +714,9 @@ impl Model {
             .collect()
     }
 
-    /// Whether bfloat16 scoring runs on this core's own instructions (else it is emulated).
-    pub fn bf16_native(&self) -> bool {
-        self.fused.bf16_native()
+    /// Whether scoring in `precision` runs on this core's own instructions (else it is emulated).
+    pub fn native(&self, precision: Precision) -> bool {
+        self.fused.native(precision)
     }
 
     /// The grid of `level` (up to the highest level this model serves).

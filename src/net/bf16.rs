@@ -50,7 +50,6 @@ unsafe fn gemm_bf16(
     stride: usize,
     rows: usize,
     epilogue: Epilogue<'_, u16>,
-    _pack: &mut Vec<u16>,
 ) {
     use std::arch::x86_64::*;
     debug_assert!(
@@ -99,29 +98,11 @@ unsafe fn gemm_bf16(
                             }
                         }
                         Epilogue::Dot { weights, dots } => {
-                            dots[row] += dot4(&h, weights.as_ptr().add(panel * NR));
+                            dots[row] += super::native::dot4(&h, weights.as_ptr().add(panel * NR));
                         }
                     }
                 }
             }
         }
-    }
-}
-
-/// `Σ_j h_j · w_j` over a block row's four vectors (the `width → 1` output layer).
-///
-/// # Safety
-/// The core has AVX-512F; `w` points at 64 floats.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-unsafe fn dot4(h: &[std::arch::x86_64::__m512; 4], w: *const f32) -> f32 {
-    use std::arch::x86_64::*;
-    // SAFETY: `w` holds 64 floats.
-    unsafe {
-        let mut sum = _mm512_mul_ps(h[0], _mm512_loadu_ps(w));
-        for (c, h) in h.iter().enumerate().skip(1) {
-            sum = _mm512_fmadd_ps(*h, _mm512_loadu_ps(w.add(16 * c)), sum);
-        }
-        _mm512_reduce_add_ps(sum)
     }
 }

@@ -12,15 +12,19 @@ use rayon::prelude::*;
 use super::DualHead;
 use super::bf16::Bf16Kernel;
 use super::dense;
+use super::f16::F16Kernel;
 use super::kernels::Kernels;
 use super::native::{F32Avx2, F32Avx512, NativeHead};
 pub use super::tiles::{Precision, Rows, TILE_ROWS};
-use super::tiles::{by_tiles, round_bf16};
+use super::tiles::{by_tiles, round_bf16, round_f16};
 use super::weights::HeadWeights;
 
-fn round_all(x: &mut [f32]) {
-    for v in x {
-        *v = round_bf16(*v);
+/// The rounding of a reduced precision's values (the identity for f32).
+fn rounding(precision: Precision) -> fn(f32) -> f32 {
+    match precision {
+        Precision::F32 => std::convert::identity,
+        Precision::Bf16 => round_bf16,
+        Precision::F16 => round_f16,
     }
 }
 
@@ -71,12 +75,14 @@ impl F32Native {
 #[derive(Debug, Clone)]
 pub struct FusedHead {
     weights: HeadWeights,
-    /// Round every GEMM's input to bfloat16 (the emulation of [`Bf16Head`]).
-    round_inputs: bool,
+    /// Round every GEMM's input to this precision (the emulation of a [`ReducedHead`]; `F32`:
+    /// no rounding).
+    rounds_to: Precision,
     /// The kernels allowed, also for the library GEMM of the portable path.
     kernels: Kernels,
-    /// The same head in bfloat16 (`None` in the emulation itself).
-    bf16: Option<Box<Bf16Head>>,
+    /// The same head in bfloat16 and in f16 (`None` in an emulation itself).
+    bf16: Option<Box<ReducedHead>>,
+    f16: Option<Box<ReducedHead>>,
     /// The same head on the f32 512-bit kernel, where the core has it and the kernels allowed
     /// (`None` in the emulation).
     f32_native: Option<Box<F32Native>>,
@@ -99,32 +105,57 @@ impl FusedHead {
     pub fn with_kernels(head: &DualHead, kernels: Kernels) -> FusedHead {
         let weights = HeadWeights::of(head);
         FusedHead {
-            bf16: Some(Box::new(Bf16Head::new(&weights, kernels))),
+            bf16: Some(Box::new(ReducedHead::new(
+                &weights,
+                Precision::Bf16,
+                kernels,
+            ))),
+            f16: Some(Box::new(ReducedHead::new(
+                &weights,
+                Precision::F16,
+                kernels,
+            ))),
             f32_native: F32Native::new(&weights, kernels).map(Box::new),
             weights,
-            round_inputs: false,
+            rounds_to: Precision::F32,
             kernels,
         }
     }
 
-    /// This head with the branches' and the rotation layer's weights rounded to bfloat16 and each
-    /// GEMM's input (encodings included) rounded too: the emulation of [`Bf16Head`] on the f32
-    /// GEMM. The image half of the first layer stays f32, as in the native kernel, and so do
-    /// projections made beforehand by the f32 head (a search's start level).
-    fn rounded_to_bf16(weights: &HeadWeights, kernels: Kernels) -> FusedHead {
+    /// This head with the branches' and the rotation layer's weights rounded to `precision` and
+    /// each GEMM's input (encodings included) rounded too: the emulation of a [`ReducedHead`] on
+    /// the f32 GEMM. The image half of the first layer stays f32, as in the native kernels, and
+    /// so do projections made beforehand by the f32 head (a search's start level).
+    fn rounded_to(weights: &HeadWeights, precision: Precision, kernels: Kernels) -> FusedHead {
         FusedHead {
-            weights: weights.rounded_to_bf16(),
-            round_inputs: true,
+            weights: weights.rounded_by(rounding(precision)),
+            rounds_to: precision,
             kernels,
             bf16: None,
+            f16: None,
             f32_native: None,
         }
     }
 
-    /// Whether [`Precision::Bf16`] runs on the core's bfloat16 instructions (else it is emulated
-    /// on the f32 GEMM, at the f32 rate).
+    /// The head in a reduced precision, if this head has one (not in an emulation).
+    fn reduced(&self, precision: Precision) -> Option<&ReducedHead> {
+        match precision {
+            Precision::F32 => None,
+            Precision::Bf16 => self.bf16.as_deref(),
+            Precision::F16 => self.f16.as_deref(),
+        }
+    }
+
+    /// Whether `precision` runs on the core's own instructions for it: always for f32 (the
+    /// project's kernels or the library GEMM); for bfloat16 and f16 where the core has AVX-512
+    /// BF16 or FP16 (else they are emulated on the f32 GEMM, at the f32 rate).
+    pub fn native(&self, precision: Precision) -> bool {
+        precision == Precision::F32 || self.reduced(precision).is_some_and(|r| r.is_native())
+    }
+
+    /// Whether [`Precision::Bf16`] runs on the core's bfloat16 instructions.
     pub fn bf16_native(&self) -> bool {
-        self.bf16.as_ref().is_some_and(|b| b.is_native())
+        self.native(Precision::Bf16)
     }
 
     /// Whether [`Precision::F32`] runs on one of the project's kernels (else on the library GEMM).
@@ -134,16 +165,20 @@ impl FusedHead {
 
     /// The kernel each precision runs on, in words (for logs and the bench).
     pub fn kernel_paths(&self) -> String {
+        let reduced = |precision: Precision, kernel: &str| {
+            if self.native(precision) {
+                kernel.to_string()
+            } else {
+                "emulated on the f32 GEMM".to_string()
+            }
+        };
         format!(
-            "f32: {}, bf16: {}",
+            "f32: {}, bf16: {}, f16: {}",
             self.f32_native
                 .as_ref()
                 .map_or(dense::library_name(self.kernels), |k| k.name()),
-            if self.bf16_native() {
-                "AVX-512 BF16 kernel"
-            } else {
-                "emulated on the f32 GEMM"
-            }
+            reduced(Precision::Bf16, "AVX-512 BF16 kernel"),
+            reduced(Precision::F16, "AVX-512 FP16 kernel"),
         )
     }
 
@@ -209,22 +244,23 @@ impl FusedHead {
     }
 
     /// Both branches' log-weights `(s_θ, s_φ)` of `rows` in `precision`, for one image's
-    /// [`FusedHead::image_term`]. Encoded rows are projected first in f32; in bfloat16 the
-    /// projection runs inside the tiles too.
+    /// [`FusedHead::image_term`]. Encoded rows are projected first in f32; in a reduced
+    /// precision the projection runs inside the tiles too.
     pub fn branch_scores_in(
         &self,
         precision: Precision,
         image_term: &[f32],
         rows: Rows<'_>,
     ) -> (Vec<f32>, Vec<f32>) {
-        match (precision, &self.bf16, rows) {
-            (Precision::Bf16, Some(bf16), _) => bf16.branch_scores(image_term, rows),
-            (_, _, Rows::Projected(projected)) => self.branch_scores(image_term, projected),
-            (_, _, Rows::Encoded(encodings)) if self.round_inputs => {
-                let rounded: Vec<f32> = encodings.iter().copied().map(round_bf16).collect();
+        match (self.reduced(precision), rows) {
+            (Some(reduced), _) => reduced.branch_scores(image_term, rows),
+            (_, Rows::Projected(projected)) => self.branch_scores(image_term, projected),
+            (_, Rows::Encoded(encodings)) if self.rounds_to != Precision::F32 => {
+                let round = rounding(self.rounds_to);
+                let rounded: Vec<f32> = encodings.iter().copied().map(round).collect();
                 self.branch_scores(image_term, &self.project_rotations(&rounded))
             }
-            (_, _, Rows::Encoded(encodings)) => match &self.f32_native {
+            (_, Rows::Encoded(encodings)) => match &self.f32_native {
                 Some(native) => native.branch_scores(image_term, rows),
                 None => self.branch_scores(image_term, &self.project_rotations(encodings)),
             },
@@ -256,8 +292,10 @@ impl FusedHead {
                 *xv = (p + i).max(0.0);
             }
         }
-        if self.round_inputs {
-            round_all(&mut x[..rows * w]);
+        let round = rounding(self.rounds_to);
+        let rounds = self.rounds_to != Precision::F32;
+        if rounds {
+            x[..rows * w].iter_mut().for_each(|v| *v = round(*v));
         }
         for (branch, out) in self.weights.branches.iter().zip(out) {
             // Ping-pong between the two activation buffers; 0 is the shared input.
@@ -271,8 +309,8 @@ impl FusedHead {
                 layer.apply(self.kernels, input, rows, output);
                 relu(&mut output[..rows * w]);
                 // The last hidden layer feeds the f32 dot product, as in the native kernel.
-                if self.round_inputs && l + 1 < branch.hidden.len() {
-                    round_all(&mut output[..rows * w]);
+                if rounds && l + 1 < branch.hidden.len() {
+                    output[..rows * w].iter_mut().for_each(|v| *v = round(*v));
                 }
                 current = if current == 1 { 2 } else { 1 };
             }
@@ -293,54 +331,58 @@ impl FusedHead {
     }
 }
 
-/// The head in bfloat16: the native kernel where the core has it, the emulation elsewhere.
+/// The head in a reduced precision (bfloat16 or f16): the native kernel where the core has it,
+/// the emulation elsewhere.
 #[derive(Debug, Clone)]
-pub struct Bf16Head(Path);
+pub struct ReducedHead(Path);
 
-/// The kernel a [`Bf16Head`] runs on.
+/// The kernel a [`ReducedHead`] runs on.
 #[derive(Debug, Clone)]
 enum Path {
     /// `VDPBF16PS` on packed weights.
-    Native(Box<NativeHead<Bf16Kernel>>),
+    Bf16(Box<NativeHead<Bf16Kernel>>),
+    /// `VFMADD231PH` on packed weights.
+    F16(Box<NativeHead<F16Kernel>>),
     /// The f32 GEMM on rounded weights, rounding each GEMM's input.
     Emulated(Box<FusedHead>),
 }
 
-impl Bf16Head {
-    /// The native kernel when `kernels` allows it and this core has AVX-512 BF16 (and every
-    /// branch has a hidden layer), else the emulation.
-    pub(super) fn new(head: &HeadWeights, kernels: Kernels) -> Bf16Head {
-        kernels
-            .allows_avx512()
-            .then(|| NativeHead::new(head))
-            .flatten()
-            .map(|native| Bf16Head(Path::Native(Box::new(native))))
-            .unwrap_or_else(|| {
-                Bf16Head(Path::Emulated(Box::new(FusedHead::rounded_to_bf16(
-                    head, kernels,
-                ))))
-            })
+impl ReducedHead {
+    /// The native kernel of `precision` (bfloat16 or f16) when `kernels` allows it and this core
+    /// has its instructions (and every branch has a hidden layer), else the emulation.
+    pub(super) fn new(head: &HeadWeights, precision: Precision, kernels: Kernels) -> ReducedHead {
+        let native = match precision {
+            _ if !kernels.allows_avx512() => None,
+            Precision::Bf16 => NativeHead::new(head).map(|n| Path::Bf16(Box::new(n))),
+            Precision::F16 => NativeHead::new(head).map(|n| Path::F16(Box::new(n))),
+            Precision::F32 => None,
+        };
+        ReducedHead(native.unwrap_or_else(|| {
+            Path::Emulated(Box::new(FusedHead::rounded_to(head, precision, kernels)))
+        }))
     }
 
-    /// The emulation, on any core.
-    pub fn emulated(head: &FusedHead) -> Bf16Head {
-        Bf16Head(Path::Emulated(Box::new(FusedHead::rounded_to_bf16(
+    /// The emulation of `precision` (bfloat16 or f16), on any core.
+    pub fn emulated(head: &FusedHead, precision: Precision) -> ReducedHead {
+        ReducedHead(Path::Emulated(Box::new(FusedHead::rounded_to(
             &head.weights,
+            precision,
             head.kernels,
         ))))
     }
 
-    /// Whether this is the native kernel.
+    /// Whether this is a native kernel.
     pub fn is_native(&self) -> bool {
-        matches!(self.0, Path::Native(_))
+        !matches!(self.0, Path::Emulated(_))
     }
 
     /// Both branches' log-weights of `rows`, as [`FusedHead::branch_scores_in`]. From encodings,
-    /// the native kernel runs the rotation half of the first layer in bfloat16 too, inside the
-    /// tiles (no projection pass).
+    /// the native kernels run the rotation half of the first layer in their precision too,
+    /// inside the tiles (no projection pass).
     pub fn branch_scores(&self, image_term: &[f32], rows: Rows<'_>) -> (Vec<f32>, Vec<f32>) {
         match &self.0 {
-            Path::Native(native) => native.branch_scores(image_term, rows),
+            Path::Bf16(native) => native.branch_scores(image_term, rows),
+            Path::F16(native) => native.branch_scores(image_term, rows),
             Path::Emulated(head) => head.branch_scores_in(Precision::F32, image_term, rows),
         }
     }

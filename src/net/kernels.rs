@@ -4,14 +4,15 @@
 /// The widest kernels a head may use; each falls back to the next narrower one the core has.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Kernels {
-    /// The widest the core has: AVX-512 (f32, and bfloat16 with AVX-512 BF16), else AVX2; the
+    /// The widest the core has: AVX-512 (f32, bfloat16 with AVX-512 BF16, f16 with AVX-512
+    /// FP16), else AVX2; the
     /// library GEMM is the `gemm` crate (512-bit where the core has AVX-512).
     #[default]
     Widest,
-    /// The project's kernels at most 256-bit; bfloat16 emulated; the library GEMM is
+    /// The project's kernels at most 256-bit; bfloat16 and f16 emulated; the library GEMM is
     /// matrixmultiply (which picks its own kernel at run time, 512-bit on AVX-512 cores).
     Avx2,
-    /// No kernel of the project's: matrixmultiply's GEMM only; bfloat16 emulated.
+    /// No kernel of the project's: matrixmultiply's GEMM only; bfloat16 and f16 emulated.
     Portable,
 }
 

@@ -5,6 +5,7 @@ pub mod bf16;
 pub(crate) mod dense;
 pub mod encoder;
 pub mod encoder_grad;
+pub mod f16;
 pub mod fused;
 pub mod head;
 pub mod head_grad;
@@ -17,7 +18,7 @@ mod weights;
 
 pub use encoder::{Encoder, EncoderConfig, ResNetLayout};
 pub use encoder_grad::{EncoderGrads, EncoderPass, TrainingEncoder};
-pub use fused::{Bf16Head, FusedHead};
+pub use fused::{FusedHead, ReducedHead};
 pub use head::{BranchScores, DualHead, HeadConfig};
 pub use head_grad::{HeadGrads, HeadPass, TrainingHead};
 pub use kernels::Kernels;

@@ -1,19 +1,23 @@
 //! The head's own GEMM kernels and the tile driver they share. A kernel multiplies row blocks of
 //! a tile's activations by weights packed once into column panels, and applies bias and ReLU as
 //! each block leaves the registers (or, after a branch's last hidden layer, the `width → 1` dot
-//! product), so no intermediate leaves the tile. Three kernels use the driver:
+//! product), so no intermediate leaves the tile. Four kernels use the driver:
 //!
 //! - [`F32Avx512`]: f32 on 512-bit FMAs (AVX-512F), blocks of 12 rows × 32 columns: the 32 KiB
 //!   panel of a 256-wide layer and the block's 12 rows stay in L1 (measured fastest of 4×64,
-//!   6×64, 12×32, 14×32, 8×48 with `examples/probe_kernels.rs`).
+//!   6×64, 12×32, 14×32, 8×48 with `examples/probe_kernels.rs`). Each row's inputs are
+//!   broadcast from the row itself: copying a block's rows into one stream first (as GEMM
+//!   libraries pack) made the head 18 % slower on the Intel Xeon (72 % of the FMA peak against
+//!   88 %, level 4).
 //! - [`F32Avx2`]: f32 on 256-bit FMAs (AVX2 + FMA), blocks of 6 rows × 16 columns.
 //! - [`Bf16Kernel`](super::bf16): `VDPBF16PS` on AVX-512 BF16 cores.
+//! - [`F16Kernel`](super::f16): `VFMADD231PH` on AVX-512 FP16 cores.
 //!
 //! The portable path is the library GEMM of `net::dense`, for cores with neither (or
 //! when asked for).
 //!
 //! Weights are packed as `[panel][group][NR][GROUP]`: `GROUP` consecutive inputs per 32-bit lane
-//! (2 for bfloat16 pairs, 1 for f32), `NR` columns per panel.
+//! (2 for bfloat16 pairs, 1 for f32 and f16), `NR` columns per panel.
 
 use std::marker::PhantomData;
 
@@ -36,7 +40,7 @@ pub(super) trait Kernel: Send + Sync {
     /// An f32 as the kernel's element.
     fn convert(x: f32) -> Self::Elem;
     /// `relu(input · W + bias)` for `rows` (a multiple of [`Kernel::MR`]) rows of `input` (rows
-    /// of `stride`), through `epilogue`; `pack` is the kernel's scratch, kept between calls.
+    /// of `stride`), through `epilogue`.
     ///
     /// # Safety
     /// [`Kernel::available`] holds; `layer` was packed with [`Kernel::NR`]; `bias` holds
@@ -51,7 +55,6 @@ pub(super) trait Kernel: Send + Sync {
         stride: usize,
         rows: usize,
         epilogue: Epilogue<'_, Self::Elem>,
-        pack: &mut Vec<Self::Elem>,
     );
 }
 
@@ -141,7 +144,6 @@ pub(super) struct NativeHead<K: Kernel> {
 /// One task's buffers: encodings, the shared input, two activation buffers, and the output dot
 /// products.
 struct Scratch<E> {
-    pack: Vec<E>,
     e: Vec<E>,
     x: Vec<E>,
     a: Vec<E>,
@@ -207,7 +209,6 @@ impl<K: Kernel> NativeHead<K> {
             given,
             per_row,
             || Scratch {
-                pack: Vec::new(),
                 e: vec![K::Elem::default(); blocked * K::GROUP * self.rotation.groups],
                 x: vec![K::Elem::default(); blocked * self.padded],
                 a: vec![K::Elem::default(); blocked * self.padded],
@@ -236,14 +237,7 @@ impl<K: Kernel> NativeHead<K> {
         let stride = self.padded;
         let rows = out[0].len();
         let blocked = rows.div_ceil(K::MR) * K::MR;
-        let Scratch {
-            pack,
-            e,
-            x,
-            a,
-            b,
-            dots,
-        } = scratch;
+        let Scratch { e, x, a, b, dots } = scratch;
         match given {
             Rows::Projected(projected) => {
                 x[..blocked * stride].fill(K::Elem::default());
@@ -270,17 +264,7 @@ impl<K: Kernel> NativeHead<K> {
                 // packed with `K::NR`; `e` holds `blocked` rows of `e_stride` = GROUP × groups,
                 // `x` `blocked` rows of `stride` ≥ the layer's panels × NR, and `first_bias` as
                 // many values.
-                unsafe {
-                    K::gemm(
-                        &self.rotation,
-                        first_bias,
-                        e,
-                        e_stride,
-                        blocked,
-                        epilogue,
-                        pack,
-                    )
-                };
+                unsafe { K::gemm(&self.rotation, first_bias, e, e_stride, blocked, epilogue) };
             }
         }
         for (branch, out) in self.branches.iter().zip(out) {
@@ -307,7 +291,7 @@ impl<K: Kernel> NativeHead<K> {
                 };
                 // SAFETY: as above; `input` holds `blocked` rows of `stride` = GROUP × the
                 // layer's groups, and the epilogue's buffers hold `blocked` rows.
-                unsafe { K::gemm(layer, &layer.bias, input, stride, blocked, epilogue, pack) };
+                unsafe { K::gemm(layer, &layer.bias, input, stride, blocked, epilogue) };
             }
             out.copy_from_slice(&dots[..rows]);
         }
@@ -324,28 +308,6 @@ pub fn avx512f_available() -> bool {
     {
         false
     }
-}
-
-/// The first `k` columns of `rows` (a multiple of `MR`) rows of `input` (rows of `stride`), as
-/// blocks of `MR` rows, each `[column][row]`: a block's broadcasts then read one stream, and
-/// the blocks follow each other as the kernel reads them.
-fn pack_blocks<'a, const MR: usize>(
-    input: &[f32],
-    rows: usize,
-    stride: usize,
-    k: usize,
-    blocks: &'a mut Vec<f32>,
-) -> &'a [f32] {
-    // Every value is written below: growing is the only zeroing.
-    blocks.resize(rows * k, 0.0);
-    for (b, block) in blocks.chunks_exact_mut(MR * k).enumerate() {
-        for (r, row) in input[b * MR * stride..].chunks(stride).take(MR).enumerate() {
-            for (i, &v) in row[..k].iter().enumerate() {
-                block[i * MR + r] = v;
-            }
-        }
-    }
-    blocks
 }
 
 /// The [`Kernel`] impl of a kernel whose `gemm` is the x86-64 function `$gemm` (taking the
@@ -374,16 +336,15 @@ macro_rules! kernel_impl {
                 stride: usize,
                 rows: usize,
                 epilogue: Epilogue<'_, $elem>,
-                pack: &mut Vec<$elem>,
             ) {
                 #[cfg(target_arch = "x86_64")]
                 // SAFETY: the caller's contract is the kernel function's.
                 unsafe {
-                    $gemm(layer, bias, input, stride, rows, epilogue, pack)
+                    $gemm(layer, bias, input, stride, rows, epilogue)
                 }
                 #[cfg(not(target_arch = "x86_64"))]
                 {
-                    let _ = (layer, bias, input, stride, rows, epilogue, pack);
+                    let _ = (layer, bias, input, stride, rows, epilogue);
                     unreachable!("the native kernels are only built on x86_64")
                 }
             }
@@ -393,7 +354,7 @@ macro_rules! kernel_impl {
 pub(super) use kernel_impl;
 
 /// An f32 [`Kernel::gemm`] on one vector width: blocks of `MR` rows × `NV` vectors of `LANES`
-/// lanes, the rows packed per block ([`pack_blocks`]), bias and ReLU (or the output dot
+/// lanes, each row's input broadcast from its own row, bias and ReLU (or the output dot
 /// product) as each block leaves the registers. `$hsum` sums a vector's lanes.
 macro_rules! f32_gemm {
     ($(#[$doc:meta])* $name:ident, $feature:literal, $v:ty, lanes $lanes:literal, mr $mr:literal,
@@ -412,7 +373,6 @@ macro_rules! f32_gemm {
             stride: usize,
             rows: usize,
             epilogue: Epilogue<'_, f32>,
-            pack: &mut Vec<f32>,
         ) {
             use std::arch::x86_64::*;
             const MR: usize = $mr;
@@ -426,7 +386,6 @@ macro_rules! f32_gemm {
             );
             let k = layer.groups;
             let mut epilogue = epilogue;
-            let blocks = pack_blocks::<MR>(input, rows, stride, k, pack);
             for panel in 0..layer.panels {
                 for r0 in (0..rows).step_by(MR) {
                     // SAFETY (all pointer reads and writes below): within the bounds above.
@@ -436,14 +395,14 @@ macro_rules! f32_gemm {
                             $load(bias.as_ptr().add(panel * nr + $lanes * c))
                         });
                         let mut acc = [[$zero(); NV]; MR];
-                        let block = blocks.as_ptr().add(r0 * k);
+                        let block = input.as_ptr().add(r0 * stride);
                         for i in 0..k {
                             let w = weights.add(i * nr);
-                            let a = block.add(i * MR);
+                            let a = block.add(i);
                             let b: [$v; NV] =
                                 std::array::from_fn(|c| $load(w.add($lanes * c)));
                             for (r, acc) in acc.iter_mut().enumerate() {
-                                let x = $set1(*a.add(r));
+                                let x = $set1(*a.add(r * stride));
                                 for c in 0..NV {
                                     acc[c] = $fmadd(x, b[c], acc[c]);
                                 }
@@ -531,4 +490,22 @@ unsafe fn hsum256(v: std::arch::x86_64::__m256) -> f32 {
     // SAFETY: `lanes` holds 8 floats.
     unsafe { _mm256_storeu_ps(lanes.as_mut_ptr(), v) };
     lanes.iter().sum()
+}
+
+/// `Σ_j h_j · w_j` over a block row's four vectors (the `width → 1` output layer).
+///
+/// # Safety
+/// The core has AVX-512F; `w` points at 64 floats.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+pub(super) unsafe fn dot4(h: &[std::arch::x86_64::__m512; 4], w: *const f32) -> f32 {
+    use std::arch::x86_64::*;
+    // SAFETY: `w` holds 64 floats.
+    unsafe {
+        let mut sum = _mm512_mul_ps(h[0], _mm512_loadu_ps(w));
+        for (c, h) in h.iter().enumerate().skip(1) {
+            sum = _mm512_fmadd_ps(*h, _mm512_loadu_ps(w.add(16 * c)), sum);
+        }
+        _mm512_reduce_add_ps(sum)
+    }
 }

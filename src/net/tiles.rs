@@ -1,6 +1,6 @@
 //! What every head path shares: the tile the rotations are scored in, the rows a head takes
 //! (projections or encodings), the precisions, and bfloat16 rounding. Below the heads that use
-//! them ([`super::fused`], [`super::native`], [`super::bf16`]), so no two of those import each
+//! them ([`super::fused`], [`super::native`], [`super::bf16`], [`super::f16`]), so no two of those import each
 //! other both ways.
 
 use rayon::prelude::*;
@@ -15,17 +15,22 @@ pub enum Precision {
     /// f32 throughout: the burn network's scores within 1e-4.
     #[default]
     F32,
-    /// bfloat16 weights and GEMM inputs, f32 sums ([`super::fused::Bf16Head`]): about twice the rate where the
+    /// bfloat16 weights and GEMM inputs, f32 sums ([`super::fused::ReducedHead`]): about twice the rate where the
     /// core has AVX-512 BF16, scores within about 1 % of the f32 ones.
     Bf16,
+    /// IEEE half-precision weights and GEMM inputs ([`super::fused::ReducedHead`]), sums in f32 (in
+    /// f16 within chunks of [`super::f16::CHUNK`] products on the native kernel): twice the f32
+    /// rate where the core has AVX-512 FP16, scores within a fraction of a % of the f32 ones.
+    F16,
 }
 
 impl Precision {
-    /// The name used by flags and the bench (`f32`, `bf16`).
+    /// The name used by flags and the bench (`f32`, `bf16`, `f16`).
     pub fn name(self) -> &'static str {
         match self {
             Precision::F32 => "f32",
             Precision::Bf16 => "bf16",
+            Precision::F16 => "f16",
         }
     }
 }
@@ -42,7 +47,8 @@ impl std::str::FromStr for Precision {
         match s {
             "f32" => Ok(Precision::F32),
             "bf16" => Ok(Precision::Bf16),
-            other => Err(format!("unknown precision `{other}` (f32 or bf16)")),
+            "f16" => Ok(Precision::F16),
+            other => Err(format!("unknown precision `{other}` (f32, bf16 or f16)")),
         }
     }
 }
@@ -96,4 +102,19 @@ pub fn from_bf16(h: u16) -> f32 {
 /// `x` rounded to the nearest bfloat16.
 pub fn round_bf16(x: f32) -> f32 {
     from_bf16(to_bf16(x))
+}
+
+/// `x` rounded to IEEE half precision (round to nearest even, as `VCVTPS2PHX`), as its 16 bits.
+pub fn to_f16(x: f32) -> u16 {
+    half::f16::from_f32(x).to_bits()
+}
+
+/// The f32 of a half-precision value's bits.
+pub fn from_f16(h: u16) -> f32 {
+    half::f16::from_bits(h).to_f32()
+}
+
+/// `x` rounded to the nearest half-precision value.
+pub fn round_f16(x: f32) -> f32 {
+    from_f16(to_f16(x))
 }

@@ -5,7 +5,6 @@
 use super::DualHead;
 use super::dense::Dense;
 use super::head::Branch;
-use super::tiles::round_bf16;
 
 /// One branch: hidden ReLU layers, then the `width → 1` output as a dot product.
 #[derive(Debug, Clone)]
@@ -50,11 +49,11 @@ impl HeadWeights {
         }
     }
 
-    /// These weights with the branches' and the rotation layer's weights rounded to bfloat16
-    /// (the image half of the first layer stays f32, as in the native bfloat16 kernel).
-    pub(super) fn rounded_to_bf16(&self) -> HeadWeights {
+    /// These weights with the branches' and the rotation layer's weights rounded by `round` (to
+    /// bfloat16 or f16; the image half of the first layer stays f32, as in the native kernels).
+    pub(super) fn rounded_by(&self, round_value: fn(f32) -> f32) -> HeadWeights {
         let round = |d: &Dense| Dense {
-            weight: d.weight.iter().copied().map(round_bf16).collect(),
+            weight: d.weight.iter().copied().map(round_value).collect(),
             ..d.clone()
         };
         let branch = |b: &BranchWeights| BranchWeights {

@@ -1,9 +1,9 @@
-//! The bfloat16 head against the f32 one on a bundle's full grid at one level: rotations/s of
-//! each, and how far the bfloat16 scores (native and emulated) fall from the f32 ones.
-//! `cargo run --release --example probe_bf16 [BUNDLE] [LEVEL]`
+//! A reduced-precision head (bfloat16 or f16) against the f32 one on a bundle's full grid at one
+//! level: rotations/s of each, and how far the reduced scores (native and emulated) fall from
+//! the f32 ones. `cargo run --release --example probe_reduced [BUNDLE] [LEVEL] [bf16|f16]`
 use std::time::Instant;
 
-use alignist::net::Bf16Head;
+use alignist::net::ReducedHead;
 use alignist::net::{FusedHead, Precision, Rows};
 use alignist::so3::GridLevel;
 
@@ -11,9 +11,13 @@ fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().collect();
     let bundle = args.get(1).map_or("models/symsol1", String::as_str);
     let level: u8 = args.get(2).map_or(Ok(3), |s| s.parse())?;
+    let reduced: Precision = args
+        .get(3)
+        .map_or(Ok(Precision::Bf16), |s| s.parse())
+        .map_err(anyhow::Error::msg)?;
     let loaded = alignist::bundle::model::ModelBundle::load(std::path::Path::new(bundle))?;
     let head = FusedHead::new(&loaded.network.head);
-    println!("bf16 native: {}", head.bf16_native());
+    println!("{reduced} native: {}", head.native(reduced));
     let grid = GridLevel::new(level)?;
     let encoding = &loaded.manifest.network.encoding;
     let projected = head.project_rotations(&encoding.encode(&grid.matrices_f32()));
@@ -23,7 +27,7 @@ fn main() -> anyhow::Result<()> {
     let image = head.image_term(&features);
     let mut best = [f64::MAX; 2];
     let mut scores = Vec::new();
-    for (k, precision) in [Precision::F32, Precision::Bf16].into_iter().enumerate() {
+    for (k, precision) in [Precision::F32, reduced].into_iter().enumerate() {
         for _ in 0..5 {
             let t = Instant::now();
             let s = head.scores_in(precision, &image, Rows::Projected(&projected));
@@ -38,8 +42,9 @@ fn main() -> anyhow::Result<()> {
             grid.len() as f64 / best[k] / 1e6
         );
     }
-    println!("bf16/f32 speed: {:.2}", best[0] / best[1]);
-    let emulated = Bf16Head::emulated(&head).branch_scores(&image, Rows::Projected(&projected));
+    println!("{reduced}/f32 speed: {:.2}", best[0] / best[1]);
+    let emulated =
+        ReducedHead::emulated(&head, reduced).branch_scores(&image, Rows::Projected(&projected));
     let emulated: Vec<f32> = emulated
         .0
         .iter()
@@ -55,13 +60,13 @@ fn main() -> anyhow::Result<()> {
     let range = scores[0].iter().fold(f32::MIN, |m, &v| m.max(v))
         - scores[0].iter().fold(f32::MAX, |m, &v| m.min(v));
     println!(
-        "score range {range:.2}; max |bf16 − f32| {:.4}; max |native − emulated| {:.5}",
+        "score range {range:.2}; max |{reduced} − f32| {:.4}; max |native − emulated| {:.5}",
         diff(&scores[1], &scores[0]),
         diff(&scores[1], &emulated)
     );
     let argmax = |s: &[f32]| (0..s.len()).max_by(|&a, &b| s[a].total_cmp(&s[b])).unwrap();
     println!(
-        "argmax f32 {} bf16 {} emulated {}",
+        "argmax f32 {} {reduced} {} emulated {}",
         argmax(&scores[0]),
         argmax(&scores[1]),
         argmax(&emulated)
@@ -76,7 +81,7 @@ fn main() -> anyhow::Result<()> {
             .map(|&i| (scores[1][i] - scores[0][i]).abs())
             .fold(0.0f32, f32::max);
         println!(
-            "{} cells within {within} of the max: max |bf16 − f32| {err:.4}",
+            "{} cells within {within} of the max: max |{reduced} − f32| {err:.4}",
             near.len()
         );
     }
