@@ -41,7 +41,39 @@ pub fn native_available() -> bool {
 pub struct F16Kernel;
 
 kernel_impl!(F16Kernel, u16, group 1, mr MR, nr NR, available native_available,
-    convert to_f16, gemm gemm_f16);
+    convert to_f16, gemm gemm_f16, convert_row f16_row);
+
+/// `src` rounded to f16 into `dst`, 16 values per `VCVTPS2PHX` where the core has AVX-512 FP16
+/// (the same rounding as [`to_f16`]).
+fn f16_row(src: &[f32], dst: &mut [u16]) {
+    let n = src.len().min(dst.len());
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if native_available() {
+        done = n / 16 * 16;
+        // SAFETY: the features were checked; both slices hold `done` values.
+        unsafe { f16_row_native(&src[..done], &mut dst[..done]) };
+    }
+    for (d, &s) in dst[done..n].iter_mut().zip(&src[done..n]) {
+        *d = to_f16(s);
+    }
+}
+
+/// # Safety
+/// The core has AVX-512F and AVX-512 FP16; `src.len()` is a multiple of 16 and at most
+/// `dst.len()`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw,avx512fp16")]
+unsafe fn f16_row_native(src: &[f32], dst: &mut [u16]) {
+    use std::arch::x86_64::*;
+    for (s, d) in src.chunks_exact(16).zip(dst.chunks_exact_mut(16)) {
+        // SAFETY: 16 floats read, 16 halves written.
+        unsafe {
+            let half = _mm512_cvtxps_ph(_mm512_loadu_ps(s.as_ptr()));
+            _mm256_storeu_si256(d.as_mut_ptr() as *mut __m256i, _mm256_castph_si256(half));
+        }
+    }
+}
 
 /// [`Kernel::gemm`] for half precision: blocks of 12 rows × 64 columns, 24 f16 accumulators
 /// added into f32 sums every [`CHUNK`] inputs ([`chunk_f16`]).

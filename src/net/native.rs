@@ -39,6 +39,13 @@ pub(super) trait Kernel: Send + Sync {
     fn available() -> bool;
     /// An f32 as the kernel's element.
     fn convert(x: f32) -> Self::Elem;
+    /// [`Kernel::convert`] of each of `src` into `dst` (a kernel may override it with vector
+    /// instructions).
+    fn convert_row(src: &[f32], dst: &mut [Self::Elem]) {
+        for (d, &s) in dst.iter_mut().zip(src) {
+            *d = Self::convert(s);
+        }
+    }
     /// `relu(input · W + bias)` for `rows` (a multiple of [`Kernel::MR`]) rows of `input` (rows
     /// of `stride`), through `epilogue`.
     ///
@@ -144,6 +151,8 @@ pub(super) struct NativeHead<K: Kernel> {
 /// One task's buffers: encodings, the shared input, two activation buffers, and the output dot
 /// products.
 struct Scratch<E> {
+    /// One row of the shared input in f32, before conversion.
+    row: Vec<f32>,
     e: Vec<E>,
     x: Vec<E>,
     a: Vec<E>,
@@ -209,6 +218,7 @@ impl<K: Kernel> NativeHead<K> {
             given,
             per_row,
             || Scratch {
+                row: vec![0.0; self.width],
                 e: vec![K::Elem::default(); blocked * K::GROUP * self.rotation.groups],
                 x: vec![K::Elem::default(); blocked * self.padded],
                 a: vec![K::Elem::default(); blocked * self.padded],
@@ -237,15 +247,23 @@ impl<K: Kernel> NativeHead<K> {
         let stride = self.padded;
         let rows = out[0].len();
         let blocked = rows.div_ceil(K::MR) * K::MR;
-        let Scratch { e, x, a, b, dots } = scratch;
+        let Scratch {
+            row,
+            e,
+            x,
+            a,
+            b,
+            dots,
+        } = scratch;
         match given {
             Rows::Projected(projected) => {
                 x[..blocked * stride].fill(K::Elem::default());
                 let w = self.width;
                 for (xr, pr) in x.chunks_exact_mut(stride).zip(projected.chunks_exact(w)) {
-                    for ((xv, &p), &i) in xr.iter_mut().zip(pr).zip(image_term) {
-                        *xv = K::convert((p + i).max(0.0));
+                    for ((r, &p), &i) in row.iter_mut().zip(pr).zip(image_term) {
+                        *r = (p + i).max(0.0);
                     }
+                    K::convert_row(row, xr);
                 }
             }
             Rows::Encoded(encodings) => {
@@ -255,9 +273,7 @@ impl<K: Kernel> NativeHead<K> {
                     .chunks_exact_mut(e_stride)
                     .zip(encodings.chunks_exact(self.encoding))
                 {
-                    for (ev, &v) in er.iter_mut().zip(enc) {
-                        *ev = K::convert(v);
-                    }
+                    K::convert_row(enc, er);
                 }
                 let epilogue = Epilogue::Store { out: x, stride };
                 // SAFETY: `K::available()` held when this head was built and its layers were
@@ -314,7 +330,8 @@ pub fn avx512f_available() -> bool {
 /// trait's arguments); elsewhere `available` is false and `gemm` is never called.
 macro_rules! kernel_impl {
     ($kernel:ty, $elem:ty, group $group:expr, mr $mr:expr, nr $nr:expr,
-     available $available:path, convert $convert:path, gemm $gemm:path) => {
+     available $available:path, convert $convert:path, gemm $gemm:path
+     $(, convert_row $convert_row:path)?) => {
         impl Kernel for $kernel {
             type Elem = $elem;
             const GROUP: usize = $group;
@@ -328,6 +345,12 @@ macro_rules! kernel_impl {
             fn convert(x: f32) -> $elem {
                 $convert(x)
             }
+
+            $(
+                fn convert_row(src: &[f32], dst: &mut [$elem]) {
+                    $convert_row(src, dst)
+                }
+            )?
 
             unsafe fn gemm(
                 layer: &Packed<$elem>,
