@@ -129,7 +129,7 @@ pub fn bench(
 
 /// The probed peaks the head's rates are compared with, in GFLOP/s.
 struct Peaks {
-    /// The widest f32 FMA.
+    /// The widest f32 FMA the kernels may use (256-bit under `--kernels avx2` or `portable`).
     f32: f64,
     /// `VDPBF16PS` and `VFMADD231PH`, where the core has them.
     bf16: Option<f64>,
@@ -166,7 +166,11 @@ fn print_peaks(model: &Model) -> Peaks {
         shown(bf16)
     );
     let peaks = Peaks {
-        f32: widest.gflops,
+        f32: if kernels.allows_avx512() {
+            widest.gflops
+        } else {
+            narrow.gflops
+        },
         bf16,
         f16,
     };
@@ -202,10 +206,15 @@ fn full_grid_figures(model: &Model, crop: &[u8], bundle: &Path, peaks: &Peaks) {
         let rate = grid_len as f64 / s;
         let gflops = rate * flops / 1e9;
         println!(
-            "full grid level {level} ({grid_len} rotations): {:.1} ms, {:.2} M rotations/s, {gflops:.1} GFLOP/s, head: {:.0} % of the FMA peak",
+            "full grid level {level} ({grid_len} rotations): {:.1} ms, {:.2} M rotations/s, {gflops:.1} GFLOP/s, head: {:.0} % of the FMA peak{}",
             s * 1e3,
             rate / 1e6,
-            100.0 * gflops / peaks.f32
+            100.0 * gflops / peaks.f32,
+            if model.config().kernels.allows_avx512() {
+                ""
+            } else {
+                " (256-bit: the kernels are capped)"
+            }
         );
     }
     numpy_ratio(bundle, &ours_ms);
