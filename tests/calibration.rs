@@ -171,3 +171,68 @@ fn copy_dir(from: &Path, to: &Path) {
         }
     }
 }
+
+/// A network whose activations pass f16's range (65 504) scores infinities and NaNs in f16; a
+/// search with f16 coarse levels then scores those levels again in f32 and answers as the f32
+/// search does, with finite probabilities. The shipped network with two of a branch's layers
+/// scaled by 1 000 each (f32 stays in range).
+#[test]
+fn a_coarse_level_out_of_f16_range_is_scored_again_in_f32() {
+    use alignist::engine::PredictOptions;
+    use alignist::net::Precision;
+    let dir = tempfile::tempdir().unwrap();
+    let folder = dir.path().join("symsol1");
+    copy_dir(shipped(), &folder);
+    let network = folder.join("network.safetensors");
+    let mut bytes = std::fs::read(&network).unwrap();
+    let n = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
+    let header: serde_json::Value = serde_json::from_slice(&bytes[8..8 + n]).unwrap();
+    for name in [
+        "head.shape_branch.hidden.0.weight",
+        "head.shape_branch.hidden.1.weight",
+    ] {
+        let offsets = &header[name]["data_offsets"];
+        let (start, end) = (
+            8 + n + offsets[0].as_u64().unwrap() as usize,
+            8 + n + offsets[1].as_u64().unwrap() as usize,
+        );
+        for v in bytes[start..end].chunks_exact_mut(4) {
+            let x = f32::from_le_bytes(v.try_into().unwrap()) * 1000.0;
+            v.copy_from_slice(&x.to_le_bytes());
+        }
+    }
+    std::fs::write(&network, bytes).unwrap();
+    // The manifest's checksum of the network, renewed.
+    let manifest = folder.join("manifest.json");
+    let mut m: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&manifest).unwrap()).unwrap();
+    let entry = alignist::bundle::sha256_file(&network).unwrap();
+    m["files"]["network.safetensors"]["sha256"] = entry.sha256.into();
+    std::fs::write(&manifest, serde_json::to_vec_pretty(&m).unwrap()).unwrap();
+    let model = Engine::load_model(&folder, EngineConfig::default()).unwrap();
+    let size = model.input_size() as usize;
+    let crop: Vec<u8> = (0..size * size * 3).map(|i| (i * 7 % 256) as u8).collect();
+    let features = model.features(&[&crop]);
+    let options = PredictOptions {
+        top_k: 5,
+        level: Some(4),
+        mode_angle_deg: None,
+        ..Default::default()
+    };
+    let search = |coarse_precision| {
+        let params = alignist::engine::SearchParams {
+            coarse_precision,
+            ..model.config().search()
+        };
+        model
+            .predict_searching(&features, &options, &params, &[None])
+            .unwrap()
+            .swap_remove(0)
+    };
+    let (f32, f16) = (search(Precision::F32), search(Precision::F16));
+    assert!(f32.top.iter().all(|c| c.probability.is_finite()));
+    for c in &f16.top {
+        assert!(c.probability.is_finite(), "{c:?}");
+    }
+    assert_eq!(f16.top[0].cell, f32.top[0].cell);
+}
