@@ -483,8 +483,8 @@ fn assert_reduced_close(
     }
 }
 
-#[test]
-fn the_bf16_head_agrees_with_its_emulation_and_stays_near_f32() {
+/// [`assert_reduced_close`] on a small random head (width 40) and on the shipped one.
+fn assert_heads_close(precision: Precision, tolerance: Tolerance) {
     use alignist::net::FusedHead;
     let d = device();
     let encoding = RotationEncoding::Cube;
@@ -493,15 +493,8 @@ fn the_bf16_head_agrees_with_its_emulation_and_stays_near_f32() {
         .with_layers(4)
         .init(&d)
         .with_output_biases(-2.5, 1.5);
-    let precision = Precision::Bf16;
-    let tolerance = Tolerance::BF16;
-    assert_reduced_close(
-        &FusedHead::new(&head),
-        &encoding,
-        precision,
-        tolerance,
-        "width 40",
-    );
+    let small = FusedHead::new(&head);
+    assert_reduced_close(&small, &encoding, precision, tolerance, "width 40");
     let bundle = alignist::bundle::model::ModelBundle::load(std::path::Path::new(concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/models/symsol1"
@@ -509,9 +502,9 @@ fn the_bf16_head_agrees_with_its_emulation_and_stays_near_f32() {
     .unwrap();
     let fused = FusedHead::new(&bundle.network.head);
     eprintln!(
-        "bfloat16 on this core: {}",
+        "{precision} on this core: {}",
         if fused.native(precision) {
-            "native (AVX-512 BF16)"
+            "native"
         } else {
             "emulated"
         }
@@ -520,44 +513,17 @@ fn the_bf16_head_agrees_with_its_emulation_and_stays_near_f32() {
     assert_reduced_close(&fused, encoding, precision, tolerance, "shipped");
 }
 
+#[test]
+fn the_bf16_head_agrees_with_its_emulation_and_stays_near_f32() {
+    assert_heads_close(Precision::Bf16, Tolerance::BF16);
+}
+
 /// The same for f16. Its 11 significant bits round the products 8 times more finely than
 /// bfloat16, but the native kernel sums up to 128 of them in f16, so it is as near f32 as
 /// bfloat16 on its worst rows and further from its emulation (which sums in f32).
 #[test]
 fn the_f16_head_agrees_with_its_emulation_and_stays_near_f32() {
-    use alignist::net::FusedHead;
-    let d = device();
-    let encoding = RotationEncoding::Cube;
-    let head = HeadConfig::new(32, encoding.dim())
-        .with_hidden(40)
-        .with_layers(4)
-        .init(&d)
-        .with_output_biases(-2.5, 1.5);
-    let precision = Precision::F16;
-    let tolerance = Tolerance::F16;
-    assert_reduced_close(
-        &FusedHead::new(&head),
-        &encoding,
-        precision,
-        tolerance,
-        "width 40",
-    );
-    let bundle = alignist::bundle::model::ModelBundle::load(std::path::Path::new(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/models/symsol1"
-    )))
-    .unwrap();
-    let fused = FusedHead::new(&bundle.network.head);
-    eprintln!(
-        "f16 on this core: {}",
-        if fused.native(precision) {
-            "native (AVX-512 FP16)"
-        } else {
-            "emulated"
-        }
-    );
-    let encoding = &bundle.manifest.network.encoding;
-    assert_reduced_close(&fused, encoding, precision, tolerance, "shipped");
+    assert_heads_close(Precision::F16, Tolerance::F16);
 }
 
 /// How far a reduced-precision head may be from its emulation and from f32, relative to a

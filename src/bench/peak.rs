@@ -30,28 +30,30 @@ const ITERS: usize = 1 << 23;
 /// The widest FMA this core has, measured (best of 5 runs on every thread of the pool), or the
 /// 256-bit one when `widest` is false.
 pub fn fma_peak(widest: bool) -> FmaPeak {
-    let threads = rayon::current_num_threads();
     let bits = fma_bits(widest);
     if bits == 0 {
         return FmaPeak { bits, gflops: 0.0 };
     }
     let chains = if bits == 512 { CHAINS_512 } else { CHAINS_256 };
     let flops_per_run = (ITERS * chains * (bits as usize / 32) * 2) as f64;
+    FmaPeak {
+        bits,
+        gflops: pool_gflops(flops_per_run, |i| fma_chains(bits, 1.0 + i as f32 * 1e-7)),
+    }
+}
+
+/// GFLOP/s of `run` (thread `i`'s share, `flops_per_run` each) on every thread of the pool at
+/// once: the best of 5 timed rounds, after one untimed.
+fn pool_gflops(flops_per_run: f64, run: impl Fn(usize) -> f32 + Sync) -> f64 {
+    let threads = rayon::current_num_threads();
     let mut best = f64::MAX;
     for _ in 0..6 {
         let t = Instant::now();
-        let sum: f32 = (0..threads)
-            .into_par_iter()
-            .map(|i| fma_chains(bits, 1.0 + i as f32 * 1e-7))
-            .sum();
-        let s = t.elapsed().as_secs_f64();
+        let sum: f32 = (0..threads).into_par_iter().map(&run).sum();
+        best = best.min(t.elapsed().as_secs_f64());
         std::hint::black_box(sum);
-        best = best.min(s);
     }
-    FmaPeak {
-        bits,
-        gflops: flops_per_run * threads as f64 / best / 1e9,
-    }
+    flops_per_run * threads as f64 / best / 1e9
 }
 
 fn fma_bits(widest: bool) -> u32 {
@@ -157,29 +159,18 @@ pub fn reduced_peak(op: ReducedOp) -> Option<f64> {
         if !available {
             return None;
         }
-        let threads = rayon::current_num_threads();
         let chains = match op {
             ReducedOp::F16Fma => CHAINS_F16,
             ReducedOp::Bf16Dot => CHAINS_512,
         };
         let flops_per_run = (ITERS * chains * 64) as f64;
-        let mut best = f64::MAX;
-        for _ in 0..6 {
-            let t = Instant::now();
-            let sum: f32 = (0..threads)
-                .into_par_iter()
-                // SAFETY: the features were checked above.
-                .map(|i| unsafe {
-                    match op {
-                        ReducedOp::F16Fma => f16_chains(i as i16),
-                        ReducedOp::Bf16Dot => bf16_chains(i as i32),
-                    }
-                })
-                .sum();
-            best = best.min(t.elapsed().as_secs_f64());
-            std::hint::black_box(sum);
-        }
-        Some(flops_per_run * threads as f64 / best / 1e9)
+        // SAFETY: the features were checked above.
+        Some(pool_gflops(flops_per_run, |i| unsafe {
+            match op {
+                ReducedOp::F16Fma => f16_chains(i as i16),
+                ReducedOp::Bf16Dot => bf16_chains(i as i32),
+            }
+        }))
     }
     #[cfg(not(target_arch = "x86_64"))]
     {

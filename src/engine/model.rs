@@ -637,18 +637,7 @@ impl Model {
             };
             // A level boundary: a call whose caller went away stops here.
             options.cancel.check()?;
-            let (mut logits, mut mats) =
-                self.search_logits(features, grid, cells, start, precision);
-            // f16 tops out at 65 504: a network whose activations pass it scores infinities (and
-            // NaNs) in f16, which rank nothing. Such a level is scored again in f32.
-            if precision != Precision::F32 && logits.iter().flatten().any(|l| !l.is_finite()) {
-                tracing::warn!(
-                    model = %self.name,
-                    level = grid.level(),
-                    "{precision} scores not finite (out of its range): level scored again in f32"
-                );
-                (logits, mats) = self.search_logits(features, grid, cells, start, Precision::F32);
-            }
+            let (mut logits, mats) = self.search_logits(features, grid, cells, start, precision);
             fusion.add_terms(grid, cells, &mats, &mut logits, &options.cancel)?;
             Ok::<_, EngineError>(logits)
         })?;

@@ -153,11 +153,6 @@ impl FusedHead {
         precision == Precision::F32 || self.reduced(precision).is_some_and(|r| r.is_native())
     }
 
-    /// Whether [`Precision::Bf16`] runs on the core's bfloat16 instructions.
-    pub fn bf16_native(&self) -> bool {
-        self.native(Precision::Bf16)
-    }
-
     /// Whether [`Precision::F32`] runs on one of the project's kernels (else on the library GEMM).
     pub fn f32_native(&self) -> bool {
         self.f32_native.is_some()
@@ -253,7 +248,18 @@ impl FusedHead {
         rows: Rows<'_>,
     ) -> (Vec<f32>, Vec<f32>) {
         match (self.reduced(precision), rows) {
-            (Some(reduced), _) => reduced.branch_scores(image_term, rows),
+            (Some(reduced), _) => {
+                let scores = reduced.branch_scores(image_term, rows);
+                if scores.0.iter().chain(&scores.1).all(|s| s.is_finite()) {
+                    return scores;
+                }
+                // f16 tops out at 65 504: a network whose activations pass it scores infinities
+                // and NaNs, which rank nothing. Such rows are scored again in f32.
+                tracing::warn!(
+                    "{precision} scores not finite (out of its range): scored again in f32"
+                );
+                self.branch_scores_in(Precision::F32, image_term, rows)
+            }
             (_, Rows::Projected(projected)) => self.branch_scores(image_term, projected),
             (_, Rows::Encoded(encodings)) if self.rounds_to != Precision::F32 => {
                 let round = rounding(self.rounds_to);
