@@ -13,18 +13,34 @@ use super::DualHead;
 use super::bf16::Bf16Kernel;
 use super::dense;
 use super::f16::F16Kernel;
+use super::i8::I8Head;
 use super::kernels::Kernels;
 use super::native::{F32Avx2, F32Avx512, NativeHead};
 pub use super::tiles::{Precision, Rows, TILE_ROWS};
-use super::tiles::{by_tiles, round_bf16, round_f16};
+use super::tiles::{by_tiles, round_bf16, round_encoding_u8, round_f16, round_rows_u8};
 use super::weights::HeadWeights;
 
-/// The rounding of a reduced precision's values (the identity for f32).
+/// The rounding of a reduced precision's weights (per value) and encodings (the identity for
+/// f32 and for the 8-bit head's weights, which [`HeadWeights::quantized_i8`] rounds by column).
 fn rounding(precision: Precision) -> fn(f32) -> f32 {
     match precision {
         Precision::F32 => std::convert::identity,
         Precision::Bf16 => round_bf16,
         Precision::F16 => round_f16,
+        Precision::I8 => round_encoding_u8,
+    }
+}
+
+/// Rows of `width` activations rounded as `precision`'s kernel reads them: per value in
+/// bfloat16 and f16, on each row's 8-bit grid in i8.
+fn round_activations(precision: Precision, values: &mut [f32], width: usize) {
+    match precision {
+        Precision::F32 => {}
+        Precision::I8 => round_rows_u8(values, width),
+        _ => {
+            let round = rounding(precision);
+            values.iter_mut().for_each(|v| *v = round(*v));
+        }
     }
 }
 
@@ -80,9 +96,10 @@ pub struct FusedHead {
     rounds_to: Precision,
     /// The kernels allowed, also for the library GEMM of the portable path.
     kernels: Kernels,
-    /// The same head in bfloat16 and in f16 (`None` in an emulation itself).
+    /// The same head in bfloat16, in f16 and in 8-bit integers (`None` in an emulation itself).
     bf16: Option<Box<ReducedHead>>,
     f16: Option<Box<ReducedHead>>,
+    i8: Option<Box<ReducedHead>>,
     /// The same head on the f32 512-bit kernel, where the core has it and the kernels allowed
     /// (`None` in the emulation).
     f32_native: Option<Box<F32Native>>,
@@ -115,6 +132,7 @@ impl FusedHead {
                 Precision::F16,
                 kernels,
             ))),
+            i8: Some(Box::new(ReducedHead::new(&weights, Precision::I8, kernels))),
             f32_native: F32Native::new(&weights, kernels).map(Box::new),
             weights,
             rounds_to: Precision::F32,
@@ -127,12 +145,17 @@ impl FusedHead {
     /// the f32 GEMM. The image half of the first layer stays f32, as in the native kernels, and
     /// so do projections made beforehand by the f32 head (a search's start level).
     fn rounded_to(weights: &HeadWeights, precision: Precision, kernels: Kernels) -> FusedHead {
+        let weights = match precision {
+            Precision::I8 => weights.quantized_i8(),
+            _ => weights.rounded_by(rounding(precision)),
+        };
         FusedHead {
-            weights: weights.rounded_by(rounding(precision)),
+            weights,
             rounds_to: precision,
             kernels,
             bf16: None,
             f16: None,
+            i8: None,
             f32_native: None,
         }
     }
@@ -143,6 +166,7 @@ impl FusedHead {
             Precision::F32 => None,
             Precision::Bf16 => self.bf16.as_deref(),
             Precision::F16 => self.f16.as_deref(),
+            Precision::I8 => self.i8.as_deref(),
         }
     }
 
@@ -168,12 +192,13 @@ impl FusedHead {
             }
         };
         format!(
-            "f32: {}, bf16: {}, f16: {}",
+            "f32: {}, bf16: {}, f16: {}, i8: {}",
             self.f32_native
                 .as_ref()
                 .map_or(dense::library_name(self.kernels), |k| k.name()),
             reduced(Precision::Bf16, "AVX-512 BF16 kernel"),
             reduced(Precision::F16, "AVX-512 FP16 kernel"),
+            reduced(Precision::I8, "AVX-512 VNNI kernel"),
         )
     }
 
@@ -298,11 +323,7 @@ impl FusedHead {
                 *xv = (p + i).max(0.0);
             }
         }
-        let round = rounding(self.rounds_to);
-        let rounds = self.rounds_to != Precision::F32;
-        if rounds {
-            x[..rows * w].iter_mut().for_each(|v| *v = round(*v));
-        }
+        round_activations(self.rounds_to, &mut x[..rows * w], w);
         for (branch, out) in self.weights.branches.iter().zip(out) {
             // Ping-pong between the two activation buffers; 0 is the shared input.
             let mut current = 0;
@@ -315,8 +336,8 @@ impl FusedHead {
                 layer.apply(self.kernels, input, rows, output);
                 relu(&mut output[..rows * w]);
                 // The last hidden layer feeds the f32 dot product, as in the native kernel.
-                if rounds && l + 1 < branch.hidden.len() {
-                    output[..rows * w].iter_mut().for_each(|v| *v = round(*v));
+                if l + 1 < branch.hidden.len() {
+                    round_activations(self.rounds_to, &mut output[..rows * w], w);
                 }
                 current = if current == 1 { 2 } else { 1 };
             }
@@ -349,6 +370,8 @@ enum Path {
     Bf16(Box<NativeHead<Bf16Kernel>>),
     /// `VFMADD231PH` on packed weights.
     F16(Box<NativeHead<F16Kernel>>),
+    /// `VPDPBUSD` on packed bytes.
+    I8(Box<I8Head>),
     /// The f32 GEMM on rounded weights, rounding each GEMM's input.
     Emulated(Box<FusedHead>),
 }
@@ -361,6 +384,7 @@ impl ReducedHead {
             _ if !kernels.allows_avx512() => None,
             Precision::Bf16 => NativeHead::new(head).map(|n| Path::Bf16(Box::new(n))),
             Precision::F16 => NativeHead::new(head).map(|n| Path::F16(Box::new(n))),
+            Precision::I8 => I8Head::new(head).map(|n| Path::I8(Box::new(n))),
             Precision::F32 => None,
         };
         ReducedHead(native.unwrap_or_else(|| {
@@ -389,6 +413,7 @@ impl ReducedHead {
         match &self.0 {
             Path::Bf16(native) => native.branch_scores(image_term, rows),
             Path::F16(native) => native.branch_scores(image_term, rows),
+            Path::I8(native) => native.branch_scores(image_term, rows),
             Path::Emulated(head) => head.branch_scores_in(Precision::F32, image_term, rows),
         }
     }

@@ -9,6 +9,7 @@ pub mod f16;
 pub mod fused;
 pub mod head;
 pub mod head_grad;
+pub mod i8;
 pub mod kernels;
 pub mod loss;
 pub mod native;

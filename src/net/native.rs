@@ -81,7 +81,7 @@ pub(super) struct Packed<E> {
 impl<E: Copy + Default> Packed<E> {
     /// `dense` in panels of `nr` columns, taking `padded_inputs` inputs (≥ its own, a multiple
     /// of `group`; the extra ones weigh zero), each weight converted by `convert`.
-    fn of(
+    pub(super) fn of(
         dense: &Dense,
         padded_inputs: usize,
         (group, nr): (usize, usize),

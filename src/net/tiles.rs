@@ -22,6 +22,11 @@ pub enum Precision {
     /// f16 within chunks of [`super::f16::CHUNK`] products on the native kernel): 1.8–1.9 times
     /// the f32 rate where the core has AVX-512 FP16, scores within about 1 % of the f32 ones.
     F16,
+    /// 8-bit integers ([`super::fused::ReducedHead`], [`super::i8`]): weights as signed bytes
+    /// with a scale per column, activations as unsigned bytes with a scale per row (ReLU outputs
+    /// are never negative), encodings on a fixed grid of [−1, 1]; exact integer sums, f32
+    /// epilogues. `VPDPBUSD` where the core has AVX-512 VNNI.
+    I8,
 }
 
 impl Precision {
@@ -31,6 +36,7 @@ impl Precision {
             Precision::F32 => "f32",
             Precision::Bf16 => "bf16",
             Precision::F16 => "f16",
+            Precision::I8 => "i8",
         }
     }
 }
@@ -48,7 +54,10 @@ impl std::str::FromStr for Precision {
             "f32" => Ok(Precision::F32),
             "bf16" => Ok(Precision::Bf16),
             "f16" => Ok(Precision::F16),
-            other => Err(format!("unknown precision `{other}` (f32, bf16 or f16)")),
+            "i8" => Ok(Precision::I8),
+            other => Err(format!(
+                "unknown precision `{other}` (f32, bf16, f16 or i8)"
+            )),
         }
     }
 }
@@ -117,4 +126,80 @@ pub fn from_f16(h: u16) -> f32 {
 /// `x` rounded to the nearest half-precision value.
 pub fn round_f16(x: f32) -> f32 {
     from_f16(to_f16(x))
+}
+
+/// Encodings (sines and cosines, in [−1, 1]) as 8-bit integers: `e ≈ u / ENCODING_SCALE − 1`.
+pub const ENCODING_SCALE: f32 = 127.5;
+
+/// `x` (|x| < 2²²) rounded to the nearest integer, ties to even, as `round_ties_even` but
+/// without a library call, so that loops of it are vectorised: adding 1.5·2²³ leaves no bits
+/// below the unit, and the addition rounds to nearest even.
+#[inline]
+fn round_even(x: f32) -> f32 {
+    const SHIFT: f32 = 12_582_912.0;
+    (x + SHIFT) - SHIFT
+}
+
+/// An encoding's value on the 8-bit grid of [−1, 1] ([`ENCODING_SCALE`]), as its integer.
+#[inline]
+pub fn encoding_to_u8(e: f32) -> u8 {
+    round_even((e + 1.0).clamp(0.0, 2.0) * ENCODING_SCALE) as u8
+}
+
+/// An encoding rounded to its 8-bit grid ([`encoding_to_u8`]).
+pub fn round_encoding_u8(e: f32) -> f32 {
+    encoding_to_u8(e) as f32 / ENCODING_SCALE - 1.0
+}
+
+/// A row of non-negative activations as unsigned bytes on a grid of `max / 255` (round to
+/// nearest even, saturating), into `dst`; returns the grid's step: 0 for a row of zeros, NaN
+/// for one whose maximum is not finite (so its scores are not finite either, and the head's
+/// guard scores them again in f32).
+#[inline]
+pub fn row_to_u8(src: &[f32], dst: &mut [u8]) -> f32 {
+    let max = src.iter().fold(0f32, |m, &v| m.max(v));
+    if !(max > 0.0 && max.is_finite()) {
+        dst.iter_mut().for_each(|d| *d = 0);
+        return if max.is_finite() { 0.0 } else { f32::NAN };
+    }
+    let inverse = 255.0 / max;
+    for (d, &s) in dst.iter_mut().zip(src) {
+        *d = round_even((s * inverse).clamp(0.0, 255.0)) as u8;
+    }
+    max / 255.0
+}
+
+/// Rows of `width` non-negative activations rounded to their 8-bit grids ([`row_to_u8`]).
+pub fn round_rows_u8(values: &mut [f32], width: usize) {
+    let mut bytes = vec![0u8; width];
+    for row in values.chunks_exact_mut(width) {
+        let step = row_to_u8(row, &mut bytes);
+        for (v, &b) in row.iter_mut().zip(&bytes) {
+            *v = b as f32 * step;
+        }
+    }
+}
+
+/// A layer's weights (`[input][output]`, row-major) as signed bytes with one scale per output
+/// column (`max |w| / 127`, round to nearest even): `(bytes, scales)`.
+pub fn columns_to_i8(weight: &[f32], outputs: usize) -> (Vec<i8>, Vec<f32>) {
+    let mut max = vec![0f32; outputs];
+    for row in weight.chunks_exact(outputs) {
+        for (m, &w) in max.iter_mut().zip(row) {
+            *m = m.max(w.abs());
+        }
+    }
+    let inverse: Vec<f32> = max
+        .iter()
+        .map(|&m| if m > 0.0 { 127.0 / m } else { 0.0 })
+        .collect();
+    let bytes = weight
+        .chunks_exact(outputs)
+        .flat_map(|row| {
+            row.iter()
+                .zip(&inverse)
+                .map(|(&w, &i)| round_even((w * i).clamp(-127.0, 127.0)) as i8)
+        })
+        .collect();
+    (bytes, max.iter().map(|&m| m / 127.0).collect())
 }

@@ -5,6 +5,7 @@
 use super::DualHead;
 use super::dense::Dense;
 use super::head::Branch;
+use super::tiles::columns_to_i8;
 
 /// One branch: hidden ReLU layers, then the `width → 1` output as a dot product.
 #[derive(Debug, Clone)]
@@ -62,6 +63,30 @@ impl HeadWeights {
         };
         HeadWeights {
             rotation: round(&self.rotation),
+            branches: [branch(&self.branches[0]), branch(&self.branches[1])],
+            ..self.clone()
+        }
+    }
+
+    /// These weights as the 8-bit head reads them: the branches' and the rotation layer's
+    /// weights on their columns' 8-bit grids ([`columns_to_i8`]); the image half stays f32.
+    pub(super) fn quantized_i8(&self) -> HeadWeights {
+        let quantize = |d: &Dense| {
+            let (bytes, scales) = columns_to_i8(&d.weight, d.outputs);
+            Dense {
+                weight: bytes
+                    .chunks_exact(d.outputs)
+                    .flat_map(|row| row.iter().zip(&scales).map(|(&q, &s)| q as f32 * s))
+                    .collect(),
+                ..d.clone()
+            }
+        };
+        let branch = |b: &BranchWeights| BranchWeights {
+            hidden: b.hidden.iter().map(quantize).collect(),
+            ..b.clone()
+        };
+        HeadWeights {
+            rotation: quantize(&self.rotation),
             branches: [branch(&self.branches[0]), branch(&self.branches[1])],
             ..self.clone()
         }
