@@ -131,9 +131,10 @@ pub fn bench(
 struct Peaks {
     /// The widest f32 FMA the kernels may use (256-bit under `--kernels avx2` or `portable`).
     f32: f64,
-    /// `VDPBF16PS` and `VFMADD231PH`, where the core has them.
+    /// `VDPBF16PS`, `VFMADD231PH` and `VPDPBUSD`, where the core has them.
     bf16: Option<f64>,
     f16: Option<f64>,
+    i8: Option<f64>,
 }
 
 /// Prints the matmul peak of the library GEMM, the FMA peaks of this CPU and the load-time
@@ -155,15 +156,17 @@ fn print_peaks(model: &Model) -> Peaks {
         narrow.gflops,
         model.kernel_paths()
     );
-    let (f16, bf16) = (
+    let (f16, bf16, i8) = (
         peak::reduced_peak(peak::ReducedOp::F16Fma),
         peak::reduced_peak(peak::ReducedOp::Bf16Dot),
+        peak::reduced_peak(peak::ReducedOp::I8Dot),
     );
     let shown = |g: Option<f64>| g.map_or("not on this CPU".into(), |g| format!("{g:.1} GFLOP/s"));
     println!(
-        "reduced-precision peaks (probe, 512-bit): f16 FMA (VFMADD231PH) {}, bfloat16 dot (VDPBF16PS) {}",
+        "reduced-precision peaks (probe, 512-bit): f16 FMA (VFMADD231PH) {}, bfloat16 dot (VDPBF16PS) {}, int8 dot (VPDPBUSD) {}",
         shown(f16),
-        shown(bf16)
+        shown(bf16),
+        shown(i8).replace("GFLOP/s", "GOP/s")
     );
     let peaks = Peaks {
         f32: if kernels.allows_avx512() {
@@ -173,6 +176,7 @@ fn print_peaks(model: &Model) -> Peaks {
         },
         bf16,
         f16,
+        i8,
     };
     match model.calibration() {
         Some(c) => println!(
@@ -192,7 +196,7 @@ fn print_peaks(model: &Model) -> Peaks {
 }
 
 /// Prints the full grids of levels 3 and 4 in f32 (against the FMA `peak` and numpy), in
-/// bfloat16 and in f16.
+/// bfloat16, in f16 and in 8-bit integers.
 fn full_grid_figures(model: &Model, crop: &[u8], bundle: &Path, peaks: &Peaks) {
     let one = model.features(&[crop]).swap_remove(0);
     let flops = head_flops_per_rotation(model);
@@ -218,10 +222,11 @@ fn full_grid_figures(model: &Model, crop: &[u8], bundle: &Path, peaks: &Peaks) {
         );
     }
     numpy_ratio(bundle, &ours_ms);
-    // The same grids in bfloat16 and f16 (the coarse levels of the search).
+    // The same grids in bfloat16, f16 and i8 (the coarse levels of the search).
     for (precision, instructions, peak) in [
         (Precision::Bf16, "AVX-512 BF16", peaks.bf16),
         (Precision::F16, "AVX-512 FP16", peaks.f16),
+        (Precision::I8, "AVX-512 VNNI", peaks.i8),
     ] {
         for &(level, f32_ms) in &ours_ms {
             let grid_len = model.grid(level).map_or(0, |g| g.len());
@@ -231,7 +236,7 @@ fn full_grid_figures(model: &Model, crop: &[u8], bundle: &Path, peaks: &Peaks) {
             let gflops = grid_len as f64 / s * flops / 1e9;
             let native = model.native(precision);
             println!(
-                "full grid level {level} in {precision} ({}): {:.1} ms, {:.2} M rotations/s, {gflops:.1} GFLOP/s{}, {:.2}× the f32 head",
+                "full grid level {level} in {precision} ({}): {:.1} ms, {:.2} M rotations/s, {gflops:.1} {}{}, {:.2}× the f32 head",
                 if native {
                     instructions
                 } else {
@@ -239,6 +244,12 @@ fn full_grid_figures(model: &Model, crop: &[u8], bundle: &Path, peaks: &Peaks) {
                 },
                 s * 1e3,
                 grid_len as f64 / s / 1e6,
+                // Integer multiply-adds are operations, not floating-point ones.
+                if precision == Precision::I8 {
+                    "GOP/s"
+                } else {
+                    "GFLOP/s"
+                },
                 match peak.filter(|_| native) {
                     Some(p) => format!(" ({:.0} % of its instruction's peak)", 100.0 * gflops / p),
                     None => String::new(),

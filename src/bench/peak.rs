@@ -144,6 +144,9 @@ pub enum ReducedOp {
     F16Fma,
     /// `VDPBF16PS` on 512-bit vectors (AVX-512 BF16): 32 multiply-adds into 16 f32 lanes.
     Bf16Dot,
+    /// `VPDPBUSD` on 512-bit vectors (AVX-512 VNNI): 64 byte multiply-adds into 16 i32 lanes
+    /// (counted as operations, two per multiply-add, like the floating-point ones).
+    I8Dot,
 }
 
 /// The rate of `op` over the pool's threads in GFLOP/s (a multiply-add counts two; best of 5
@@ -155,20 +158,23 @@ pub fn reduced_peak(op: ReducedOp) -> Option<f64> {
         let available = match op {
             ReducedOp::F16Fma => has(std::is_x86_feature_detected!("avx512fp16")),
             ReducedOp::Bf16Dot => has(std::is_x86_feature_detected!("avx512bf16")),
+            ReducedOp::I8Dot => has(std::is_x86_feature_detected!("avx512vnni")),
         };
         if !available {
             return None;
         }
-        let chains = match op {
-            ReducedOp::F16Fma => CHAINS_F16,
-            ReducedOp::Bf16Dot => CHAINS_512,
+        let (chains, flops) = match op {
+            ReducedOp::F16Fma => (CHAINS_F16, 64),
+            ReducedOp::Bf16Dot => (CHAINS_512, 64),
+            ReducedOp::I8Dot => (CHAINS_512, 128),
         };
-        let flops_per_run = (ITERS * chains * 64) as f64;
+        let flops_per_run = (ITERS * chains * flops) as f64;
         // SAFETY: the features were checked above.
         Some(pool_gflops(flops_per_run, |i| unsafe {
             match op {
                 ReducedOp::F16Fma => f16_chains(i as i16),
                 ReducedOp::Bf16Dot => bf16_chains(i as i32),
+                ReducedOp::I8Dot => i8_chains(i as i32),
             }
         }))
     }
@@ -237,4 +243,27 @@ unsafe fn bf16_chains(seed: i32) -> f32 {
         sum = _mm512_add_ps(sum, *acc);
     }
     _mm512_reduce_add_ps(sum)
+}
+
+/// [`ITERS`] rounds of [`CHAINS_512`] independent `VPDPBUSD`.
+///
+/// # Safety
+/// The core has AVX-512F and AVX-512 VNNI.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vnni")]
+unsafe fn i8_chains(seed: i32) -> f32 {
+    use std::arch::x86_64::*;
+    // Small bytes, so that the i32 sums do not wrap within the probe.
+    let (a, b) = (_mm512_set1_epi32(0x0102_0301 + seed), _mm512_set1_epi32(0x0101_0101));
+    let mut acc = [_mm512_setzero_si512(); CHAINS_512];
+    for _ in 0..ITERS {
+        for acc in acc.iter_mut() {
+            *acc = _mm512_dpbusd_epi32(*acc, a, b);
+        }
+    }
+    let mut sum = acc[0];
+    for acc in &acc[1..] {
+        sum = _mm512_add_epi32(sum, *acc);
+    }
+    _mm512_reduce_add_epi32(sum) as f32
 }

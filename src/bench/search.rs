@@ -39,7 +39,7 @@ pub struct SearchFigures {
 /// The searches the study compares: start level 1 or 2, keep 32–512, keeps chosen by mass, and
 /// keeps that halve (wide where a wrong region is chosen, narrow inside the chosen ones) or
 /// double at each finer level, all in f32; then the wider ones with the coarse levels in
-/// bfloat16, and in f16.
+/// bfloat16, in f16 and in 8-bit integers.
 pub fn candidates() -> Vec<SearchParams> {
     let flat = |start_level, keep, keep_mass| SearchParams {
         start_level,
@@ -99,6 +99,20 @@ pub fn candidates() -> Vec<SearchParams> {
     }
     for keep in [512, 768, 1024] {
         out.push(f16(tapered(2, keep, 0.5)));
+    }
+    // 8-bit twins, for cores with AVX-512 VNNI (about twice f16's rate).
+    let i8 = |search: SearchParams| SearchParams {
+        coarse_precision: Precision::I8,
+        ..search
+    };
+    for keep in [256, 512] {
+        out.push(i8(flat(2, keep, None)));
+    }
+    for keep in [512, 1024] {
+        out.push(i8(tapered(1, keep, 0.5)));
+    }
+    for keep in [512, 768, 1024, 1536] {
+        out.push(i8(tapered(2, keep, 0.5)));
     }
     out
 }

@@ -6,8 +6,10 @@
 //! number per level), and picks, among the searches whose agreement reaches the target, the most
 //! agreeing one predicted within the budget (ties: the fastest); when none fits, the fastest of
 //! them, flagged as over budget. It never picks a search below the target. Without a study it
-//! keeps the configured search's shape and only chooses its coarse precision (bfloat16 and f16
-//! rank cells like f32, up to rounding, so each twin is taken to agree as well). The
+//! keeps the configured search's shape and only chooses its coarse precision among f32, bfloat16
+//! and f16 (which rank cells like f32, up to rounding, so each twin is taken to agree as well;
+//! not 8-bit integers, whose scores are a few % off: they are served only where a study
+//! measured them). The
 //! chosen search is then run for real and its latency reported beside the prediction.
 
 use std::collections::BTreeMap;
@@ -164,6 +166,8 @@ fn candidates(
                 })
             })
             .collect(),
+        // Not i8: its scores are a few % from f32's, so a search in it is served only where a
+        // study measured its agreement.
         None => [Precision::F32, Precision::Bf16, Precision::F16]
             .map(|coarse_precision| Candidate {
                 params: SearchParams {

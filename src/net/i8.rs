@@ -459,3 +459,45 @@ unsafe fn gemm_vnni(
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The vector rounding of a row to bytes gives the scalar one's bytes and step, ties (a
+    /// product exactly halfway between two bytes) included, and so does a row of zeros.
+    #[test]
+    fn rows_round_to_the_same_bytes_in_vectors_as_in_scalars() {
+        let mut rows: Vec<Vec<f32>> = (0..20)
+            .map(|r| {
+                (0..64)
+                    .map(|i| (((i * 37 + r * 11) % 23) as f32 * 0.37 - 2.0).max(0.0))
+                    .collect()
+            })
+            .collect();
+        // Steps of 1 up to the maximum 255, and halves between them: ties.
+        rows.push((0..64).map(|i| (i % 32) as f32 * 0.5).collect::<Vec<f32>>());
+        rows.last_mut().unwrap()[63] = 255.0;
+        rows.push(vec![0.0; 64]);
+        for row in &rows {
+            let (mut vector, mut scalar) = ([0u8; 64], [0u8; 64]);
+            let step = row_bytes(row, &mut vector);
+            assert_eq!(step, row_to_u8(row, &mut scalar));
+            assert_eq!(vector, scalar, "{row:?}");
+        }
+        let mut bytes = [0u8; 64];
+        row_bytes(&rows[20], &mut bytes);
+        // 0.5 → 0, 1.5 → 2, 2.5 → 2: to even, as VCVTPS2UDQ rounds.
+        assert_eq!((bytes[1], bytes[3], bytes[5]), (0, 2, 2));
+    }
+
+    /// A column's largest |w| is ±127 and the rest keep their ratio to it within half a step.
+    #[test]
+    fn each_column_has_its_own_scale() {
+        // Two columns, the second a thousand times larger than the first.
+        let weight = [0.5, 400.0, -1.0, 250.0, 0.25, -1000.0];
+        let (bytes, scales) = columns_to_i8(&weight, 2);
+        assert_eq!(bytes, [64, 51, -127, 32, 32, -127]);
+        assert_eq!(scales, [1.0 / 127.0, 1000.0 / 127.0]);
+    }
+}
