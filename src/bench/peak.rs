@@ -254,7 +254,10 @@ unsafe fn bf16_chains(seed: i32) -> f32 {
 unsafe fn i8_chains(seed: i32) -> f32 {
     use std::arch::x86_64::*;
     // Small bytes, so that the i32 sums do not wrap within the probe.
-    let (a, b) = (_mm512_set1_epi32(0x0102_0301 + seed), _mm512_set1_epi32(0x0101_0101));
+    let (a, b) = (
+        _mm512_set1_epi32(0x0102_0301 + seed),
+        _mm512_set1_epi32(0x0101_0101),
+    );
     let mut acc = [_mm512_setzero_si512(); CHAINS_512];
     for _ in 0..ITERS {
         for acc in acc.iter_mut() {

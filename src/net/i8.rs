@@ -238,9 +238,7 @@ impl I8Head {
                     .chunks_exact_mut(e_stride)
                     .zip(encodings.chunks_exact(self.encoding))
                 {
-                    for (d, &v) in er.iter_mut().zip(enc) {
-                        *d = encoding_to_u8(v);
-                    }
+                    encoding_bytes(enc, er);
                 }
                 let store = Epilogue::Store {
                     out: values,
@@ -310,6 +308,41 @@ fn rows_to_u8(
     for (r, scale) in scales[..rows].iter_mut().enumerate() {
         let at = r * stride;
         *scale = row_bytes(&values[at..at + width], &mut bytes[at..at + width]);
+    }
+}
+
+/// [`encoding_to_u8`] of each of `src` into `dst`, 16 values per instruction where the length
+/// allows (the same clamp and product, rounded to nearest even by `VCVTPS2UDQ`).
+#[inline(always)]
+fn encoding_bytes(src: &[f32], dst: &mut [u8]) {
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if native_available() {
+        done = src.len().min(dst.len()) / 16 * 16;
+        // SAFETY: the features were checked; both slices hold `done` values.
+        unsafe { encoding_bytes_avx512(&src[..done], &mut dst[..done]) };
+    }
+    for (d, &e) in dst.iter_mut().zip(src).skip(done) {
+        *d = encoding_to_u8(e);
+    }
+}
+
+/// # Safety
+/// The core has AVX-512F; `src.len()` is a multiple of 16 and at most `dst.len()`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn encoding_bytes_avx512(src: &[f32], dst: &mut [u8]) {
+    use std::arch::x86_64::*;
+    let (one, two) = (_mm512_set1_ps(1.0), _mm512_set1_ps(2.0));
+    let (zero, scale) = (_mm512_setzero_ps(), _mm512_set1_ps(ENCODING_SCALE));
+    for (v, d) in src.chunks_exact(16).zip(dst.chunks_exact_mut(16)) {
+        // SAFETY: 16 floats read, 16 bytes written.
+        unsafe {
+            let e = _mm512_add_ps(_mm512_loadu_ps(v.as_ptr()), one);
+            let u = _mm512_mul_ps(_mm512_min_ps(_mm512_max_ps(e, zero), two), scale);
+            let bytes = _mm512_cvtepi32_epi8(_mm512_cvtps_epu32(u));
+            _mm_storeu_si128(d.as_mut_ptr() as *mut __m128i, bytes);
+        }
     }
 }
 
@@ -464,7 +497,7 @@ unsafe fn gemm_vnni(
 mod tests {
     use super::*;
 
-    /// The vector rounding of a row to bytes gives the scalar one's bytes and step, ties (a
+    /// The vector rounding of a row (and of encodings) to bytes gives the scalar one's bytes, ties (a
     /// product exactly halfway between two bytes) included, and so does a row of zeros.
     #[test]
     fn rows_round_to_the_same_bytes_in_vectors_as_in_scalars() {
@@ -485,6 +518,14 @@ mod tests {
             assert_eq!(step, row_to_u8(row, &mut scalar));
             assert_eq!(vector, scalar, "{row:?}");
         }
+        // Encodings: every value of [−1, 1] in steps that fall on and between the bytes.
+        let encodings: Vec<f32> = (0..=1020).map(|i| i as f32 / 510.0 - 1.0).collect();
+        let (mut vector, mut scalar) = (vec![0u8; 1021], vec![0u8; 1021]);
+        encoding_bytes(&encodings, &mut vector);
+        for (s, &e) in scalar.iter_mut().zip(&encodings) {
+            *s = encoding_to_u8(e);
+        }
+        assert_eq!(vector, scalar);
         let mut bytes = [0u8; 64];
         row_bytes(&rows[20], &mut bytes);
         // 0.5 → 0, 1.5 → 2, 2.5 → 2: to even, as VCVTPS2UDQ rounds.
