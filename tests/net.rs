@@ -488,6 +488,15 @@ fn assert_reduced_close(
 
 /// [`assert_reduced_close`] on a small random head (width 40) and on the shipped one.
 fn assert_heads_close(precision: Precision, tolerance: Tolerance) {
+    assert_heads_close_on(precision, tolerance, alignist::net::Kernels::from_env());
+}
+
+/// [`assert_heads_close`] with the heads' kernels capped at `kernels`.
+fn assert_heads_close_on(
+    precision: Precision,
+    tolerance: Tolerance,
+    kernels: alignist::net::Kernels,
+) {
     use alignist::net::FusedHead;
     let d = device();
     let encoding = RotationEncoding::Cube;
@@ -496,21 +505,17 @@ fn assert_heads_close(precision: Precision, tolerance: Tolerance) {
         .with_layers(4)
         .init(&d)
         .with_output_biases(-2.5, 1.5);
-    let small = FusedHead::new(&head);
+    let small = FusedHead::with_kernels(&head, kernels);
     assert_reduced_close(&small, &encoding, precision, tolerance, "width 40");
     let bundle = alignist::bundle::model::ModelBundle::load(std::path::Path::new(concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/models/symsol1"
     )))
     .unwrap();
-    let fused = FusedHead::new(&bundle.network.head);
+    let fused = FusedHead::with_kernels(&bundle.network.head, kernels);
     eprintln!(
-        "{precision} on this core: {}",
-        if fused.native(precision) {
-            "native"
-        } else {
-            "emulated"
-        }
+        "{precision} on this core, kernels {kernels}: {}",
+        fused.kernel_name(precision)
     );
     let encoding = &bundle.manifest.network.encoding;
     assert_reduced_close(&fused, encoding, precision, tolerance, "shipped");
@@ -535,6 +540,8 @@ fn the_f16_head_agrees_with_its_emulation_and_stays_near_f32() {
 #[test]
 fn the_i8_head_agrees_with_its_emulation_and_stays_near_f32() {
     assert_heads_close(Precision::I8, Tolerance::I8);
+    // The 256-bit AVX-VNNI kernel, where the core has it (else the emulation again).
+    assert_heads_close_on(Precision::I8, Tolerance::I8, alignist::net::Kernels::Avx2);
 }
 
 /// How far a reduced-precision head may be from its emulation and from f32, relative to a

@@ -719,6 +719,11 @@ impl Model {
         self.fused.native(precision)
     }
 
+    /// The kernel a reduced `precision` runs on, in words.
+    pub fn kernel_name(&self, precision: Precision) -> &'static str {
+        self.fused.kernel_name(precision)
+    }
+
     /// The grid of `level` (up to the highest level this model serves).
     pub fn grid(&self, level: u8) -> Option<&GridLevel> {
         self.grids.get(level as usize)

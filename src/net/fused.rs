@@ -177,6 +177,12 @@ impl FusedHead {
         precision == Precision::F32 || self.reduced(precision).is_some_and(|r| r.is_native())
     }
 
+    /// The kernel a reduced `precision` runs on, in words (f32's: [`FusedHead::kernel_paths`]).
+    pub fn kernel_name(&self, precision: Precision) -> &'static str {
+        self.reduced(precision)
+            .map_or("emulated on the f32 GEMM", ReducedHead::kernel_name)
+    }
+
     /// Whether [`Precision::F32`] runs on one of the project's kernels (else on the library GEMM).
     pub fn f32_native(&self) -> bool {
         self.f32_native.is_some()
@@ -184,21 +190,15 @@ impl FusedHead {
 
     /// The kernel each precision runs on, in words (for logs and the bench).
     pub fn kernel_paths(&self) -> String {
-        let reduced = |precision: Precision, kernel: &str| {
-            if self.native(precision) {
-                kernel.to_string()
-            } else {
-                "emulated on the f32 GEMM".to_string()
-            }
-        };
+        let reduced = |precision: Precision| self.kernel_name(precision);
         format!(
             "f32: {}, bf16: {}, f16: {}, i8: {}",
             self.f32_native
                 .as_ref()
                 .map_or(dense::library_name(self.kernels), |k| k.name()),
-            reduced(Precision::Bf16, "AVX-512 BF16 kernel"),
-            reduced(Precision::F16, "AVX-512 FP16 kernel"),
-            reduced(Precision::I8, "AVX-512 VNNI kernel"),
+            reduced(Precision::Bf16),
+            reduced(Precision::F16),
+            reduced(Precision::I8),
         )
     }
 
@@ -381,10 +381,11 @@ impl ReducedHead {
     /// has its instructions (and every branch has a hidden layer), else the emulation.
     pub(super) fn new(head: &HeadWeights, precision: Precision, kernels: Kernels) -> ReducedHead {
         let native = match precision {
+            // 256-bit AVX-VNNI where the kernels are capped and the core has it.
+            Precision::I8 => I8Head::new(head, kernels).map(|n| Path::I8(Box::new(n))),
             _ if !kernels.allows_avx512() => None,
             Precision::Bf16 => NativeHead::new(head).map(|n| Path::Bf16(Box::new(n))),
             Precision::F16 => NativeHead::new(head).map(|n| Path::F16(Box::new(n))),
-            Precision::I8 => I8Head::new(head).map(|n| Path::I8(Box::new(n))),
             Precision::F32 => None,
         };
         ReducedHead(native.unwrap_or_else(|| {
@@ -404,6 +405,16 @@ impl ReducedHead {
     /// Whether this is a native kernel.
     pub fn is_native(&self) -> bool {
         !matches!(self.0, Path::Emulated(_))
+    }
+
+    /// The kernel it runs on, in words.
+    pub fn kernel_name(&self) -> &'static str {
+        match &self.0 {
+            Path::Bf16(_) => "AVX-512 BF16 kernel",
+            Path::F16(_) => "AVX-512 FP16 kernel",
+            Path::I8(native) => native.kernel_name(),
+            Path::Emulated(_) => "emulated on the f32 GEMM",
+        }
     }
 
     /// Both branches' log-weights of `rows`, as [`FusedHead::branch_scores_in`]. From encodings,

@@ -18,6 +18,7 @@
 //! search ranks the same cells on any machine, up to the order of the f32 sums.
 
 use super::dense::Dense;
+use super::kernels::Kernels;
 use super::native::{Epilogue, Packed};
 use super::tiles::{
     ENCODING_SCALE, Rows, TILE_ROWS, by_tiles, columns_to_i8, encoding_to_u8, row_to_u8,
@@ -31,7 +32,31 @@ pub const NR: usize = 64;
 /// Inputs per 32-bit lane of `VPDPBUSD`.
 const GROUP: usize = 4;
 
-/// Whether this core runs the native kernel.
+/// The instructions an [`I8Head`] runs on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Isa {
+    /// AVX-512 VNNI: 512-bit `VPDPBUSD`, blocks of 6 rows × 64 columns.
+    Avx512,
+    /// AVX-VNNI (the VEX form, on cores with AVX2 and no AVX-512, or with the kernels capped at
+    /// 256 bits): 256-bit `VPDPBUSD`, blocks of 6 rows × 16 columns.
+    AvxVnni,
+}
+
+/// Whether this core has the 256-bit AVX-VNNI kernel's instructions.
+pub fn avx_vnni_available() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::is_x86_feature_detected!("avx2")
+            && std::is_x86_feature_detected!("fma")
+            && std::is_x86_feature_detected!("avxvnni")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// Whether this core runs the 512-bit kernel.
 pub fn native_available() -> bool {
     #[cfg(target_arch = "x86_64")]
     {
@@ -97,6 +122,7 @@ struct I8Branch {
 /// The head on the 8-bit kernel.
 #[derive(Debug, Clone)]
 pub(super) struct I8Head {
+    isa: Isa,
     width: usize,
     /// Width rounded up to [`NR`]: the stride of every activation row.
     padded: usize,
@@ -120,12 +146,17 @@ struct Scratch {
 }
 
 impl I8Head {
-    /// Packs `head`'s weights in bytes, or `None` when this core lacks AVX-512 VNNI or a branch
-    /// has no hidden layer (or one of another width).
-    pub(super) fn new(head: &HeadWeights) -> Option<I8Head> {
-        if !native_available() {
+    /// Packs `head`'s weights in bytes for the widest kernel `kernels` allows and this core has
+    /// (AVX-512 VNNI, else AVX-VNNI), or `None` when it has neither or a branch has no hidden
+    /// layer (or one of another width).
+    pub(super) fn new(head: &HeadWeights, kernels: Kernels) -> Option<I8Head> {
+        let isa = if kernels.allows_avx512() && native_available() {
+            Isa::Avx512
+        } else if kernels.allows_own() && avx_vnni_available() {
+            Isa::AvxVnni
+        } else {
             return None;
-        }
+        };
         let width = head.width;
         let padded = width.div_ceil(NR) * NR;
         let branch = |(hidden, output, output_bias): (&[Dense], &[f32], f32)| {
@@ -147,12 +178,21 @@ impl I8Head {
         let [shape, feature] = head.branch_layers();
         let rotation = &head.rotation;
         Some(I8Head {
+            isa,
             width,
             padded,
             rotation: I8Layer::of_encoding(rotation, rotation.inputs.next_multiple_of(GROUP)),
             encoding: rotation.inputs,
             branches: [branch(shape)?, branch(feature)?],
         })
+    }
+
+    /// The kernel it runs on, in words.
+    pub(super) fn kernel_name(&self) -> &'static str {
+        match self.isa {
+            Isa::Avx512 => "AVX-512 VNNI kernel",
+            Isa::AvxVnni => "AVX-VNNI kernel (256-bit)",
+        }
     }
 
     /// Both branches' log-weights of `rows`, for one image's term of the first layer.
@@ -184,22 +224,64 @@ impl I8Head {
                     Rows::Projected(_) => Rows::Projected(given),
                     Rows::Encoded(_) => Rows::Encoded(given),
                 };
-                // SAFETY: `new` checked the core's features.
-                unsafe { self.tile(image_term, &first_bias, tile, scratch, out) };
+                // SAFETY: `new` checked the core's features for `isa`.
+                unsafe {
+                    match self.isa {
+                        Isa::Avx512 => {
+                            self.tile_avx512(image_term, &first_bias, tile, scratch, out)
+                        }
+                        Isa::AvxVnni => {
+                            self.tile_avx_vnni(image_term, &first_bias, tile, scratch, out)
+                        }
+                    }
+                }
             },
         )
     }
 
-    /// One tile of rows: the shared input `relu(P_R + W_I·f + b)` in bytes, then each branch.
-    /// Compiled for AVX-512, so that the rounding of rows to bytes between the GEMMs is
-    /// vectorised to the kernel's width (narrower, it cost more than the GEMMs).
+    /// [`I8Head::tile`] compiled for AVX-512, so that the rounding of rows to bytes between the
+    /// GEMMs is vectorised to the kernel's width (narrower, it cost more than the GEMMs).
     ///
     /// # Safety
-    /// The core has AVX-512F, BW and VNNI (an `I8Head` is only built on such a core).
+    /// The core has AVX-512F, BW and VNNI.
     #[cfg_attr(
         target_arch = "x86_64",
         target_feature(enable = "avx512f,avx512bw,avx512vnni")
     )]
+    unsafe fn tile_avx512(
+        &self,
+        image_term: &[f32],
+        first_bias: &[f32],
+        given: Rows<'_>,
+        scratch: &mut Scratch,
+        out: [&mut [f32]; 2],
+    ) {
+        // SAFETY: the caller's contract.
+        unsafe { self.tile(image_term, first_bias, given, scratch, out) }
+    }
+
+    /// [`I8Head::tile`] compiled for AVX2 and AVX-VNNI (no AVX-512 instruction in it).
+    ///
+    /// # Safety
+    /// The core has AVX2, FMA and AVX-VNNI.
+    #[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma,avxvnni"))]
+    unsafe fn tile_avx_vnni(
+        &self,
+        image_term: &[f32],
+        first_bias: &[f32],
+        given: Rows<'_>,
+        scratch: &mut Scratch,
+        out: [&mut [f32]; 2],
+    ) {
+        // SAFETY: the caller's contract.
+        unsafe { self.tile(image_term, first_bias, given, scratch, out) }
+    }
+
+    /// One tile of rows: the shared input `relu(P_R + W_I·f + b)` in bytes, then each branch.
+    ///
+    /// # Safety
+    /// The core has the instructions of `self.isa`.
+    #[inline(always)]
     unsafe fn tile(
         &self,
         image_term: &[f32],
@@ -228,7 +310,7 @@ impl I8Head {
                     for ((v, &p), &i) in row.iter_mut().zip(pr).zip(image_term) {
                         *v = (p + i).max(0.0);
                     }
-                    sx[r] = row_bytes(row, &mut x[r * stride..r * stride + w]);
+                    sx[r] = row_bytes(self.isa, row, &mut x[r * stride..r * stride + w]);
                 }
             }
             Rows::Encoded(encodings) => {
@@ -238,7 +320,7 @@ impl I8Head {
                     .chunks_exact_mut(e_stride)
                     .zip(encodings.chunks_exact(self.encoding))
                 {
-                    encoding_bytes(enc, er);
+                    encoding_bytes(self.isa, enc, er);
                 }
                 let store = Epilogue::Store {
                     out: values,
@@ -249,16 +331,19 @@ impl I8Head {
                 // `blocked` rows, `first_bias` the layer's panels × NR values.
                 unsafe {
                     gemm(
+                        self.isa,
                         &self.rotation,
                         first_bias,
-                        e,
-                        e_scales,
-                        e_stride,
+                        Input {
+                            bytes: e,
+                            scales: e_scales,
+                            stride: e_stride,
+                        },
                         blocked,
                         store,
                     )
                 };
-                rows_to_u8(values, x, sx, blocked, (w, stride));
+                rows_to_u8(self.isa, values, x, sx, blocked, (w, stride));
             }
         }
         for (branch, out) in self.branches.iter().zip(out) {
@@ -273,21 +358,26 @@ impl I8Head {
                     _ => (&b[..], &sb[..], &mut a[..], &mut sa[..]),
                 };
                 let bias = &layer.packed.bias;
+                let input = Input {
+                    bytes: input,
+                    scales: in_scales,
+                    stride,
+                };
                 if l == last {
                     let dot = Epilogue::Dot {
                         weights: &branch.output,
                         dots: &mut *dots,
                     };
                     // SAFETY: as above; `input` holds `blocked` rows of `stride`.
-                    unsafe { gemm(layer, bias, input, in_scales, stride, blocked, dot) };
+                    unsafe { gemm(self.isa, layer, bias, input, blocked, dot) };
                 } else {
                     let store = Epilogue::Store {
                         out: &mut values[..],
                         stride,
                     };
                     // SAFETY: as above.
-                    unsafe { gemm(layer, bias, input, in_scales, stride, blocked, store) };
-                    rows_to_u8(values, output, out_scales, blocked, (w, stride));
+                    unsafe { gemm(self.isa, layer, bias, input, blocked, store) };
+                    rows_to_u8(self.isa, values, output, out_scales, blocked, (w, stride));
                 }
             }
             out.copy_from_slice(&dots[..rows]);
@@ -299,6 +389,7 @@ impl I8Head {
 /// their own grids ([`row_to_u8`]), into `bytes` and `scales`.
 #[inline(always)]
 fn rows_to_u8(
+    isa: Isa,
     values: &[f32],
     bytes: &mut [u8],
     scales: &mut [f32],
@@ -307,20 +398,24 @@ fn rows_to_u8(
 ) {
     for (r, scale) in scales[..rows].iter_mut().enumerate() {
         let at = r * stride;
-        *scale = row_bytes(&values[at..at + width], &mut bytes[at..at + width]);
+        *scale = row_bytes(isa, &values[at..at + width], &mut bytes[at..at + width]);
     }
 }
 
 /// [`encoding_to_u8`] of each of `src` into `dst`, 16 values per instruction where the length
 /// allows (the same clamp and product, rounded to nearest even by `VCVTPS2UDQ`).
 #[inline(always)]
-fn encoding_bytes(src: &[f32], dst: &mut [u8]) {
+fn encoding_bytes(isa: Isa, src: &[f32], dst: &mut [u8]) {
     let mut done = 0;
     #[cfg(target_arch = "x86_64")]
-    if native_available() {
+    if isa == Isa::Avx512 && native_available() {
         done = src.len().min(dst.len()) / 16 * 16;
         // SAFETY: the features were checked; both slices hold `done` values.
         unsafe { encoding_bytes_avx512(&src[..done], &mut dst[..done]) };
+    } else if isa == Isa::AvxVnni && avx_vnni_available() {
+        done = src.len().min(dst.len()) / 8 * 8;
+        // SAFETY: as above.
+        unsafe { encoding_bytes_avx2(&src[..done], &mut dst[..done]) };
     }
     for (d, &e) in dst.iter_mut().zip(src).skip(done) {
         *d = encoding_to_u8(e);
@@ -349,11 +444,24 @@ unsafe fn encoding_bytes_avx512(src: &[f32], dst: &mut [u8]) {
 /// [`row_to_u8`], 16 values per instruction where the width allows: the same maximum, the same
 /// products, rounded to nearest even by `VCVTPS2UDQ` as by the scalar version.
 #[inline(always)]
-fn row_bytes(src: &[f32], dst: &mut [u8]) -> f32 {
+fn row_bytes(isa: Isa, src: &[f32], dst: &mut [u8]) -> f32 {
     #[cfg(target_arch = "x86_64")]
-    if src.len().is_multiple_of(16) && dst.len() >= src.len() && native_available() {
+    if isa == Isa::Avx512
+        && src.len().is_multiple_of(16)
+        && dst.len() >= src.len()
+        && native_available()
+    {
         // SAFETY: the features were checked; `src` holds whole vectors, `dst` as many bytes.
         return unsafe { row_bytes_avx512(src, dst) };
+    }
+    #[cfg(target_arch = "x86_64")]
+    if isa == Isa::AvxVnni
+        && src.len().is_multiple_of(8)
+        && dst.len() >= src.len()
+        && avx_vnni_available()
+    {
+        // SAFETY: as above, with 8-lane vectors.
+        return unsafe { row_bytes_avx2(src, dst) };
     }
     row_to_u8(src, dst)
 }
@@ -386,65 +494,139 @@ unsafe fn row_bytes_avx512(src: &[f32], dst: &mut [u8]) -> f32 {
     }
 }
 
-/// `relu(acc · s_row · s_col + b)` of `rows` rows of `input` (bytes, rows of `stride`, each
-/// with its scale in `row_scales`) times `layer`, through `epilogue`: the GEMM on `VPDPBUSD`.
+/// Eight i32 in 0..=255 as eight bytes at `dst`.
 ///
 /// # Safety
-/// The core has AVX-512F, BW and VNNI (when it does not, this is never called); `rows` is a
-/// multiple of [`MR`]; `input` holds `rows × stride` bytes with `stride ≥ 4 × groups`;
-/// `row_scales` `rows` values; `bias` the layer's `panels × NR`; a `Store` output holds `rows`
-/// rows of its stride (≥ panels × NR), a `Dot` `rows` dots and `panels × NR` weights.
+/// The core has AVX2; `dst` points at 8 writable bytes.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn store_8_bytes(v: std::arch::x86_64::__m256i, dst: *mut u8) {
+    use std::arch::x86_64::*;
+    let words = _mm_packus_epi32(_mm256_castsi256_si128(v), _mm256_extracti128_si256(v, 1));
+    // SAFETY: 8 bytes written.
+    unsafe { _mm_storel_epi64(dst as *mut __m128i, _mm_packus_epi16(words, words)) };
+}
+
+/// [`encoding_to_u8`] 8 at a time on AVX2 (`VCVTPS2DQ` rounds to nearest even).
+///
+/// # Safety
+/// The core has AVX2; `src.len()` is a multiple of 8 and at most `dst.len()`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn encoding_bytes_avx2(src: &[f32], dst: &mut [u8]) {
+    use std::arch::x86_64::*;
+    let (one, two) = (_mm256_set1_ps(1.0), _mm256_set1_ps(2.0));
+    let (zero, scale) = (_mm256_setzero_ps(), _mm256_set1_ps(ENCODING_SCALE));
+    for (v, d) in src.chunks_exact(8).zip(dst.chunks_exact_mut(8)) {
+        // SAFETY: 8 floats read, 8 bytes written.
+        unsafe {
+            let e = _mm256_add_ps(_mm256_loadu_ps(v.as_ptr()), one);
+            let u = _mm256_mul_ps(_mm256_min_ps(_mm256_max_ps(e, zero), two), scale);
+            store_8_bytes(_mm256_cvtps_epi32(u), d.as_mut_ptr());
+        }
+    }
+}
+
+/// [`row_to_u8`] 8 at a time on AVX2.
+///
+/// # Safety
+/// The core has AVX2; `src.len()` is a multiple of 8 and at most `dst.len()`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn row_bytes_avx2(src: &[f32], dst: &mut [u8]) -> f32 {
+    use std::arch::x86_64::*;
+    // SAFETY: whole vectors of `src` read, as many bytes of `dst` written.
+    unsafe {
+        let mut max = _mm256_setzero_ps();
+        for v in src.chunks_exact(8) {
+            max = _mm256_max_ps(_mm256_loadu_ps(v.as_ptr()), max);
+        }
+        let mut lanes = [0f32; 8];
+        _mm256_storeu_ps(lanes.as_mut_ptr(), max);
+        let max = lanes.iter().fold(0f32, |m, &v| m.max(v));
+        if !(max > 0.0 && max.is_finite()) {
+            return row_to_u8(src, dst);
+        }
+        let inverse = _mm256_set1_ps(255.0 / max);
+        let (low, high) = (_mm256_setzero_ps(), _mm256_set1_ps(255.0));
+        for (v, d) in src.chunks_exact(8).zip(dst.chunks_exact_mut(8)) {
+            let x = _mm256_mul_ps(_mm256_loadu_ps(v.as_ptr()), inverse);
+            let x = _mm256_min_ps(_mm256_max_ps(x, low), high);
+            store_8_bytes(_mm256_cvtps_epi32(x), d.as_mut_ptr());
+        }
+        max / 255.0
+    }
+}
+
+/// A GEMM's input: `rows` rows of bytes `stride` apart, each with its scale.
+#[derive(Clone, Copy)]
+struct Input<'a> {
+    bytes: &'a [u8],
+    scales: &'a [f32],
+    stride: usize,
+}
+
+/// `relu(acc · s_row · s_col + b)` of `rows` rows of `input` times `layer`, through `epilogue`:
+/// the GEMM on `VPDPBUSD` of `isa`.
+///
+/// # Safety
+/// The core has `isa`'s instructions (when it does not, this is never called); `rows` is a
+/// multiple of [`MR`]; `input` holds `rows × stride` bytes with `stride ≥ 4 × groups` and
+/// `rows` scales; `bias` the layer's `panels × NR`; a `Store` output holds `rows` rows of its
+/// stride (≥ panels × NR), a `Dot` `rows` dots and `panels × NR` weights.
 unsafe fn gemm(
+    isa: Isa,
     layer: &I8Layer,
     bias: &[f32],
-    input: &[u8],
-    row_scales: &[f32],
-    stride: usize,
+    input: Input<'_>,
     rows: usize,
     epilogue: Epilogue<'_, f32>,
 ) {
+    let packed = &layer.packed;
+    debug_assert!(
+        rows.is_multiple_of(MR)
+            && input.bytes.len() >= rows * input.stride
+            && input.stride >= GROUP * packed.groups
+            && input.scales.len() >= rows
+            && bias.len() >= packed.panels * NR
+            && layer.scales.len() >= packed.panels * NR
+    );
     #[cfg(target_arch = "x86_64")]
-    // SAFETY: the caller's contract is the kernel's.
+    // SAFETY: the caller's contract is the kernels'.
     unsafe {
-        gemm_vnni(layer, bias, input, row_scales, stride, rows, epilogue)
+        match isa {
+            Isa::Avx512 => gemm_avx512(layer, bias, input, rows, epilogue),
+            Isa::AvxVnni => gemm_avx_vnni(layer, bias, input, rows, epilogue),
+        }
     }
     #[cfg(not(target_arch = "x86_64"))]
     {
-        let _ = (layer, bias, input, row_scales, stride, rows, epilogue);
+        let _ = (isa, layer, bias, input, rows, epilogue);
         unreachable!("the native kernels are only built on x86_64")
     }
 }
 
 /// [`gemm`] on AVX-512 VNNI: blocks of 6 rows × 64 columns, 24 i32 accumulators; each row's
 /// four bytes of a group broadcast from the row, the weights' 64 bytes of a group and column
-/// vector loaded once per block row set.
+/// vector loaded once per block.
 ///
 /// # Safety
-/// As [`gemm`].
+/// As [`gemm`], with AVX-512F, BW and VNNI.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
-unsafe fn gemm_vnni(
+unsafe fn gemm_avx512(
     layer: &I8Layer,
     bias: &[f32],
-    input: &[u8],
-    row_scales: &[f32],
-    stride: usize,
+    input: Input<'_>,
     rows: usize,
     epilogue: Epilogue<'_, f32>,
 ) {
     use std::arch::x86_64::*;
-    let packed = &layer.packed;
-    debug_assert!(
-        rows.is_multiple_of(MR)
-            && input.len() >= rows * stride
-            && stride >= GROUP * packed.groups
-            && row_scales.len() >= rows
-            && bias.len() >= packed.panels * NR
-    );
+    let (packed, stride) = (&layer.packed, input.stride);
     let groups = packed.groups;
     let mut epilogue = epilogue;
     for panel in 0..packed.panels {
-        // SAFETY (all pointer reads and writes below): within the bounds stated above.
+        // SAFETY (all pointer reads and writes below): within the bounds of `gemm`'s contract.
         unsafe {
             let weights = packed.weight.as_ptr().add(panel * groups * NR * GROUP);
             let at = |v: &[f32], c: usize| _mm512_loadu_ps(v.as_ptr().add(panel * NR + 16 * c));
@@ -452,7 +634,7 @@ unsafe fn gemm_vnni(
             let scale: [__m512; 4] = std::array::from_fn(|c| at(&layer.scales, c));
             for r0 in (0..rows).step_by(MR) {
                 let mut acc = [[_mm512_setzero_si512(); 4]; MR];
-                let a = input.as_ptr().add(r0 * stride);
+                let a = input.bytes.as_ptr().add(r0 * stride);
                 for g in 0..groups {
                     let w = weights.add(g * NR * GROUP);
                     let b: [__m512i; 4] =
@@ -468,13 +650,11 @@ unsafe fn gemm_vnni(
                 let zero = _mm512_setzero_ps();
                 for (r, acc) in acc.iter().enumerate() {
                     let row = r0 + r;
-                    let s = _mm512_set1_ps(row_scales[row]);
+                    let s = _mm512_set1_ps(input.scales[row]);
                     let h: [__m512; 4] = std::array::from_fn(|c| {
                         let sum = _mm512_cvtepi32_ps(acc[c]);
-                        _mm512_max_ps(
-                            _mm512_fmadd_ps(sum, _mm512_mul_ps(scale[c], s), bias[c]),
-                            zero,
-                        )
+                        let scaled = _mm512_fmadd_ps(sum, _mm512_mul_ps(scale[c], s), bias[c]);
+                        _mm512_max_ps(scaled, zero)
                     });
                     match &mut epilogue {
                         Epilogue::Store { out, stride } => {
@@ -485,6 +665,87 @@ unsafe fn gemm_vnni(
                         }
                         Epilogue::Dot { weights, dots } => {
                             dots[row] += super::native::dot4(&h, weights.as_ptr().add(panel * NR));
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// [`gemm`] on AVX-VNNI: each 64-column panel in four blocks of 6 rows × 16 columns (12 i32
+/// accumulators, two weight vectors and a broadcast in the 16 ymm registers).
+///
+/// # Safety
+/// As [`gemm`], with AVX2, FMA and AVX-VNNI.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma,avxvnni")]
+unsafe fn gemm_avx_vnni(
+    layer: &I8Layer,
+    bias: &[f32],
+    input: Input<'_>,
+    rows: usize,
+    epilogue: Epilogue<'_, f32>,
+) {
+    use std::arch::x86_64::*;
+    const COLUMNS: usize = 16;
+    let (packed, stride) = (&layer.packed, input.stride);
+    let groups = packed.groups;
+    let mut epilogue = epilogue;
+    for panel in 0..packed.panels {
+        for block in 0..NR / COLUMNS {
+            let column = panel * NR + COLUMNS * block;
+            // SAFETY (all pointer reads and writes below): within the bounds of `gemm`'s
+            // contract; a block's weights are 64 bytes of each group's 256 in the panel.
+            unsafe {
+                let weights = packed
+                    .weight
+                    .as_ptr()
+                    .add(panel * groups * NR * GROUP + COLUMNS * block * GROUP);
+                let at = |v: &[f32], c: usize| _mm256_loadu_ps(v.as_ptr().add(column + 8 * c));
+                let bias: [__m256; 2] = std::array::from_fn(|c| at(bias, c));
+                let scale: [__m256; 2] = std::array::from_fn(|c| at(&layer.scales, c));
+                for r0 in (0..rows).step_by(MR) {
+                    let mut acc = [[_mm256_setzero_si256(); 2]; MR];
+                    let a = input.bytes.as_ptr().add(r0 * stride);
+                    for g in 0..groups {
+                        let w = weights.add(g * NR * GROUP);
+                        let b: [__m256i; 2] = std::array::from_fn(|c| {
+                            _mm256_loadu_si256(w.add(32 * c) as *const __m256i)
+                        });
+                        for (r, acc) in acc.iter_mut().enumerate() {
+                            let four =
+                                (a.add(r * stride + GROUP * g) as *const i32).read_unaligned();
+                            let x = _mm256_set1_epi32(four);
+                            for c in 0..2 {
+                                acc[c] = _mm256_dpbusd_avx_epi32(acc[c], x, b[c]);
+                            }
+                        }
+                    }
+                    let zero = _mm256_setzero_ps();
+                    for (r, acc) in acc.iter().enumerate() {
+                        let row = r0 + r;
+                        let s = _mm256_set1_ps(input.scales[row]);
+                        let h: [__m256; 2] = std::array::from_fn(|c| {
+                            let sum = _mm256_cvtepi32_ps(acc[c]);
+                            let scaled = _mm256_fmadd_ps(sum, _mm256_mul_ps(scale[c], s), bias[c]);
+                            _mm256_max_ps(scaled, zero)
+                        });
+                        match &mut epilogue {
+                            Epilogue::Store { out, stride } => {
+                                let o = out.as_mut_ptr().add(row * *stride + column);
+                                _mm256_storeu_ps(o, h[0]);
+                                _mm256_storeu_ps(o.add(8), h[1]);
+                            }
+                            Epilogue::Dot { weights, dots } => {
+                                let w = weights.as_ptr().add(column);
+                                let sum = _mm256_fmadd_ps(
+                                    h[1],
+                                    _mm256_loadu_ps(w.add(8)),
+                                    _mm256_mul_ps(h[0], _mm256_loadu_ps(w)),
+                                );
+                                dots[row] += super::native::hsum256(sum);
+                            }
                         }
                     }
                 }
@@ -512,22 +773,24 @@ mod tests {
         rows.push((0..64).map(|i| (i % 32) as f32 * 0.5).collect::<Vec<f32>>());
         rows.last_mut().unwrap()[63] = 255.0;
         rows.push(vec![0.0; 64]);
-        for row in &rows {
-            let (mut vector, mut scalar) = ([0u8; 64], [0u8; 64]);
-            let step = row_bytes(row, &mut vector);
-            assert_eq!(step, row_to_u8(row, &mut scalar));
-            assert_eq!(vector, scalar, "{row:?}");
+        for isa in [Isa::Avx512, Isa::AvxVnni] {
+            for row in &rows {
+                let (mut vector, mut scalar) = ([0u8; 64], [0u8; 64]);
+                let step = row_bytes(isa, row, &mut vector);
+                assert_eq!(step, row_to_u8(row, &mut scalar));
+                assert_eq!(vector, scalar, "{isa:?} {row:?}");
+            }
         }
         // Encodings: every value of [−1, 1] in steps that fall on and between the bytes.
         let encodings: Vec<f32> = (0..=1020).map(|i| i as f32 / 510.0 - 1.0).collect();
-        let (mut vector, mut scalar) = (vec![0u8; 1021], vec![0u8; 1021]);
-        encoding_bytes(&encodings, &mut vector);
-        for (s, &e) in scalar.iter_mut().zip(&encodings) {
-            *s = encoding_to_u8(e);
+        let scalar: Vec<u8> = encodings.iter().map(|&e| encoding_to_u8(e)).collect();
+        for isa in [Isa::Avx512, Isa::AvxVnni] {
+            let mut vector = vec![0u8; 1021];
+            encoding_bytes(isa, &encodings, &mut vector);
+            assert_eq!(vector, scalar, "{isa:?}");
         }
-        assert_eq!(vector, scalar);
         let mut bytes = [0u8; 64];
-        row_bytes(&rows[20], &mut bytes);
+        row_bytes(Isa::Avx512, &rows[20], &mut bytes);
         // 0.5 → 0, 1.5 → 2, 2.5 → 2: to even, as VCVTPS2UDQ rounds.
         assert_eq!((bytes[1], bytes[3], bytes[5]), (0, 2, 2));
     }

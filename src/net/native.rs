@@ -507,7 +507,7 @@ f32_gemm!(
 /// The core has AVX.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx")]
-unsafe fn hsum256(v: std::arch::x86_64::__m256) -> f32 {
+pub(super) unsafe fn hsum256(v: std::arch::x86_64::__m256) -> f32 {
     use std::arch::x86_64::*;
     let mut lanes = [0f32; 8];
     // SAFETY: `lanes` holds 8 floats.

@@ -143,7 +143,7 @@ fn round_even(x: f32) -> f32 {
 /// An encoding's value on the 8-bit grid of [−1, 1] ([`ENCODING_SCALE`]), as its integer.
 #[inline]
 pub fn encoding_to_u8(e: f32) -> u8 {
-    round_even((e + 1.0).clamp(0.0, 2.0) * ENCODING_SCALE) as u8
+    round_even((e + 1.0).clamp(0.0, 2.0) * ENCODING_SCALE) as i32 as u8
 }
 
 /// An encoding rounded to its 8-bit grid ([`encoding_to_u8`]).
@@ -164,7 +164,7 @@ pub fn row_to_u8(src: &[f32], dst: &mut [u8]) -> f32 {
     }
     let inverse = 255.0 / max;
     for (d, &s) in dst.iter_mut().zip(src) {
-        *d = round_even((s * inverse).clamp(0.0, 255.0)) as u8;
+        *d = round_even((s * inverse).clamp(0.0, 255.0)) as i32 as u8;
     }
     max / 255.0
 }
