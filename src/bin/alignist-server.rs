@@ -80,7 +80,8 @@ struct Cli {
     /// ranks the cells to refine at about 2.6 times the f32 rate where the core has fast AVX-512
     /// BF16 (AMD Zen 4), `f16` at about 1.8–1.9 times it where the core has AVX-512 FP16 (Intel since
     /// Sapphire Rapids), `i8` (8-bit integers, scores a few % from f32's) at about 3 times it where
-    /// the core has AVX-512 VNNI; each is emulated, slower than f32, elsewhere. Default:
+    /// the core has AVX-512 VNNI (or AVX-VNNI, 256-bit); each is emulated, slower than f32,
+    /// elsewhere. Default:
     /// calibrated, else bf16.
     #[arg(long, env = "ALIGNIST_SEARCH_COARSE_PRECISION")]
     search_coarse_precision: Option<Precision>,

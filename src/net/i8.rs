@@ -293,59 +293,15 @@ impl I8Head {
         let (w, stride) = (self.width, self.padded);
         let rows = out[0].len();
         let blocked = rows.div_ceil(MR) * MR;
+        // SAFETY: the caller's contract.
+        unsafe { self.shared_input(image_term, first_bias, given, scratch, blocked) };
         let Scratch {
-            row,
-            e,
-            e_scales,
             out: values,
             bytes: [x, a, b],
             scales: [sx, sa, sb],
             dots,
+            ..
         } = scratch;
-        match given {
-            Rows::Projected(projected) => {
-                x[..blocked * stride].fill(0);
-                sx[..blocked].fill(0.0);
-                for (r, pr) in projected.chunks_exact(w).enumerate() {
-                    for ((v, &p), &i) in row.iter_mut().zip(pr).zip(image_term) {
-                        *v = (p + i).max(0.0);
-                    }
-                    sx[r] = row_bytes(self.isa, row, &mut x[r * stride..r * stride + w]);
-                }
-            }
-            Rows::Encoded(encodings) => {
-                let e_stride = GROUP * self.rotation.packed.groups;
-                e[..blocked * e_stride].fill(0);
-                for (er, enc) in e
-                    .chunks_exact_mut(e_stride)
-                    .zip(encodings.chunks_exact(self.encoding))
-                {
-                    encoding_bytes(self.isa, enc, er);
-                }
-                let store = Epilogue::Store {
-                    out: values,
-                    stride,
-                };
-                // SAFETY: the core has the kernel's features (checked in `new`); `e` holds
-                // `blocked` rows of `e_stride` = 4 × groups, `e_scales` and the output
-                // `blocked` rows, `first_bias` the layer's panels × NR values.
-                unsafe {
-                    gemm(
-                        self.isa,
-                        &self.rotation,
-                        first_bias,
-                        Input {
-                            bytes: e,
-                            scales: e_scales,
-                            stride: e_stride,
-                        },
-                        blocked,
-                        store,
-                    )
-                };
-                rows_to_u8(self.isa, values, x, sx, blocked, (w, stride));
-            }
-        }
         for (branch, out) in self.branches.iter().zip(out) {
             let last = branch.hidden.len() - 1;
             let dots = &mut dots[..blocked];
@@ -381,6 +337,69 @@ impl I8Head {
                 }
             }
             out.copy_from_slice(&dots[..rows]);
+        }
+    }
+
+    /// The shared input of a tile's `blocked` rows in bytes, into `scratch.bytes[0]` with its
+    /// rows' scales: from projections, `relu(P_R + W_I·f + b)` rounded per row; from
+    /// encodings, the rotation layer on their bytes, then rounded per row.
+    ///
+    /// # Safety
+    /// The core has the instructions of `self.isa`.
+    #[inline(always)]
+    unsafe fn shared_input(
+        &self,
+        image_term: &[f32],
+        first_bias: &[f32],
+        given: Rows<'_>,
+        scratch: &mut Scratch,
+        blocked: usize,
+    ) {
+        let (w, stride) = (self.width, self.padded);
+        let Scratch {
+            row,
+            e,
+            e_scales,
+            out: values,
+            bytes: [x, ..],
+            scales: [sx, ..],
+            ..
+        } = scratch;
+        match given {
+            Rows::Projected(projected) => {
+                x[..blocked * stride].fill(0);
+                sx[..blocked].fill(0.0);
+                for (r, pr) in projected.chunks_exact(w).enumerate() {
+                    for ((v, &p), &i) in row.iter_mut().zip(pr).zip(image_term) {
+                        *v = (p + i).max(0.0);
+                    }
+                    sx[r] = row_bytes(self.isa, row, &mut x[r * stride..r * stride + w]);
+                }
+            }
+            Rows::Encoded(encodings) => {
+                let e_stride = GROUP * self.rotation.packed.groups;
+                e[..blocked * e_stride].fill(0);
+                for (er, enc) in e
+                    .chunks_exact_mut(e_stride)
+                    .zip(encodings.chunks_exact(self.encoding))
+                {
+                    encoding_bytes(self.isa, enc, er);
+                }
+                let store = Epilogue::Store {
+                    out: &mut values[..],
+                    stride,
+                };
+                let input = Input {
+                    bytes: e,
+                    scales: e_scales,
+                    stride: e_stride,
+                };
+                // SAFETY: the core has the kernel's features (the caller's contract); `e` holds
+                // `blocked` rows of `e_stride` = 4 × groups, `e_scales` and the output
+                // `blocked` rows, `first_bias` the layer's panels × NR values.
+                unsafe { gemm(self.isa, &self.rotation, first_bias, input, blocked, store) };
+                rows_to_u8(self.isa, values, x, sx, blocked, (w, stride));
+            }
         }
     }
 }
