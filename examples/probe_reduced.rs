@@ -1,6 +1,6 @@
-//! A reduced-precision head (bfloat16 or f16) against the f32 one on a bundle's full grid at one
-//! level: rotations/s of each, and how far the reduced scores (native and emulated) fall from
-//! the f32 ones. `cargo run --release --example probe_reduced [BUNDLE] [LEVEL] [bf16|f16]`
+//! A reduced-precision head (bfloat16, f16 or 8-bit integers) against the f32 one on a bundle's
+//! full grid at one level: rotations/s of each, and how far the reduced scores (native and
+//! emulated) fall from the f32 ones. `cargo run --release --example probe_reduced [BUNDLE] [LEVEL] [bf16|f16|i8]`
 use std::time::Instant;
 
 use alignist::net::ReducedHead;

@@ -3,7 +3,7 @@
 //! repeatedly, prints its p50, then times its parts alone with the same numbers of rotations: the
 //! encoder, the start level in full, each refined level, and the rest (cell rotations, softmax,
 //! selection, modes) as the difference.
-//! `cargo run --release --example probe_search [BUNDLE] [START] [KEEP] [f32|bf16|f16] [REPEATS]
+//! `cargo run --release --example probe_search [BUNDLE] [START] [KEEP] [f32|bf16|f16|i8] [REPEATS]
 //! [TAPER] [KEEP_MASS]` (with a keep by mass, the parts are timed at the most cells kept).
 use std::time::Instant;
 

@@ -236,7 +236,7 @@ fn full_grid_figures(model: &Model, crop: &[u8], bundle: &Path, peaks: &Peaks) {
                 let _ = model.logits_in(precision, &one, level);
             });
             let gflops = grid_len as f64 / s * flops / 1e9;
-            let native = model.native(precision) && wide;
+            let against_peak = model.native(precision) && wide;
             println!(
                 "full grid level {level} in {precision} ({}): {:.1} ms, {:.2} M rotations/s, {gflops:.1} {}{}, {:.2}× the f32 head",
                 model.kernel_name(precision),
@@ -248,7 +248,7 @@ fn full_grid_figures(model: &Model, crop: &[u8], bundle: &Path, peaks: &Peaks) {
                 } else {
                     "GFLOP/s"
                 },
-                match peak.filter(|_| native) {
+                match peak.filter(|_| against_peak) {
                     Some(p) => format!(" ({:.0} % of its instruction's peak)", 100.0 * gflops / p),
                     None => String::new(),
                 },

@@ -1,6 +1,8 @@
 //! The fused head in 8-bit integers, for the coarse levels of a search on cores with AVX-512
 //! VNNI. `VPDPBUSD` multiplies 64 unsigned by 64 signed bytes and adds them four by four into
 //! 16 i32 lanes: at the f32 FMA's instruction rate, four times its arithmetic (twice f16's).
+//! Its 256-bit AVX-VNNI form runs the same head where the kernels are capped at 256 bits or the
+//! core has no AVX-512 (Intel cores since Alder Lake).
 //!
 //! What is rounded, and how ([`super::tiles`]):
 //! - each layer's weights to signed bytes with one scale per output column
