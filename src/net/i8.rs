@@ -161,23 +161,13 @@ impl I8Head {
         };
         let width = head.width;
         let padded = width.div_ceil(NR) * NR;
-        let branch = |(hidden, output, output_bias): (&[Dense], &[f32], f32)| {
-            if hidden.is_empty()
-                || hidden
-                    .iter()
-                    .any(|d| d.inputs != width || d.outputs != width)
-            {
-                return None;
-            }
-            let mut output = output.to_vec();
-            output.resize(padded, 0.0);
-            Some(I8Branch {
+        let branches = head
+            .square_branches(padded)?
+            .map(|(hidden, output, output_bias)| I8Branch {
                 hidden: hidden.iter().map(|d| I8Layer::of(d, padded).0).collect(),
                 output,
                 output_bias,
-            })
-        };
-        let [shape, feature] = head.branch_layers();
+            });
         let rotation = &head.rotation;
         Some(I8Head {
             isa,
@@ -185,7 +175,7 @@ impl I8Head {
             padded,
             rotation: I8Layer::of_encoding(rotation, rotation.inputs.next_multiple_of(GROUP)),
             encoding: rotation.inputs,
-            branches: [branch(shape)?, branch(feature)?],
+            branches,
         })
     }
 
@@ -627,153 +617,114 @@ unsafe fn gemm(
     }
 }
 
-/// [`gemm`] on AVX-512 VNNI: blocks of 6 rows × 64 columns, 24 i32 accumulators; each row's
-/// four bytes of a group broadcast from the row, the weights' 64 bytes of a group and column
-/// vector loaded once per block.
-///
-/// # Safety
-/// As [`gemm`], with AVX-512F, BW and VNNI.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
-unsafe fn gemm_avx512(
-    layer: &I8Layer,
-    bias: &[f32],
-    input: Input<'_>,
-    rows: usize,
-    epilogue: Epilogue<'_, f32>,
-) {
-    use std::arch::x86_64::*;
-    let (packed, stride) = (&layer.packed, input.stride);
-    let groups = packed.groups;
-    let mut epilogue = epilogue;
-    for panel in 0..packed.panels {
-        // SAFETY (all pointer reads and writes below): within the bounds of `gemm`'s contract.
-        unsafe {
-            let weights = packed.weight.as_ptr().add(panel * groups * NR * GROUP);
-            let at = |v: &[f32], c: usize| _mm512_loadu_ps(v.as_ptr().add(panel * NR + 16 * c));
-            let bias: [__m512; 4] = std::array::from_fn(|c| at(bias, c));
-            let scale: [__m512; 4] = std::array::from_fn(|c| at(&layer.scales, c));
-            for r0 in (0..rows).step_by(MR) {
-                let mut acc = [[_mm512_setzero_si512(); 4]; MR];
-                let a = input.bytes.as_ptr().add(r0 * stride);
-                for g in 0..groups {
-                    let w = weights.add(g * NR * GROUP);
-                    let b: [__m512i; 4] =
-                        std::array::from_fn(|c| _mm512_loadu_si512(w.add(64 * c) as *const _));
-                    for (r, acc) in acc.iter_mut().enumerate() {
-                        let four = (a.add(r * stride + GROUP * g) as *const i32).read_unaligned();
-                        let x = _mm512_set1_epi32(four);
-                        for c in 0..4 {
-                            acc[c] = _mm512_dpbusd_epi32(acc[c], x, b[c]);
-                        }
-                    }
-                }
-                let zero = _mm512_setzero_ps();
-                for (r, acc) in acc.iter().enumerate() {
-                    let row = r0 + r;
-                    let s = _mm512_set1_ps(input.scales[row]);
-                    let h: [__m512; 4] = std::array::from_fn(|c| {
-                        let sum = _mm512_cvtepi32_ps(acc[c]);
-                        let scaled = _mm512_fmadd_ps(sum, _mm512_mul_ps(scale[c], s), bias[c]);
-                        _mm512_max_ps(scaled, zero)
-                    });
-                    match &mut epilogue {
-                        Epilogue::Store { out, stride } => {
-                            let o = out.as_mut_ptr().add(row * *stride + panel * NR);
-                            for (c, h) in h.iter().enumerate() {
-                                _mm512_storeu_ps(o.add(16 * c), *h);
+/// A [`gemm`] on one vector width: each 64-column panel in blocks of `MR` rows × `NV` vectors
+/// of `LANES` i32 lanes; each row's four bytes of a group broadcast from the row, the block's
+/// weights of a group loaded once; `relu(acc · s_row · s_col + b)` (or the output dot product)
+/// as each block leaves the registers. `$hsum` sums a vector's lanes.
+macro_rules! vnni_gemm {
+    ($(#[$doc:meta])* $name:ident, $feature:literal, lanes $lanes:literal, nv $nv:literal,
+     $vi:ty, $zero_i:ident, $load_i:ident, $set1_i:ident, $dpbusd:ident,
+     $vf:ty, $zero:ident, $load:ident, $store:ident, $set1:ident, $cvt:ident, $fmadd:ident,
+     $mul:ident, $max:ident, $hsum:path) => {
+        $(#[$doc])*
+        ///
+        /// # Safety
+        /// As [`gemm`], with the target features named.
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = $feature)]
+        unsafe fn $name(
+            layer: &I8Layer,
+            bias: &[f32],
+            input: Input<'_>,
+            rows: usize,
+            epilogue: Epilogue<'_, f32>,
+        ) {
+            use std::arch::x86_64::*;
+            const NV: usize = $nv;
+            const COLUMNS: usize = $lanes * NV;
+            let (packed, stride) = (&layer.packed, input.stride);
+            let groups = packed.groups;
+            let mut epilogue = epilogue;
+            for panel in 0..packed.panels {
+                for block in 0..NR / COLUMNS {
+                    let column = panel * NR + COLUMNS * block;
+                    // SAFETY (all pointer reads and writes below): within the bounds of `gemm`'s
+                    // contract; a block's weights are its columns' bytes of each group.
+                    unsafe {
+                        let weights = packed
+                            .weight
+                            .as_ptr()
+                            .add(panel * groups * NR * GROUP + COLUMNS * block * GROUP);
+                        let at = |v: &[f32], c: usize| $load(v.as_ptr().add(column + $lanes * c));
+                        let bias: [$vf; NV] = std::array::from_fn(|c| at(bias, c));
+                        let scale: [$vf; NV] = std::array::from_fn(|c| at(&layer.scales, c));
+                        for r0 in (0..rows).step_by(MR) {
+                            let mut acc = [[$zero_i(); NV]; MR];
+                            let a = input.bytes.as_ptr().add(r0 * stride);
+                            for g in 0..groups {
+                                let w = weights.add(g * NR * GROUP);
+                                let b: [$vi; NV] = std::array::from_fn(|c| {
+                                    $load_i(w.add(GROUP * $lanes * c) as *const _)
+                                });
+                                for (r, acc) in acc.iter_mut().enumerate() {
+                                    let four = (a.add(r * stride + GROUP * g) as *const i32)
+                                        .read_unaligned();
+                                    let x = $set1_i(four);
+                                    for c in 0..NV {
+                                        acc[c] = $dpbusd(acc[c], x, b[c]);
+                                    }
+                                }
                             }
-                        }
-                        Epilogue::Dot { weights, dots } => {
-                            dots[row] += super::native::dot4(&h, weights.as_ptr().add(panel * NR));
+                            let zero = $zero();
+                            for (r, acc) in acc.iter().enumerate() {
+                                let row = r0 + r;
+                                let s = $set1(input.scales[row]);
+                                let h: [$vf; NV] = std::array::from_fn(|c| {
+                                    let scaled = $fmadd($cvt(acc[c]), $mul(scale[c], s), bias[c]);
+                                    $max(scaled, zero)
+                                });
+                                match &mut epilogue {
+                                    Epilogue::Store { out, stride } => {
+                                        let o = out.as_mut_ptr().add(row * *stride + column);
+                                        for (c, h) in h.iter().enumerate() {
+                                            $store(o.add($lanes * c), *h);
+                                        }
+                                    }
+                                    Epilogue::Dot { weights, dots } => {
+                                        let w = weights.as_ptr().add(column);
+                                        let mut sum = $mul(h[0], $load(w));
+                                        for (c, h) in h.iter().enumerate().skip(1) {
+                                            sum = $fmadd(*h, $load(w.add($lanes * c)), sum);
+                                        }
+                                        dots[row] += $hsum(sum);
+                                    }
+                                }
+                            }
                         }
                     }
                 }
             }
         }
-    }
+    };
 }
 
-/// [`gemm`] on AVX-VNNI: each 64-column panel in four blocks of 6 rows × 16 columns (12 i32
-/// accumulators, two weight vectors and a broadcast in the 16 ymm registers).
-///
-/// # Safety
-/// As [`gemm`], with AVX2, FMA and AVX-VNNI.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma,avxvnni")]
-unsafe fn gemm_avx_vnni(
-    layer: &I8Layer,
-    bias: &[f32],
-    input: Input<'_>,
-    rows: usize,
-    epilogue: Epilogue<'_, f32>,
-) {
-    use std::arch::x86_64::*;
-    const COLUMNS: usize = 16;
-    let (packed, stride) = (&layer.packed, input.stride);
-    let groups = packed.groups;
-    let mut epilogue = epilogue;
-    for panel in 0..packed.panels {
-        for block in 0..NR / COLUMNS {
-            let column = panel * NR + COLUMNS * block;
-            // SAFETY (all pointer reads and writes below): within the bounds of `gemm`'s
-            // contract; a block's weights are 64 bytes of each group's 256 in the panel.
-            unsafe {
-                let weights = packed
-                    .weight
-                    .as_ptr()
-                    .add(panel * groups * NR * GROUP + COLUMNS * block * GROUP);
-                let at = |v: &[f32], c: usize| _mm256_loadu_ps(v.as_ptr().add(column + 8 * c));
-                let bias: [__m256; 2] = std::array::from_fn(|c| at(bias, c));
-                let scale: [__m256; 2] = std::array::from_fn(|c| at(&layer.scales, c));
-                for r0 in (0..rows).step_by(MR) {
-                    let mut acc = [[_mm256_setzero_si256(); 2]; MR];
-                    let a = input.bytes.as_ptr().add(r0 * stride);
-                    for g in 0..groups {
-                        let w = weights.add(g * NR * GROUP);
-                        let b: [__m256i; 2] = std::array::from_fn(|c| {
-                            _mm256_loadu_si256(w.add(32 * c) as *const __m256i)
-                        });
-                        for (r, acc) in acc.iter_mut().enumerate() {
-                            let four =
-                                (a.add(r * stride + GROUP * g) as *const i32).read_unaligned();
-                            let x = _mm256_set1_epi32(four);
-                            for c in 0..2 {
-                                acc[c] = _mm256_dpbusd_avx_epi32(acc[c], x, b[c]);
-                            }
-                        }
-                    }
-                    let zero = _mm256_setzero_ps();
-                    for (r, acc) in acc.iter().enumerate() {
-                        let row = r0 + r;
-                        let s = _mm256_set1_ps(input.scales[row]);
-                        let h: [__m256; 2] = std::array::from_fn(|c| {
-                            let sum = _mm256_cvtepi32_ps(acc[c]);
-                            let scaled = _mm256_fmadd_ps(sum, _mm256_mul_ps(scale[c], s), bias[c]);
-                            _mm256_max_ps(scaled, zero)
-                        });
-                        match &mut epilogue {
-                            Epilogue::Store { out, stride } => {
-                                let o = out.as_mut_ptr().add(row * *stride + column);
-                                _mm256_storeu_ps(o, h[0]);
-                                _mm256_storeu_ps(o.add(8), h[1]);
-                            }
-                            Epilogue::Dot { weights, dots } => {
-                                let w = weights.as_ptr().add(column);
-                                let sum = _mm256_fmadd_ps(
-                                    h[1],
-                                    _mm256_loadu_ps(w.add(8)),
-                                    _mm256_mul_ps(h[0], _mm256_loadu_ps(w)),
-                                );
-                                dots[row] += super::native::hsum256(sum);
-                            }
-                        }
-                    }
-                }
-            }
-        }
-    }
-}
+vnni_gemm!(
+    /// [`gemm`] on AVX-512 VNNI: blocks of 6 rows × 64 columns (24 i32 accumulators).
+    gemm_avx512, "avx512f,avx512bw,avx512vnni", lanes 16, nv 4,
+    __m512i, _mm512_setzero_si512, _mm512_loadu_si512, _mm512_set1_epi32, _mm512_dpbusd_epi32,
+    __m512, _mm512_setzero_ps, _mm512_loadu_ps, _mm512_storeu_ps, _mm512_set1_ps,
+    _mm512_cvtepi32_ps, _mm512_fmadd_ps, _mm512_mul_ps, _mm512_max_ps, _mm512_reduce_add_ps
+);
+
+vnni_gemm!(
+    /// [`gemm`] on AVX-VNNI: blocks of 6 rows × 16 columns (12 i32 accumulators, two weight
+    /// vectors and a broadcast in the 16 ymm registers).
+    gemm_avx_vnni, "avx2,fma,avxvnni", lanes 8, nv 2,
+    __m256i, _mm256_setzero_si256, _mm256_loadu_si256, _mm256_set1_epi32,
+    _mm256_dpbusd_avx_epi32,
+    __m256, _mm256_setzero_ps, _mm256_loadu_ps, _mm256_storeu_ps, _mm256_set1_ps,
+    _mm256_cvtepi32_ps, _mm256_fmadd_ps, _mm256_mul_ps, _mm256_max_ps, super::native::hsum256
+);
 
 #[cfg(test)]
 mod tests {

@@ -169,26 +169,16 @@ impl<K: Kernel> NativeHead<K> {
         }
         let width = head.width;
         let padded = width.div_ceil(K::NR) * K::NR;
-        let branch = |(hidden, output, output_bias): (&[Dense], &[f32], f32)| {
-            if hidden.is_empty()
-                || hidden
-                    .iter()
-                    .any(|d| d.inputs != width || d.outputs != width)
-            {
-                return None;
-            }
-            let mut output = output.to_vec();
-            output.resize(padded, 0.0);
-            Some(NativeBranch {
+        let branches = head
+            .square_branches(padded)?
+            .map(|(hidden, output, output_bias)| NativeBranch {
                 hidden: hidden
                     .iter()
                     .map(|d| Packed::of(d, padded, (K::GROUP, K::NR), K::convert))
                     .collect(),
                 output,
                 output_bias,
-            })
-        };
-        let [shape, feature] = head.branch_layers();
+            });
         let rotation = &head.rotation;
         let rotation_inputs = rotation.inputs.next_multiple_of(K::GROUP);
         Some(NativeHead {
@@ -196,7 +186,7 @@ impl<K: Kernel> NativeHead<K> {
             padded,
             rotation: Packed::of(rotation, rotation_inputs, (K::GROUP, K::NR), K::convert),
             encoding: rotation.inputs,
-            branches: [branch(shape)?, branch(feature)?],
+            branches,
             kernel: PhantomData,
         })
     }

@@ -27,6 +27,9 @@ impl BranchWeights {
     }
 }
 
+/// A branch as the native kernels take it: hidden layers, padded output weights, output bias.
+pub(super) type SquareBranch<'a> = (&'a [Dense], Vec<f32>, f32);
+
 /// The head's weights: the image and rotation halves of the first layer and both branches
 /// (`[shape, feature]`).
 #[derive(Debug, Clone)]
@@ -50,28 +53,33 @@ impl HeadWeights {
         }
     }
 
-    /// These weights with the branches' and the rotation layer's weights rounded by `round` (to
-    /// bfloat16 or f16; the image half of the first layer stays f32, as in the native kernels).
-    pub(super) fn rounded_by(&self, round_value: fn(f32) -> f32) -> HeadWeights {
-        let round = |d: &Dense| Dense {
-            weight: d.weight.iter().copied().map(round_value).collect(),
-            ..d.clone()
-        };
+    /// These weights with the branches' hidden layers and the rotation layer made by `layer`
+    /// from their own (the image half of the first layer stays f32, as in the native kernels).
+    fn with_layers(&self, layer: impl Fn(&Dense) -> Dense) -> HeadWeights {
         let branch = |b: &BranchWeights| BranchWeights {
-            hidden: b.hidden.iter().map(round).collect(),
+            hidden: b.hidden.iter().map(&layer).collect(),
             ..b.clone()
         };
         HeadWeights {
-            rotation: round(&self.rotation),
+            rotation: layer(&self.rotation),
             branches: [branch(&self.branches[0]), branch(&self.branches[1])],
             ..self.clone()
         }
     }
 
+    /// These weights with the branches' and the rotation layer's weights rounded by `round`
+    /// (to bfloat16 or f16).
+    pub(super) fn rounded_by(&self, round: fn(f32) -> f32) -> HeadWeights {
+        self.with_layers(|d| Dense {
+            weight: d.weight.iter().copied().map(round).collect(),
+            ..d.clone()
+        })
+    }
+
     /// These weights as the 8-bit head reads them: the branches' and the rotation layer's
-    /// weights on their columns' 8-bit grids ([`columns_to_i8`]); the image half stays f32.
+    /// weights on their columns' 8-bit grids ([`columns_to_i8`]).
     pub(super) fn quantized_i8(&self) -> HeadWeights {
-        let quantize = |d: &Dense| {
+        self.with_layers(|d| {
             let (bytes, scales) = columns_to_i8(&d.weight, d.outputs);
             Dense {
                 weight: bytes
@@ -80,22 +88,26 @@ impl HeadWeights {
                     .collect(),
                 ..d.clone()
             }
-        };
-        let branch = |b: &BranchWeights| BranchWeights {
-            hidden: b.hidden.iter().map(quantize).collect(),
-            ..b.clone()
-        };
-        HeadWeights {
-            rotation: quantize(&self.rotation),
-            branches: [branch(&self.branches[0]), branch(&self.branches[1])],
-            ..self.clone()
-        }
+        })
     }
 
-    /// Each branch's hidden layers, output weights and output bias.
-    pub(super) fn branch_layers(&self) -> [(&[Dense], &[f32], f32); 2] {
-        self.branches
-            .each_ref()
-            .map(|b| (&b.hidden[..], &b.output[..], b.output_bias))
+    /// Each branch's hidden layers, its output weights zero-padded to `padded` (the native
+    /// kernels' row stride) and its output bias; `None` when a branch has no hidden layer or one
+    /// that is not `width × width` (the native kernels' tiles need both).
+    pub(super) fn square_branches(&self, padded: usize) -> Option<[SquareBranch<'_>; 2]> {
+        let width = self.width;
+        let square = |b: &BranchWeights| {
+            !b.hidden.is_empty()
+                && b.hidden
+                    .iter()
+                    .all(|d| d.inputs == width && d.outputs == width)
+        };
+        self.branches.iter().all(square).then(|| {
+            self.branches.each_ref().map(|b| {
+                let mut output = b.output.clone();
+                output.resize(padded, 0.0);
+                (&b.hidden[..], output, b.output_bias)
+            })
+        })
     }
 }
