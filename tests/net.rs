@@ -366,7 +366,12 @@ fn the_manifests_levels_cap_what_the_engine_serves() {
 #[test]
 fn kernel_names_round_trip_and_bad_ones_are_refused() {
     use alignist::net::Kernels;
-    for k in [Kernels::Widest, Kernels::Avx2, Kernels::Portable] {
+    for k in [
+        Kernels::Widest,
+        Kernels::Avx512,
+        Kernels::Avx2,
+        Kernels::Portable,
+    ] {
         assert_eq!(k.name().parse::<Kernels>(), Ok(k));
     }
     let err = "avx1024".parse::<Kernels>().unwrap_err();
@@ -396,8 +401,8 @@ fn bf16_rounding_is_to_the_nearest_even() {
 
 /// A head in a reduced precision (bfloat16: native `VDPBF16PS` where the core has it; f16:
 /// native `VFMADD231PH`) against its emulation on the f32 GEMM, which rounds the same values,
-/// and against the f32 head: row counts around the kernels' 6- and 12-row blocks and the tile, a
-/// width that pads to the 64-column panel, and the shipped head.
+/// and against the f32 head: row counts around the kernels' 6-, 12- and 32-row blocks and the
+/// tile, a width that pads to the 64-column panel, and the shipped head.
 fn assert_reduced_close(
     fused: &alignist::net::FusedHead,
     encoding: &RotationEncoding,
@@ -405,11 +410,29 @@ fn assert_reduced_close(
     tolerance: Tolerance,
     what: &str,
 ) {
+    let native = |image: &[f32], rows: alignist::net::Rows<'_>| {
+        fused.branch_scores_in(precision, image, rows)
+    };
+    assert_kernel_close(fused, encoding, precision, &native, tolerance, what);
+}
+
+/// A kernel's `(s_θ, s_φ)` of rows, for an image's term.
+type BranchScoresOf<'a> = dyn Fn(&[f32], alignist::net::Rows<'_>) -> (Vec<f32>, Vec<f32>) + 'a;
+
+/// [`assert_reduced_close`] for the kernel `got`.
+fn assert_kernel_close(
+    fused: &alignist::net::FusedHead,
+    encoding: &RotationEncoding,
+    precision: alignist::net::Precision,
+    got: &BranchScoresOf<'_>,
+    tolerance: Tolerance,
+    what: &str,
+) {
     use alignist::net::ReducedHead;
     use alignist::net::Rows;
     let emulated = ReducedHead::emulated(fused, precision);
     let tile = alignist::net::tiles::TILE_ROWS;
-    for rows in [1, 5, 6, 7, 12, 13, tile - 1, tile, tile + 1, 2 * tile + 3] {
+    for rows in [1, 5, 6, 7, 12, 13, 33, tile - 1, tile, tile + 1, 2 * tile + 3] {
         let rotations = spread_rotations(rows, 0.0);
         let features: Vec<f32> = (0..fused.image_dim())
             .map(|i| ((i * 37 + rows) % 17) as f32 / 17.0)
@@ -420,12 +443,7 @@ fn assert_reduced_close(
         let f32_scores = fused.branch_scores(&image, &projected);
         // The rows as f32 projections (a search's start level) and as encodings (the finer
         // levels, where the projection runs in bfloat16 inside the tiles).
-        let reduced = |rows: Rows<'_>| {
-            (
-                fused.branch_scores_in(precision, &image, rows),
-                emulated.branch_scores(&image, rows),
-            )
-        };
+        let reduced = |rows: Rows<'_>| (got(&image, rows), emulated.branch_scores(&image, rows));
         let from_projections = reduced(Rows::Projected(&projected));
         let from_encodings = reduced(Rows::Encoded(&encodings));
         for (branch, exact, got, emulated) in [
@@ -524,6 +542,56 @@ fn assert_heads_close_on(
 #[test]
 fn the_bf16_head_agrees_with_its_emulation_and_stays_near_f32() {
     assert_heads_close(Precision::Bf16, Tolerance::BF16);
+    // Under `widest` a core with AMX-BF16 runs the AMX tiles above; here the VDPBF16PS kernel.
+    assert_heads_close_on(
+        Precision::Bf16,
+        Tolerance::BF16,
+        alignist::net::Kernels::Avx512,
+    );
+}
+
+/// The AMX kernel's loop, tile pointers and epilogue on tiles emulated in software (on any
+/// core; on a core with AMX the test above runs the tiles themselves): the same bfloat16 values
+/// as the emulation on the f32 GEMM, within the bfloat16 head's tolerances, on a width that
+/// pads to the 32-column panel and on the shipped head.
+#[test]
+fn the_amx_kernel_on_emulated_tiles_agrees_with_the_bf16_emulation() {
+    use alignist::net::{FusedHead, Kernels, ReducedHead};
+    let encoding = RotationEncoding::Cube;
+    let head = HeadConfig::new(32, encoding.dim())
+        .with_hidden(40)
+        .with_layers(4)
+        .init(&device())
+        .with_output_biases(-2.5, 1.5);
+    let bundle = alignist::bundle::model::ModelBundle::load(std::path::Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/models/symsol1"
+    )))
+    .unwrap();
+    for (fused, encoding, what) in [
+        (
+            FusedHead::with_kernels(&head, Kernels::Portable),
+            &encoding,
+            "width 40, AMX emulated",
+        ),
+        (
+            FusedHead::with_kernels(&bundle.network.head, Kernels::Portable),
+            &bundle.manifest.network.encoding,
+            "shipped, AMX emulated",
+        ),
+    ] {
+        let tiles = ReducedHead::amx_emulated(&fused);
+        assert_eq!(tiles.kernel_name(), "AMX bf16 tiles, emulated");
+        let got = |image: &[f32], rows: alignist::net::Rows<'_>| tiles.branch_scores(image, rows);
+        assert_kernel_close(
+            &fused,
+            encoding,
+            Precision::Bf16,
+            &got,
+            Tolerance::BF16,
+            what,
+        );
+    }
 }
 
 /// The same for f16. Its 11 significant bits round the products 8 times more finely than

@@ -135,6 +135,8 @@ struct Peaks {
     bf16: Option<f64>,
     f16: Option<f64>,
     i8: Option<f64>,
+    /// `TDPBF16PS` on AMX tiles, where the core has them and the OS grants them.
+    amx: Option<f64>,
 }
 
 /// Prints the matmul peak of the library GEMM, the FMA peaks of this CPU and the load-time
@@ -161,12 +163,14 @@ fn print_peaks(model: &Model) -> Peaks {
         peak::reduced_peak(peak::ReducedOp::Bf16Dot),
         peak::reduced_peak(peak::ReducedOp::I8Dot),
     );
+    let amx = peak::reduced_peak(peak::ReducedOp::AmxBf16);
     let shown = |g: Option<f64>| g.map_or("not on this CPU".into(), |g| format!("{g:.1} GFLOP/s"));
     println!(
-        "reduced-precision peaks (probe, 512-bit): f16 FMA (VFMADD231PH) {}, bfloat16 dot (VDPBF16PS) {}, int8 dot (VPDPBUSD) {}",
+        "reduced-precision peaks (probe, 512-bit): f16 FMA (VFMADD231PH) {}, bfloat16 dot (VDPBF16PS) {}, int8 dot (VPDPBUSD) {}; AMX bfloat16 tiles (TDPBF16PS) {}",
         shown(f16),
         shown(bf16),
-        shown(i8).replace("GFLOP/s", "GOP/s")
+        shown(i8).replace("GFLOP/s", "GOP/s"),
+        shown(amx)
     );
     let peaks = Peaks {
         f32: if kernels.allows_avx512() {
@@ -177,6 +181,7 @@ fn print_peaks(model: &Model) -> Peaks {
         bf16,
         f16,
         i8,
+        amx,
     };
     match model.calibration() {
         Some(c) => println!(
@@ -225,8 +230,13 @@ fn full_grid_figures(model: &Model, crop: &[u8], bundle: &Path, peaks: &Peaks) {
     // The same grids in bfloat16, f16 and i8 (the coarse levels of the search).
     // The probed peaks are 512-bit: a capped run's 256-bit kernels are not compared with them.
     let wide = model.config().kernels.allows_avx512();
+    let bf16_peak = if model.kernel_name(Precision::Bf16) == crate::net::amx::KERNEL_NAME {
+        peaks.amx
+    } else {
+        peaks.bf16
+    };
     for (precision, peak) in [
-        (Precision::Bf16, peaks.bf16),
+        (Precision::Bf16, bf16_peak),
         (Precision::F16, peaks.f16),
         (Precision::I8, peaks.i8),
     ] {

@@ -59,8 +59,9 @@ struct Cli {
     /// search must have reached (0–1).
     #[arg(long, env = "ALIGNIST_SEARCH_AGREEMENT", default_value_t = EngineConfig::default().search_agreement)]
     search_agreement: f64,
-    /// Widest head kernels used: `widest` (AVX-512 where the core has it, else AVX2), `avx2`,
-    /// or `portable` (matrixmultiply's GEMM; bfloat16 emulated).
+    /// Widest head kernels used: `widest` (AMX tiles for bfloat16 and AVX-512 where the core
+    /// has them, else AVX2), `avx512` (no AMX), `avx2`, or `portable` (matrixmultiply's GEMM;
+    /// bfloat16, f16 and i8 emulated).
     #[arg(long, env = "ALIGNIST_KERNELS", default_value_t = Kernels::Widest)]
     kernels: Kernels,
     /// Level a Predict search scores in full first (at most --max-level). Default: calibrated,

@@ -311,12 +311,7 @@ fn measure_rates(
 /// equally fast, and the one scoring the fewest rows is taken, so that the choice does not flip
 /// between starts; among those the lower prediction (twins in other precisions score the same
 /// rows), then the study's order.
-fn choose(
-    rows: &[usize],
-    agreement: &[f64],
-    predicted: &[f64],
-    budget_ms: f64,
-) -> (usize, String) {
+fn choose(rows: &[usize], agreement: &[f64], predicted: &[f64], budget_ms: f64) -> (usize, String) {
     let fastest = |set: &[usize]| -> Option<usize> {
         let best = set
             .iter()

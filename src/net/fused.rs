@@ -10,6 +10,7 @@
 use rayon::prelude::*;
 
 use super::DualHead;
+use super::amx::{AmxBf16, EmulatedAmxBf16};
 use super::bf16::Bf16Kernel;
 use super::dense;
 use super::f16::F16Kernel;
@@ -366,6 +367,10 @@ pub struct ReducedHead(Path);
 /// The kernel a [`ReducedHead`] runs on.
 #[derive(Debug, Clone)]
 enum Path {
+    /// `TDPBF16PS` on AMX tiles.
+    Amx(Box<NativeHead<AmxBf16>>),
+    /// The AMX kernel on tiles emulated in software.
+    AmxEmulated(Box<NativeHead<EmulatedAmxBf16>>),
     /// `VDPBF16PS` on packed weights.
     Bf16(Box<NativeHead<Bf16Kernel>>),
     /// `VFMADD231PH` on packed weights.
@@ -384,7 +389,11 @@ impl ReducedHead {
             // 256-bit AVX-VNNI where the kernels are capped and the core has it.
             Precision::I8 => I8Head::new(head, kernels).map(|n| Path::I8(Box::new(n))),
             _ if !kernels.allows_avx512() => None,
-            Precision::Bf16 => NativeHead::new(head).map(|n| Path::Bf16(Box::new(n))),
+            Precision::Bf16 => kernels
+                .allows_amx()
+                .then(|| NativeHead::new(head).map(|n| Path::Amx(Box::new(n))))
+                .flatten()
+                .or_else(|| NativeHead::new(head).map(|n| Path::Bf16(Box::new(n)))),
             Precision::F16 => NativeHead::new(head).map(|n| Path::F16(Box::new(n))),
             Precision::F32 => None,
         };
@@ -402,14 +411,23 @@ impl ReducedHead {
         ))))
     }
 
+    /// The AMX bfloat16 kernel on tiles emulated in software ([`super::amx`]): the kernel's
+    /// loop, pointers and epilogue on any core, at a fraction of the f32 rate. For the tests.
+    pub fn amx_emulated(head: &FusedHead) -> ReducedHead {
+        let native = NativeHead::new(&head.weights).expect("every branch has a hidden layer");
+        ReducedHead(Path::AmxEmulated(Box::new(native)))
+    }
+
     /// Whether this is a native kernel.
     pub fn is_native(&self) -> bool {
-        !matches!(self.0, Path::Emulated(_))
+        !matches!(self.0, Path::Emulated(_) | Path::AmxEmulated(_))
     }
 
     /// The kernel it runs on, in words.
     pub fn kernel_name(&self) -> &'static str {
         match &self.0 {
+            Path::Amx(_) => super::amx::KERNEL_NAME,
+            Path::AmxEmulated(_) => "AMX bf16 tiles, emulated",
             Path::Bf16(_) => "AVX-512 BF16 kernel",
             Path::F16(_) => "AVX-512 FP16 kernel",
             Path::I8(native) => native.kernel_name(),
@@ -422,6 +440,8 @@ impl ReducedHead {
     /// inside the tiles (no projection pass).
     pub fn branch_scores(&self, image_term: &[f32], rows: Rows<'_>) -> (Vec<f32>, Vec<f32>) {
         match &self.0 {
+            Path::Amx(native) => native.branch_scores(image_term, rows),
+            Path::AmxEmulated(native) => native.branch_scores(image_term, rows),
             Path::Bf16(native) => native.branch_scores(image_term, rows),
             Path::F16(native) => native.branch_scores(image_term, rows),
             Path::I8(native) => native.branch_scores(image_term, rows),

@@ -4,11 +4,13 @@
 /// The widest kernels a head may use; each falls back to the next narrower one the core has.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Kernels {
-    /// The widest the core has: AVX-512 (f32, bfloat16 with AVX-512 BF16, f16 with AVX-512
-    /// FP16), else AVX2; the
-    /// library GEMM is the `gemm` crate (512-bit where the core has AVX-512).
+    /// The widest the core has: AMX tiles for bfloat16 where the core has AMX-BF16, AVX-512 (f32,
+    /// bfloat16 with AVX-512 BF16, f16 with AVX-512 FP16, 8-bit with AVX-512 VNNI), else AVX2;
+    /// the library GEMM is the `gemm` crate (512-bit where the core has AVX-512).
     #[default]
     Widest,
+    /// As [`Kernels::Widest`] without AMX tiles (bfloat16 on `VDPBF16PS`).
+    Avx512,
     /// The project's kernels at most 256-bit; bfloat16 and f16 emulated; the library GEMM is
     /// matrixmultiply (which picks its own kernel at run time, 512-bit on AVX-512 cores).
     Avx2,
@@ -20,10 +22,11 @@ impl Kernels {
     /// The environment variable that caps the kernels (`ALIGNIST_KERNELS=avx2`).
     pub const ENV: &'static str = "ALIGNIST_KERNELS";
 
-    /// The name used by flags and the environment (`widest`, `avx2`, `portable`).
+    /// The name used by flags and the environment (`widest`, `avx512`, `avx2`, `portable`).
     pub fn name(self) -> &'static str {
         match self {
             Kernels::Widest => "widest",
+            Kernels::Avx512 => "avx512",
             Kernels::Avx2 => "avx2",
             Kernels::Portable => "portable",
         }
@@ -41,9 +44,14 @@ impl Kernels {
         }
     }
 
+    /// Whether AMX tiles may run.
+    pub fn allows_amx(self) -> bool {
+        self == Kernels::Widest
+    }
+
     /// Whether the 512-bit kernels may run.
     pub fn allows_avx512(self) -> bool {
-        self == Kernels::Widest
+        matches!(self, Kernels::Widest | Kernels::Avx512)
     }
 
     /// Whether the project's own kernels may run.
@@ -63,10 +71,11 @@ impl std::str::FromStr for Kernels {
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         match s {
             "widest" => Ok(Kernels::Widest),
+            "avx512" => Ok(Kernels::Avx512),
             "avx2" => Ok(Kernels::Avx2),
             "portable" => Ok(Kernels::Portable),
             other => Err(format!(
-                "unknown kernels `{other}` (widest, avx2 or portable)"
+                "unknown kernels `{other}` (widest, avx512, avx2 or portable)"
             )),
         }
     }

@@ -1,6 +1,7 @@
 //! The distribution network: a ResNet image encoder, the rotation encoding, the dual-branch
 //! head, and the losses that train it.
 
+pub mod amx;
 pub mod bf16;
 pub(crate) mod dense;
 pub mod encoder;

@@ -1,7 +1,7 @@
 //! The head's own GEMM kernels and the tile driver they share. A kernel multiplies row blocks of
 //! a tile's activations by weights packed once into column panels, and applies bias and ReLU as
 //! each block leaves the registers (or, after a branch's last hidden layer, the `width → 1` dot
-//! product), so no intermediate leaves the tile. Four kernels use the driver:
+//! product), so no intermediate leaves the tile. Five kernels use the driver:
 //!
 //! - [`F32Avx512`]: f32 on 512-bit FMAs (AVX-512F), blocks of 12 rows × 32 columns: the 32 KiB
 //!   panel of a 256-wide layer and the block's 12 rows stay in L1 (measured fastest of 4×64,
@@ -12,6 +12,7 @@
 //! - [`F32Avx2`]: f32 on 256-bit FMAs (AVX2 + FMA), blocks of 6 rows × 16 columns.
 //! - [`Bf16Kernel`](super::bf16): `VDPBF16PS` on AVX-512 BF16 cores.
 //! - [`F16Kernel`](super::f16): `VFMADD231PH` on AVX-512 FP16 cores.
+//! - [`AmxBf16`](super::amx): `TDPBF16PS` on AMX tiles, blocks of 32 rows × 32 columns.
 //!
 //! The portable path is the library GEMM of `net::dense`, for cores with neither (or
 //! when asked for).
@@ -35,6 +36,9 @@ pub(super) trait Kernel: Send + Sync {
     const MR: usize;
     /// Columns of the register block and of a packed panel (even).
     const NR: usize;
+    /// A layer's inputs are padded to a multiple of this (a multiple of [`Kernel::GROUP`]; the
+    /// AMX kernel reads 32 at a time).
+    const INPUTS: usize = Self::GROUP;
     /// Whether this core has the kernel's instructions.
     fn available() -> bool;
     /// An f32 as the kernel's element.
@@ -168,7 +172,11 @@ impl<K: Kernel> NativeHead<K> {
             return None;
         }
         let width = head.width;
-        let padded = width.div_ceil(K::NR) * K::NR;
+        let padded = width.next_multiple_of(K::NR).next_multiple_of(K::INPUTS);
+        debug_assert!(
+            padded.is_multiple_of(K::NR),
+            "NR and INPUTS are powers of two"
+        );
         let branches = head
             .square_branches(padded)?
             .map(|(hidden, output, output_bias)| NativeBranch {
@@ -180,7 +188,7 @@ impl<K: Kernel> NativeHead<K> {
                 output_bias,
             });
         let rotation = &head.rotation;
-        let rotation_inputs = rotation.inputs.next_multiple_of(K::GROUP);
+        let rotation_inputs = rotation.inputs.next_multiple_of(K::INPUTS);
         Some(NativeHead {
             width,
             padded,
@@ -319,7 +327,7 @@ pub fn avx512f_available() -> bool {
 /// The [`Kernel`] impl of a kernel whose `gemm` is the x86-64 function `$gemm` (taking the
 /// trait's arguments); elsewhere `available` is false and `gemm` is never called.
 macro_rules! kernel_impl {
-    ($kernel:ty, $elem:ty, group $group:expr, mr $mr:expr, nr $nr:expr,
+    ($kernel:ty, $elem:ty, group $group:expr, $(inputs $inputs:expr,)? mr $mr:expr, nr $nr:expr,
      available $available:path, convert $convert:path, gemm $gemm:path
      $(, convert_row $convert_row:path)?) => {
         impl Kernel for $kernel {
@@ -327,6 +335,7 @@ macro_rules! kernel_impl {
             const GROUP: usize = $group;
             const MR: usize = $mr;
             const NR: usize = $nr;
+            $(const INPUTS: usize = $inputs;)?
 
             fn available() -> bool {
                 $available()
