@@ -432,7 +432,19 @@ fn assert_kernel_close(
     use alignist::net::Rows;
     let emulated = ReducedHead::emulated(fused, precision);
     let tile = alignist::net::tiles::TILE_ROWS;
-    for rows in [1, 5, 6, 7, 12, 13, 33, tile - 1, tile, tile + 1, 2 * tile + 3] {
+    for rows in [
+        1,
+        5,
+        6,
+        7,
+        12,
+        13,
+        33,
+        tile - 1,
+        tile,
+        tile + 1,
+        2 * tile + 3,
+    ] {
         let rotations = spread_rotations(rows, 0.0);
         let features: Vec<f32> = (0..fused.image_dim())
             .map(|i| ((i * 37 + rows) % 17) as f32 / 17.0)

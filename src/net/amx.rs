@@ -635,6 +635,46 @@ mod tests {
         assert_eq!(sum, 3.0 * 32.0 / 1024.0);
     }
 
+    /// The two epilogues give the same activations (bfloat16 bits) and output dot products; the
+    /// scalar one is what the emulation runs on cores without AVX-512 BF16.
+    #[test]
+    fn the_vector_and_scalar_epilogues_agree() {
+        if !super::super::bf16::native_available() {
+            return;
+        }
+        let block: Block = std::array::from_fn(|i| ((i * 37 % 101) as f32 - 50.0) / 7.0);
+        let bias: Vec<f32> = (0..2 * NR).map(|i| (i % 9) as f32 / 4.0 - 1.0).collect();
+        let weights: Vec<f32> = (0..2 * NR).map(|i| (i % 5) as f32 / 3.0 - 0.5).collect();
+        let (rows, stride) = (2 * MR, 2 * NR);
+        let run = |finish: Finish| {
+            let mut out = vec![0u16; rows * stride];
+            let mut dots = vec![0.5f32; rows];
+            for (panel, r0) in [(0, 0), (1, MR)] {
+                let mut store = Epilogue::Store {
+                    out: &mut out,
+                    stride,
+                };
+                let mut dot = Epilogue::Dot {
+                    weights: &weights,
+                    dots: &mut dots,
+                };
+                // SAFETY: the buffers hold both blocks' rows and both panels' columns; the core
+                // has AVX-512 BF16 (checked above).
+                unsafe {
+                    finish(&block, &bias, panel, r0, &mut store);
+                    finish(&block, &bias, panel, r0, &mut dot);
+                }
+            }
+            (out, dots)
+        };
+        let (vector, scalar) = (run(finish_avx512), run(finish_scalar));
+        assert_eq!(vector.0, scalar.0);
+        for (v, s) in vector.1.iter().zip(&scalar.1) {
+            assert!((v - s).abs() <= 1e-4 * s.abs().max(1.0), "{v} {s}");
+        }
+        assert!(vector.0.iter().any(|&h| h != 0) && vector.0.contains(&0));
+    }
+
     /// An instruction on tiles never configured is refused, as the core would fault.
     #[test]
     #[should_panic(expected = "before LDTILECFG")]
