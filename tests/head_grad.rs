@@ -111,8 +111,8 @@ fn burn_side(c: &Case, loss: Loss) -> Side {
 }
 
 /// The hand-written head's loss, gradients (registered the trainer's way) and features' gradient.
-fn fused_side(c: &Case, loss: Loss) -> (Side, Vec<(ParamId, Option<ParamId>)>) {
-    let head = TrainingHead::of(&c.head, Kernels::default());
+fn fused_side(c: &Case, loss: Loss, kernels: Kernels) -> (Side, Vec<(ParamId, Option<ParamId>)>) {
+    let head = TrainingHead::of(&c.head, kernels);
     let pass = head.forward(
         values(c.features.clone()),
         values(c.encodings.clone()),
@@ -148,13 +148,21 @@ fn fused_side(c: &Case, loss: Loss) -> (Side, Vec<(ParamId, Option<ParamId>)>) {
     ((value, params, d_features), ids)
 }
 
+/// [`check_on`] on each library GEMM: the `gemm` crate (`widest`) and matrixmultiply (`avx2`,
+/// `portable`).
 fn check(loss: Loss, seed: u64) {
+    for kernels in [Kernels::Widest, Kernels::Avx2, Kernels::Portable] {
+        check_on(loss, seed, kernels);
+    }
+}
+
+fn check_on(loss: Loss, seed: u64, kernels: Kernels) {
     // L1's gradient jumps where a score meets its target (the sign of `exp(s) − a`), where f32
     // and f64 may disagree: its targets are drawn well below the scores (output biases ≈ −2).
     let target_mean = if matches!(loss, Loss::L1) { -8.0 } else { -2.0 };
     let c = case(seed, target_mean);
     let (burn_loss, mut burn_grads, burn_df) = burn_side(&c, loss);
-    let ((our_loss, mut our_grads, our_df), ids) = fused_side(&c, loss);
+    let ((our_loss, mut our_grads, our_df), ids) = fused_side(&c, loss, kernels);
     assert!(
         (our_loss - burn_loss).abs() <= 1e-4 * burn_loss.abs().max(1.0),
         "{loss:?}: loss {our_loss} against burn's {burn_loss}"
