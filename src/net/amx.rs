@@ -91,6 +91,7 @@ pub(super) struct AmxTiles;
 
 #[cfg(target_arch = "x86_64")]
 impl TileUnit for AmxTiles {
+    #[inline(always)]
     unsafe fn configure(&mut self) {
         let config = TileConfig::all_full();
         // SAFETY: the caller's contract; `config` is 64 aligned bytes.
@@ -100,11 +101,13 @@ impl TileUnit for AmxTiles {
         }
     }
 
+    #[inline(always)]
     unsafe fn zero<const T: u8>(&mut self) {
         // SAFETY: the caller's contract.
         unsafe { std::arch::asm!("tilezero tmm{t}", t = const T, options(nostack, nomem)) };
     }
 
+    #[inline(always)]
     unsafe fn load<const T: u8>(&mut self, base: *const u8, stride: usize) {
         // SAFETY: the caller's contract.
         unsafe {
@@ -113,6 +116,7 @@ impl TileUnit for AmxTiles {
         }
     }
 
+    #[inline(always)]
     unsafe fn dot<const C: u8, const A: u8, const B: u8>(&mut self) {
         // SAFETY: the caller's contract.
         unsafe {
@@ -121,6 +125,7 @@ impl TileUnit for AmxTiles {
         }
     }
 
+    #[inline(always)]
     unsafe fn store<const T: u8>(&mut self, base: *mut u8, stride: usize) {
         // SAFETY: the caller's contract.
         unsafe {
@@ -129,6 +134,7 @@ impl TileUnit for AmxTiles {
         }
     }
 
+    #[inline(always)]
     unsafe fn release(&mut self) {
         // SAFETY: the caller's contract.
         unsafe { std::arch::asm!("tilerelease", options(nostack, nomem)) };

@@ -382,8 +382,9 @@ enum Path {
 }
 
 impl ReducedHead {
-    /// The native kernel of `precision` (bfloat16 or f16) when `kernels` allows it and this core
-    /// has its instructions (and every branch has a hidden layer), else the emulation.
+    /// The native kernel of `precision` when `kernels` allows it and this core has its
+    /// instructions (and every branch has a hidden layer), else the emulation: bfloat16 on AMX
+    /// tiles, else on `VDPBF16PS`; f16 on `VFMADD231PH`; i8 on `VPDPBUSD` (512- or 256-bit).
     pub(super) fn new(head: &HeadWeights, precision: Precision, kernels: Kernels) -> ReducedHead {
         let native = match precision {
             // 256-bit AVX-VNNI where the kernels are capped and the core has it.
