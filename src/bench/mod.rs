@@ -163,7 +163,7 @@ fn print_peaks(model: &Model) -> Peaks {
         peak::reduced_peak(peak::ReducedOp::Bf16Dot),
         peak::reduced_peak(peak::ReducedOp::I8Dot),
     );
-    let amx = peak::reduced_peak(peak::ReducedOp::AmxBf16);
+    let amx = peak::amx_peak();
     let shown = |g: Option<f64>| g.map_or("not on this CPU".into(), |g| format!("{g:.1} GFLOP/s"));
     println!(
         "reduced-precision peaks (probe, 512-bit): f16 FMA (VFMADD231PH) {}, bfloat16 dot (VDPBF16PS) {}, int8 dot (VPDPBUSD) {}; AMX bfloat16 tiles (TDPBF16PS) {}",

@@ -150,20 +150,11 @@ pub enum ReducedOp {
     /// `VPDPBUSD` on 512-bit vectors (AVX-512 VNNI): 64 byte multiply-adds into 16 i32 lanes
     /// (counted as operations, two per multiply-add, like the floating-point ones).
     I8Dot,
-    /// `TDPBF16PS` on AMX tiles (AMX-BF16): 16 × 16 × 32 multiply-adds into a tile of f32.
-    AmxBf16,
 }
 
 /// The rate of `op` over the pool's threads in GFLOP/s (a multiply-add counts two; best of 5
 /// runs), or `None` where the core lacks it.
 pub fn reduced_peak(op: ReducedOp) -> Option<f64> {
-    if op == ReducedOp::AmxBf16 {
-        crate::net::amx::amx_peak_rounds(1)?;
-        let flops_per_run = (AMX_ROUNDS * crate::net::amx::ROUND_MULTIPLY_ADDS * 2) as f64;
-        return Some(pool_gflops(flops_per_run, |_| {
-            crate::net::amx::amx_peak_rounds(AMX_ROUNDS).unwrap_or(0.0)
-        }));
-    }
     #[cfg(target_arch = "x86_64")]
     {
         let has = |f: bool| f && std::is_x86_feature_detected!("avx512f");
@@ -171,7 +162,6 @@ pub fn reduced_peak(op: ReducedOp) -> Option<f64> {
             ReducedOp::F16Fma => has(std::is_x86_feature_detected!("avx512fp16")),
             ReducedOp::Bf16Dot => has(std::is_x86_feature_detected!("avx512bf16")),
             ReducedOp::I8Dot => has(std::is_x86_feature_detected!("avx512vnni")),
-            ReducedOp::AmxBf16 => false,
         };
         if !available {
             return None;
@@ -180,7 +170,6 @@ pub fn reduced_peak(op: ReducedOp) -> Option<f64> {
             ReducedOp::F16Fma => (CHAINS_F16, 64),
             ReducedOp::Bf16Dot => (CHAINS_512, 64),
             ReducedOp::I8Dot => (CHAINS_512, 128),
-            ReducedOp::AmxBf16 => unreachable!("AMX is probed above"),
         };
         let flops_per_run = (ITERS * chains * flops) as f64;
         // SAFETY: the features were checked above.
@@ -189,7 +178,6 @@ pub fn reduced_peak(op: ReducedOp) -> Option<f64> {
                 ReducedOp::F16Fma => f16_chains(i as i16),
                 ReducedOp::Bf16Dot => bf16_chains(i as i32),
                 ReducedOp::I8Dot => i8_chains(i as i32),
-                ReducedOp::AmxBf16 => unreachable!("AMX is probed above"),
             }
         }))
     }
@@ -198,6 +186,17 @@ pub fn reduced_peak(op: ReducedOp) -> Option<f64> {
         let _ = op;
         None
     }
+}
+
+/// The rate of `TDPBF16PS` on AMX tiles (16 × 16 × 32 multiply-adds into a tile of f32) over
+/// the pool's threads in GFLOP/s, or `None` where the core has no AMX granted.
+pub fn amx_peak() -> Option<f64> {
+    use crate::net::amx::{ROUND_MULTIPLY_ADDS, amx_peak_rounds};
+    amx_peak_rounds(1)?;
+    let flops_per_run = (AMX_ROUNDS * ROUND_MULTIPLY_ADDS * 2) as f64;
+    Some(pool_gflops(flops_per_run, |_| {
+        amx_peak_rounds(AMX_ROUNDS).unwrap_or(0.0)
+    }))
 }
 
 /// Independent f16 accumulators: LLVM keeps f16 vectors in 16 of the 32 zmm registers and

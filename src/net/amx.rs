@@ -354,24 +354,7 @@ unsafe fn finish_avx512(
                 let s = _mm512_loadu_ps(block.as_ptr().add(r * NR + 16 * c));
                 _mm512_max_ps(_mm512_add_ps(s, bias[c]), zero)
             });
-            match epilogue {
-                Epilogue::Store { out, stride } => {
-                    let o = out.as_mut_ptr().add(row * *stride + panel * NR);
-                    for (c, h) in h.iter().enumerate() {
-                        let packed: __m256i = std::mem::transmute(_mm512_cvtneps_pbh(*h));
-                        _mm256_storeu_si256(o.add(16 * c) as *mut __m256i, packed);
-                    }
-                }
-                Epilogue::Dot { weights, dots } => {
-                    let w = weights.as_ptr().add(panel * NR);
-                    let sum = _mm512_fmadd_ps(
-                        h[1],
-                        _mm512_loadu_ps(w.add(16)),
-                        _mm512_mul_ps(h[0], _mm512_loadu_ps(w)),
-                    );
-                    dots[row] += _mm512_reduce_add_ps(sum);
-                }
-            }
+            super::bf16::finish_row(&h, row, panel * NR, epilogue);
         }
     }
 }

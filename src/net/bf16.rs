@@ -89,19 +89,42 @@ unsafe fn gemm_bf16(
                     let h: [__m512; 4] = std::array::from_fn(|c| {
                         _mm512_max_ps(_mm512_add_ps(acc[c], bias[c]), zero)
                     });
-                    match &mut epilogue {
-                        Epilogue::Store { out, stride } => {
-                            let o = out.as_mut_ptr().add(row * *stride + panel * NR);
-                            for (c, h) in h.iter().enumerate() {
-                                let packed: __m256i = std::mem::transmute(_mm512_cvtneps_pbh(*h));
-                                _mm256_storeu_si256(o.add(16 * c) as *mut __m256i, packed);
-                            }
-                        }
-                        Epilogue::Dot { weights, dots } => {
-                            dots[row] += super::native::dot4(&h, weights.as_ptr().add(panel * NR));
-                        }
-                    }
+                    finish_row(&h, row, panel * NR, &mut epilogue);
                 }
+            }
+        }
+    }
+}
+
+/// Where a block row of a bfloat16 kernel goes: `h` (bias and ReLU applied; `N` vectors, the
+/// columns from `column`) stored as bfloat16 in row `row`, or its output dot product added to
+/// `dots[row]`. Shared with the AMX kernel's epilogue.
+///
+/// # Safety
+/// The core has AVX-512F and AVX-512 BF16; the epilogue's buffers hold row `row` and columns
+/// `column..column + 16 N`.
+#[cfg(target_arch = "x86_64")]
+#[inline]
+#[target_feature(enable = "avx512f,avx512bf16")]
+pub(super) unsafe fn finish_row<const N: usize>(
+    h: &[std::arch::x86_64::__m512; N],
+    row: usize,
+    column: usize,
+    epilogue: &mut Epilogue<'_, u16>,
+) {
+    use std::arch::x86_64::*;
+    // SAFETY (every store and load): within the bounds of the contract.
+    unsafe {
+        match epilogue {
+            Epilogue::Store { out, stride } => {
+                let o = out.as_mut_ptr().add(row * *stride + column);
+                for (c, h) in h.iter().enumerate() {
+                    let packed: __m256i = std::mem::transmute(_mm512_cvtneps_pbh(*h));
+                    _mm256_storeu_si256(o.add(16 * c) as *mut __m256i, packed);
+                }
+            }
+            Epilogue::Dot { weights, dots } => {
+                dots[row] += super::native::dot(h, weights.as_ptr().add(column));
             }
         }
     }

@@ -133,7 +133,7 @@ unsafe fn gemm_f16(
                             }
                         }
                         Epilogue::Dot { weights, dots } => {
-                            dots[row] += super::native::dot4(&h, weights.as_ptr().add(panel * NR));
+                            dots[row] += super::native::dot(&h, weights.as_ptr().add(panel * NR));
                         }
                     }
                 }

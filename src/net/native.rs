@@ -514,15 +514,16 @@ pub(super) unsafe fn hsum256(v: std::arch::x86_64::__m256) -> f32 {
     lanes.iter().sum()
 }
 
-/// `Σ_j h_j · w_j` over a block row's four vectors (the `width → 1` output layer).
+/// `Σ_j h_j · w_j` over a block row's `N` vectors (the `width → 1` output layer).
 ///
 /// # Safety
-/// The core has AVX-512F; `w` points at 64 floats.
+/// The core has AVX-512F; `w` points at `16 N` floats.
 #[cfg(target_arch = "x86_64")]
+#[inline]
 #[target_feature(enable = "avx512f")]
-pub(super) unsafe fn dot4(h: &[std::arch::x86_64::__m512; 4], w: *const f32) -> f32 {
+pub(super) unsafe fn dot<const N: usize>(h: &[std::arch::x86_64::__m512; N], w: *const f32) -> f32 {
     use std::arch::x86_64::*;
-    // SAFETY: `w` holds 64 floats.
+    // SAFETY: `w` holds 16 N floats.
     unsafe {
         let mut sum = _mm512_mul_ps(h[0], _mm512_loadu_ps(w));
         for (c, h) in h.iter().enumerate().skip(1) {
