@@ -46,6 +46,16 @@ impl VoxelGrid {
         }
     }
 
+    /// Half the side of the grid's cube.
+    pub fn bound(&self) -> f32 {
+        self.bound
+    }
+
+    /// The values, `res³ × channels` (x fastest, then y, then z).
+    pub fn values(&self) -> &[f32] {
+        &self.data
+    }
+
     /// Number of values per grid point.
     pub fn channels(&self) -> usize {
         self.channels
@@ -131,7 +141,6 @@ impl VoxelGrid {
         match self.channels {
             1 => return self.sample_fixed::<1>(p, out),
             12 => return self.sample_fixed::<12>(p, out),
-            13 => return self.sample_fixed::<13>(p, out),
             _ => {}
         }
         let c = self.channels;
@@ -142,30 +151,6 @@ impl VoxelGrid {
                 *acc += w * v;
             }
         }
-    }
-
-    /// The channels of `a` then those of `b` at every grid point, when both grids have the same
-    /// resolution and bound (`None` otherwise).
-    pub fn interleave(a: &VoxelGrid, b: &VoxelGrid) -> Option<VoxelGrid> {
-        if a.res != b.res || a.bound != b.bound {
-            return None;
-        }
-        let channels = a.channels + b.channels;
-        let mut data = Vec::with_capacity(a.data.len() + b.data.len());
-        for (pa, pb) in a
-            .data
-            .chunks_exact(a.channels)
-            .zip(b.data.chunks_exact(b.channels))
-        {
-            data.extend_from_slice(pa);
-            data.extend_from_slice(pb);
-        }
-        Some(VoxelGrid {
-            res: a.res,
-            bound: a.bound,
-            channels,
-            data,
-        })
     }
 
     /// Trilinear interpolation at many points, row-major `n × channels`.
@@ -236,19 +221,6 @@ mod tests {
                 .sum();
             assert!((got - generic).abs() < 1e-5);
         }
-        // Interleaving a 1- and a 12-channel grid samples as both (the 13-channel path).
-        let one = VoxelGrid::bake(7, 1.0, 1, |p| p.iter().map(|v| v.x * v.y + v.z).collect());
-        let joint = VoxelGrid::interleave(&one, &wide).unwrap();
-        let mut both = [0f32; 13];
-        joint.sample_into(&p, &mut both);
-        assert!((both[0] - one.sample(&[p])[0]).abs() < 1e-6);
-        assert!(
-            both[1..]
-                .iter()
-                .zip(&fixed)
-                .all(|(a, b)| (a - b).abs() < 1e-6)
-        );
-        assert!(VoxelGrid::interleave(&one, &grid).is_none());
         // Outside the grid the value is clamped to the boundary.
         let out = grid.sample(&[Vector3::new(5.0, 0.0, 0.0)]);
         assert!((out[0] - f(&[Vector3::new(1.2, 0.0, 0.0)])[0]).abs() < 1e-5);

@@ -11,6 +11,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::baked::VoxelGrid;
+use super::joint::{JointGrid, Record};
 use crate::cad::Render;
 
 /// The norm of the SDF energy.
@@ -163,9 +164,9 @@ pub struct BakedExperts {
     pub keys: VoxelGrid,
     /// λ, ε, norm.
     pub params: EnergyParams,
-    /// `sdf` and `keys` interleaved (13 channels), made on first use: one lookup per point
-    /// instead of two, and one memory access pattern (the targets are bound by these lookups).
-    pub(crate) joint: std::sync::OnceLock<Option<VoxelGrid>>,
+    /// `sdf` and `keys` in one grid of cache-line records, made on first use: one lookup per
+    /// point instead of two (the targets are bound by these lookups).
+    pub(crate) joint: std::sync::OnceLock<Option<JointGrid>>,
 }
 
 impl BakedExperts {
@@ -187,35 +188,80 @@ impl BakedExperts {
         x0: &[Vector3<f32>],
         candidates: &[[f32; 9]],
     ) -> LogTargets {
-        let dim = self.keys.channels();
         let seen = self.keys.sample(x0);
         let gt: Matrix3<f32> = r_gt.matrix().cast();
         let joint = self
             .joint
-            .get_or_init(|| VoxelGrid::interleave(&self.sdf, &self.keys))
+            .get_or_init(|| JointGrid::new(&self.sdf, &self.keys))
             .as_ref();
-        let scored: Vec<(f32, f32)> = candidates
+        let scored: Vec<(f32, f32)> = match joint {
+            Some(joint)
+                if self.params.norm == SdfNorm::L2 && self.params.key_norm == KeyNorm::Squared =>
+            {
+                self.squared_targets(joint, &gt, x0, &seen, candidates)
+            }
+            _ => self.general_targets(joint, &gt, x0, &seen, candidates),
+        };
+        LogTargets {
+            log_a_sdf: scored.iter().map(|s| s.0).collect(),
+            log_a_se: scored.iter().map(|s| s.1).collect(),
+        }
+    }
+
+    /// The training default's energies (L2 SDF, squared key distance), summed as the points are
+    /// looked up ([`JointGrid::squared_energies`]).
+    fn squared_targets(
+        &self,
+        joint: &JointGrid,
+        gt: &Matrix3<f32>,
+        x0: &[Vector3<f32>],
+        seen: &[f32],
+        candidates: &[[f32; 9]],
+    ) -> Vec<(f32, f32)> {
+        let dim = self.keys.channels();
+        let seen: Vec<Record> = seen.chunks_exact(dim).map(|k| joint.seen(k)).collect();
+        let n = x0.len().max(1) as f64;
+        let p = &self.params;
+        candidates
+            .par_iter()
+            .map(|m| {
+                // x' = Rᵀ·R_gt·x⁰.
+                let map = Matrix3::from_row_slice(m).transpose() * gt;
+                let (sdf, keys) = joint.squared_energies(&map, x0, &seen);
+                (
+                    (-p.lambda_sdf * sdf as f64 / n / p.epsilon.powi(2)) as f32,
+                    (-p.lambda_se * keys as f64 / n) as f32,
+                )
+            })
+            .collect()
+    }
+
+    /// Any energy: the points' values looked up into buffers, then [`sdf_energy`] and
+    /// [`se_energy`].
+    fn general_targets(
+        &self,
+        joint: Option<&JointGrid>,
+        gt: &Matrix3<f32>,
+        x0: &[Vector3<f32>],
+        seen: &[f32],
+        candidates: &[[f32; 9]],
+    ) -> Vec<(f32, f32)> {
+        let dim = self.keys.channels();
+        candidates
             .par_iter()
             .map_init(
-                || {
-                    (
-                        vec![0f32; x0.len()],
-                        vec![0f32; x0.len() * dim],
-                        vec![0f32; 1 + dim],
-                    )
-                },
-                |(sdf_buf, key_buf, both), m| {
+                || (vec![0f32; x0.len()], vec![0f32; x0.len() * dim]),
+                |(sdf_buf, key_buf), m| {
                     // x' = Rᵀ·R_gt·x⁰.
-                    let r = Matrix3::from_row_slice(m);
-                    let map = r.transpose() * gt;
+                    let map = Matrix3::from_row_slice(m).transpose() * gt;
                     for (i, x) in x0.iter().enumerate() {
                         let moved = map * x;
                         let keys = &mut key_buf[i * dim..(i + 1) * dim];
                         match joint {
                             Some(joint) => {
-                                joint.sample_into(&moved, both);
+                                let both = joint.sample(&moved);
                                 sdf_buf[i] = both[0];
-                                keys.copy_from_slice(&both[1..]);
+                                keys.copy_from_slice(&both[1..=dim]);
                             }
                             None => {
                                 self.sdf.sample_into(&moved, &mut sdf_buf[i..i + 1]);
@@ -225,14 +271,69 @@ impl BakedExperts {
                     }
                     (
                         -sdf_energy(sdf_buf, &self.params) as f32,
-                        -se_energy(key_buf, &seen, dim, &self.params) as f32,
+                        -se_energy(key_buf, seen, dim, &self.params) as f32,
                     )
                 },
             )
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::so3::{haar_rotation, haar_rotations, to_row_major_f32};
+    use rand::SeedableRng;
+    use rand_chacha::ChaCha8Rng;
+
+    /// The fused sums (the training default) give the targets that looking every point up and
+    /// then applying [`sdf_energy`] and [`se_energy`] gives.
+    #[test]
+    fn the_fused_squared_targets_equal_the_general_ones() {
+        let sdf = VoxelGrid::bake(17, 1.05, 1, |p| {
+            p.iter().map(|v| v.norm() - 0.6 + 0.2 * v.x * v.z).collect()
+        });
+        let keys = VoxelGrid::bake(17, 1.05, 12, |p| {
+            p.iter()
+                .flat_map(|v| (0..12).map(move |k| (k as f32 + v.x * 3.0).cos() * v.y + v.z))
+                .collect()
+        });
+        let params = EnergyParams {
+            lambda_sdf: 0.7,
+            lambda_se: 3.0,
+            ..EnergyParams::default()
+        };
+        let experts = BakedExperts::new(sdf, keys, params);
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let r_gt = haar_rotation(&mut rng);
+        let x0: Vec<Vector3<f32>> = (0..100)
+            .map(|i| {
+                let a = i as f32 * 0.61;
+                Vector3::new(a.cos(), a.sin(), (a * 0.4).cos()).normalize() * 0.6
+            })
             .collect();
-        LogTargets {
-            log_a_sdf: scored.iter().map(|s| s.0).collect(),
-            log_a_se: scored.iter().map(|s| s.1).collect(),
+        let candidates: Vec<[f32; 9]> = haar_rotations(&mut rng, 64)
+            .iter()
+            .map(to_row_major_f32)
+            .collect();
+        let fused = experts.log_targets(&r_gt, &x0, &candidates);
+        let seen = experts.keys.sample(&x0);
+        let gt: Matrix3<f32> = r_gt.matrix().cast();
+        let general = experts.general_targets(None, &gt, &x0, &seen, &candidates);
+        let spread = fused.log_a_se.iter().cloned().fold(0f32, f32::min);
+        assert!(spread < -0.5, "energies that vary ({spread})");
+        for (k, (s, e)) in general.iter().enumerate() {
+            let close = |a: f32, b: f32| (a - b).abs() <= 1e-4 * (1.0 + b.abs());
+            assert!(
+                close(fused.log_a_sdf[k], *s),
+                "{k}: {} {s}",
+                fused.log_a_sdf[k]
+            );
+            assert!(
+                close(fused.log_a_se[k], *e),
+                "{k}: {} {e}",
+                fused.log_a_se[k]
+            );
         }
     }
 }

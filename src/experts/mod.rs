@@ -5,6 +5,7 @@
 pub mod baked;
 pub mod energy;
 pub mod feature;
+pub mod joint;
 pub mod modes;
 pub mod sdf;
 pub mod select;
