@@ -165,8 +165,19 @@ fn col2im(unit: &Unit, cols: &[f32], side: (usize, usize), dx: &mut [f32]) {
     for_each_tap(unit, side, |r, oy, start, (lo, hi)| {
         let row = &cols[r * m + oy * wo..][lo..hi];
         let first = start + lo * s + r % k - pad;
-        for (i, v) in row.iter().enumerate() {
-            dx[first + i * s] += v;
+        // Slices, not indices: the adds vectorise (stride 1) and lose their bounds checks.
+        match s {
+            1 => {
+                for (d, v) in dx[first..first + row.len()].iter_mut().zip(row) {
+                    *d += v;
+                }
+            }
+            _ => {
+                let span = &mut dx[first..first + (row.len() - 1) * s + 1];
+                for (d, v) in span.chunks_mut(s).zip(row) {
+                    d[0] += v;
+                }
+            }
         }
     });
 }
