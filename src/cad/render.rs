@@ -251,12 +251,13 @@ impl Raster {
             };
             for x in min_x..max_x {
                 let p = (x as f64 + 0.5, y as f64 + 0.5);
-                let b0 = edge(p1, p2, p) / area;
-                let b1 = edge(p2, p0, p) / area;
-                let b2 = edge(p0, p1, p) / area;
-                if b0 < 0.0 || b1 < 0.0 || b2 < 0.0 {
+                // Coverage from the edge functions' signs against the area's; the divisions
+                // only for covered pixels.
+                let (e0, e1, e2) = (edge(p1, p2, p), edge(p2, p0, p), edge(p0, p1, p));
+                if e0 * area < 0.0 || e1 * area < 0.0 || e2 * area < 0.0 {
                     continue;
                 }
+                let (b0, b1, b2) = (e0 / area, e1 / area, e2 / area);
                 // Perspective-correct interpolation: 1/z is affine in screen space.
                 let inv_z = b0 / z0 + b1 / z1 + b2 / z2;
                 let z = 1.0 / inv_z;

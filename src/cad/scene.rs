@@ -272,8 +272,15 @@ fn albedo(mesh: &Mesh, f: usize, bary: [f32; 3], base: [f32; 3]) -> [f32; 3] {
     std::array::from_fn(|k| own[k] * base[k])
 }
 
-/// sRGB byte to linear `[0, 1]`.
+/// sRGB byte to linear `[0, 1]`, from a table of the 256 values made on first use (textures and
+/// photographs call it per texel, four texels a bilinear lookup).
 pub fn srgb_to_linear(c: u8) -> f32 {
+    static TABLE: std::sync::OnceLock<[f32; 256]> = std::sync::OnceLock::new();
+    TABLE.get_or_init(|| std::array::from_fn(|c| srgb_formula(c as u8)))[c as usize]
+}
+
+/// The sRGB transfer function's inverse on one byte.
+fn srgb_formula(c: u8) -> f32 {
     let c = c as f32 / 255.0;
     if c <= 0.04045 {
         c / 12.92
