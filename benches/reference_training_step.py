@@ -3,8 +3,10 @@
 project never depends on it): the same tiny ResNet encoder, cube encoding, dual-branch head,
 losses and Adam, at the same batch, K and crop size, on the same CPU threads.
 
-Usage: reference_training_step.py BATCH K IMAGE_SIZE STEPS WARMUP
-Prints `ipdf step: X ms` and `alignist step: Y ms` (mean over STEPS after WARMUP). Images are
+Usage: reference_training_step.py BATCH K IMAGE_SIZE STEPS WARMUP [profile]
+Prints `ipdf step: X ms` and `alignist step: Y ms` (mean over STEPS after WARMUP); with `profile`,
+the IPDF step's stages instead (encoder forward, head forward, loss, head backward, encoder
+backward, optimiser), the encoder's backward run on its own from the features' gradient. Images are
 random (no rendering) and the Alignist targets random log-weights (no experts): the step from
 the images and targets on, which is what the network costs.
 """
@@ -124,9 +126,43 @@ def run(method, batch, k, size, steps, warmup):
     return 1e3 * sum(times) / len(times)
 
 
+def profile(batch, k, size, steps, warmup):
+    """The IPDF step's stages, ms per step (mean over `steps` after `warmup`)."""
+    torch.manual_seed(0)
+    encoder, head = Tiny(), Head()
+    optim = torch.optim.Adam(list(encoder.parameters()) + list(head.parameters()), lr=1e-4)
+    totals = {}
+
+    def timed(name, f):
+        started = time.perf_counter()
+        out = f()
+        totals[name] = totals.get(name, 0.0) + time.perf_counter() - started
+        return out
+
+    for step in range(warmup + steps):
+        if step == warmup:
+            totals.clear()
+        images = torch.rand(batch, 3, size, size)
+        encodings = cube_encoding(random_rotations(batch * k)).reshape(batch, k, 144)
+        features = timed("encoder forward", lambda: encoder(images))
+        detached = features.detach().requires_grad_()
+        shape, feature = timed("head forward", lambda: head(detached, encodings))
+        loss = timed("loss", lambda: -F.log_softmax(shape + feature, dim=1)[:, 0].mean())
+        optim.zero_grad(set_to_none=True)
+        timed("head backward", loss.backward)
+        timed("encoder backward", lambda: features.backward(detached.grad))
+        timed("optimiser", optim.step)
+    for name, seconds in totals.items():
+        print(f"{name}: {1e3 * seconds / steps:.1f} ms")
+    print(f"ipdf step (sum of the stages): {1e3 * sum(totals.values()) / steps:.1f} ms")
+
+
 def main():
     batch, k, size, steps, warmup = (int(a) for a in sys.argv[1:6])
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
+    if sys.argv[6:] == ["profile"]:
+        profile(batch, k, size, steps, warmup)
+        return
     for method in ("ipdf", "alignist"):
         print(f"{method} step: {run(method, batch, k, size, steps, warmup):.1f} ms")
 
