@@ -197,21 +197,36 @@ impl JointGrid {
         let (res, slab) = (self.res, self.res * self.res);
         let data = self.data.as_ptr() as *const f32;
         let mut acc = _mm512_setzero_ps();
-        for (x, s) in x0.iter().zip(seen) {
-            let (base, [tx, ty, tz]) = cell(self.res, self.bound, &(map * x));
-            // SAFETY: `cell` keeps every corner's offset (base + {0,1} + {0,res} + {0,slab})
-            // inside the res³ records; each record is 64-byte aligned.
-            unsafe {
-                let at = |o: usize| _mm512_load_ps(data.add(o * LANES));
-                let lerp = |a: __m512, b: __m512, t: f32| {
-                    _mm512_fmadd_ps(_mm512_sub_ps(b, a), _mm512_set1_ps(t), a)
-                };
-                let along_x = |o: usize| lerp(at(o), at(o + 1), tx);
-                let c0 = lerp(along_x(base), along_x(base + res), ty);
-                let c1 = lerp(along_x(base + slab), along_x(base + slab + res), ty);
-                let v = lerp(c0, c1, tz);
-                let d = _mm512_sub_ps(v, _mm512_load_ps(s.0.as_ptr()));
-                acc = _mm512_fmadd_ps(d, d, acc);
+        // Points in groups: every cell of a group is found and its corners' cache lines asked
+        // for before the group is interpolated, so the lookups' misses overlap.
+        const GROUP: usize = 8;
+        for (xs, ss) in x0.chunks(GROUP).zip(seen.chunks(GROUP)) {
+            let mut cells = [(0usize, [0f32; 3]); GROUP];
+            for (c, x) in cells.iter_mut().zip(xs) {
+                *c = cell(self.res, self.bound, &(map * x));
+                for o in [c.0, c.0 + res, c.0 + slab, c.0 + slab + res] {
+                    // SAFETY: in bounds as below; a prefetch does not fault anyway.
+                    unsafe {
+                        _mm_prefetch::<_MM_HINT_T0>(data.add(o * LANES) as *const i8);
+                        _mm_prefetch::<_MM_HINT_T0>(data.add((o + 1) * LANES) as *const i8);
+                    }
+                }
+            }
+            for (&(base, [tx, ty, tz]), s) in cells.iter().zip(ss) {
+                // SAFETY: `cell` keeps every corner's offset (base + {0,1} + {0,res} + {0,slab})
+                // inside the res³ records; each record is 64-byte aligned.
+                unsafe {
+                    let at = |o: usize| _mm512_load_ps(data.add(o * LANES));
+                    let lerp = |a: __m512, b: __m512, t: f32| {
+                        _mm512_fmadd_ps(_mm512_sub_ps(b, a), _mm512_set1_ps(t), a)
+                    };
+                    let along_x = |o: usize| lerp(at(o), at(o + 1), tx);
+                    let c0 = lerp(along_x(base), along_x(base + res), ty);
+                    let c1 = lerp(along_x(base + slab), along_x(base + slab + res), ty);
+                    let v = lerp(c0, c1, tz);
+                    let d = _mm512_sub_ps(v, _mm512_load_ps(s.0.as_ptr()));
+                    acc = _mm512_fmadd_ps(d, d, acc);
+                }
             }
         }
         let mut lanes = [0f32; LANES];

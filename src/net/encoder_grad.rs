@@ -320,7 +320,10 @@ impl Unit {
             .zip(d_out.data.par_chunks(c * m))
             .zip(norm.xhat.par_chunks(c * m))
             .for_each(|((dy_img, d_img), xh_img)| {
-                let planes = dy_img.chunks_mut(m).zip(d_img.chunks(m)).zip(xh_img.chunks(m));
+                let planes = dy_img
+                    .chunks_mut(m)
+                    .zip(d_img.chunks(m))
+                    .zip(xh_img.chunks(m));
                 for (ch, ((dy, d), xh)) in planes.enumerate() {
                     let (scale, mean_d, mean_dx) = per_channel[ch];
                     for ((dy, d), xh) in dy.iter_mut().zip(d).zip(xh) {
