@@ -45,12 +45,12 @@ fn cell(res: usize, bound: f32, p: &Vector3<f32>) -> (usize, [f32; 3]) {
 }
 
 impl JointGrid {
-    /// Joins an SDF grid (1 channel) and a key grid (at most 15 channels) of the same resolution
+    /// Joins an SDF grid (1 channel) and a key grid (1 to 15 channels) of the same resolution
     /// and bound; `None` otherwise.
     pub fn new(sdf: &VoxelGrid, keys: &VoxelGrid) -> Option<JointGrid> {
         let (res, bound) = (sdf.resolution(), sdf.bound());
         if sdf.channels() != 1
-            || keys.channels() >= LANES
+            || !(1..LANES).contains(&keys.channels())
             || keys.resolution() != res
             || keys.bound() != bound
         {
@@ -320,6 +320,8 @@ mod tests {
         assert!(JointGrid::new(&coarse, &keys).is_none());
         let wide = VoxelGrid::bake(11, 1.05, 16, |p| vec![0.0; p.len() * 16]);
         assert!(JointGrid::new(&sdf, &wide).is_none());
+        let none = VoxelGrid::bake(11, 1.05, 0, |_| Vec::new());
+        assert!(JointGrid::new(&sdf, &none).is_none());
     }
 
     #[test]
