@@ -188,94 +188,87 @@ impl BakedExperts {
         x0: &[Vector3<f32>],
         candidates: &[[f32; 9]],
     ) -> LogTargets {
+        let dim = self.keys.channels();
         let seen = self.keys.sample(x0);
         let gt: Matrix3<f32> = r_gt.matrix().cast();
         let joint = self
             .joint
             .get_or_init(|| JointGrid::new(&self.sdf, &self.keys))
             .as_ref();
-        let scored: Vec<(f32, f32)> = match joint {
-            Some(joint)
-                if self.params.norm == SdfNorm::L2 && self.params.key_norm == KeyNorm::Squared =>
-            {
-                self.squared_targets(joint, &gt, x0, &seen, candidates)
-            }
-            _ => self.general_targets(joint, &gt, x0, &seen, candidates),
-        };
+        // The training default's energies are summed as the points are looked up.
+        let squared = self.params.norm == SdfNorm::L2 && self.params.key_norm == KeyNorm::Squared;
+        let fused: Option<(&JointGrid, Vec<Record>)> = joint
+            .filter(|_| squared)
+            .map(|j| (j, seen.chunks_exact(dim).map(|k| j.seen(k)).collect()));
+        let scored: Vec<(f32, f32)> = candidates
+            .par_iter()
+            .map_init(
+                || (vec![0f32; x0.len()], vec![0f32; x0.len() * dim]),
+                |buffers, m| {
+                    // x' = Rᵀ·R_gt·x⁰.
+                    let map = Matrix3::from_row_slice(m).transpose() * gt;
+                    match &fused {
+                        Some((joint, seen)) => self.squared_log_targets(joint, &map, x0, seen),
+                        None => self.looked_up_log_targets(joint, &map, x0, &seen, buffers),
+                    }
+                },
+            )
+            .collect();
         LogTargets {
             log_a_sdf: scored.iter().map(|s| s.0).collect(),
             log_a_se: scored.iter().map(|s| s.1).collect(),
         }
     }
 
-    /// The training default's energies (L2 SDF, squared key distance), summed as the points are
-    /// looked up ([`JointGrid::squared_energies`]).
-    fn squared_targets(
+    /// `(−U_SDF, −U_SE)` of one candidate (`map = Rᵀ·R_gt`) for the training default's
+    /// energies (L2 SDF, squared key distance), summed as the points are looked up
+    /// ([`JointGrid::squared_energies`]).
+    fn squared_log_targets(
         &self,
         joint: &JointGrid,
-        gt: &Matrix3<f32>,
+        map: &Matrix3<f32>,
         x0: &[Vector3<f32>],
-        seen: &[f32],
-        candidates: &[[f32; 9]],
-    ) -> Vec<(f32, f32)> {
-        let dim = self.keys.channels();
-        let seen: Vec<Record> = seen.chunks_exact(dim).map(|k| joint.seen(k)).collect();
+        seen: &[Record],
+    ) -> (f32, f32) {
         let n = x0.len().max(1) as f64;
         let p = &self.params;
-        candidates
-            .par_iter()
-            .map(|m| {
-                // x' = Rᵀ·R_gt·x⁰.
-                let map = Matrix3::from_row_slice(m).transpose() * gt;
-                let (sdf, keys) = joint.squared_energies(&map, x0, &seen);
-                (
-                    (-p.lambda_sdf * sdf as f64 / n / p.epsilon.powi(2)) as f32,
-                    (-p.lambda_se * keys as f64 / n) as f32,
-                )
-            })
-            .collect()
+        let (sdf, keys) = joint.squared_energies(map, x0, seen);
+        (
+            (-p.lambda_sdf * sdf as f64 / n / p.epsilon.powi(2)) as f32,
+            (-p.lambda_se * keys as f64 / n) as f32,
+        )
     }
 
-    /// Any energy: the points' values looked up into buffers, then [`sdf_energy`] and
-    /// [`se_energy`].
-    fn general_targets(
+    /// `(−U_SDF, −U_SE)` of one candidate for any energy: the points' values looked up into
+    /// `buffers` (one value, then `dim` keys per point), then [`sdf_energy`] and [`se_energy`].
+    fn looked_up_log_targets(
         &self,
         joint: Option<&JointGrid>,
-        gt: &Matrix3<f32>,
+        map: &Matrix3<f32>,
         x0: &[Vector3<f32>],
         seen: &[f32],
-        candidates: &[[f32; 9]],
-    ) -> Vec<(f32, f32)> {
+        (sdf_buf, key_buf): &mut (Vec<f32>, Vec<f32>),
+    ) -> (f32, f32) {
         let dim = self.keys.channels();
-        candidates
-            .par_iter()
-            .map_init(
-                || (vec![0f32; x0.len()], vec![0f32; x0.len() * dim]),
-                |(sdf_buf, key_buf), m| {
-                    // x' = Rᵀ·R_gt·x⁰.
-                    let map = Matrix3::from_row_slice(m).transpose() * gt;
-                    for (i, x) in x0.iter().enumerate() {
-                        let moved = map * x;
-                        let keys = &mut key_buf[i * dim..(i + 1) * dim];
-                        match joint {
-                            Some(joint) => {
-                                let both = joint.sample(&moved);
-                                sdf_buf[i] = both[0];
-                                keys.copy_from_slice(&both[1..=dim]);
-                            }
-                            None => {
-                                self.sdf.sample_into(&moved, &mut sdf_buf[i..i + 1]);
-                                self.keys.sample_into(&moved, keys);
-                            }
-                        }
-                    }
-                    (
-                        -sdf_energy(sdf_buf, &self.params) as f32,
-                        -se_energy(key_buf, seen, dim, &self.params) as f32,
-                    )
-                },
-            )
-            .collect()
+        for (i, x) in x0.iter().enumerate() {
+            let moved = map * x;
+            let keys = &mut key_buf[i * dim..(i + 1) * dim];
+            match joint {
+                Some(joint) => {
+                    let both = joint.sample(&moved);
+                    sdf_buf[i] = both[0];
+                    keys.copy_from_slice(&both[1..=dim]);
+                }
+                None => {
+                    self.sdf.sample_into(&moved, &mut sdf_buf[i..i + 1]);
+                    self.keys.sample_into(&moved, keys);
+                }
+            }
+        }
+        (
+            -sdf_energy(sdf_buf, &self.params) as f32,
+            -se_energy(key_buf, seen, dim, &self.params) as f32,
+        )
     }
 }
 
@@ -319,7 +312,14 @@ mod tests {
         let fused = experts.log_targets(&r_gt, &x0, &candidates);
         let seen = experts.keys.sample(&x0);
         let gt: Matrix3<f32> = r_gt.matrix().cast();
-        let general = experts.general_targets(None, &gt, &x0, &seen, &candidates);
+        let mut buffers = (vec![0f32; x0.len()], vec![0f32; x0.len() * 12]);
+        let general: Vec<(f32, f32)> = candidates
+            .iter()
+            .map(|m| {
+                let map = Matrix3::from_row_slice(m).transpose() * gt;
+                experts.looked_up_log_targets(None, &map, &x0, &seen, &mut buffers)
+            })
+            .collect();
         let spread = fused.log_a_se.iter().cloned().fold(0f32, f32::min);
         assert!(spread < -0.5, "energies that vary ({spread})");
         for (k, (s, e)) in general.iter().enumerate() {
