@@ -1,5 +1,5 @@
 //! The tiny encoder's training forward and backward on the conv backend at the training bench's
-//! shape (batch 16, 32 px) on burn and by hand (`net::encoder_grad`), with `--convs` each of
+//! shape (batch 16, 32 px; `--side N` for N px crops) on burn and by hand (`net::encoder_grad`), with `--convs` each of
 //! burn's convolutions alone first, with `--hand` the hand-written path alone: ms per pass, median of 20 after
 //! 5 warm-up passes. For profiling (`perf record`) the encoder alone. `cargo run --release --example probe_encoder`
 use std::time::Instant;
@@ -13,6 +13,16 @@ fn median(mut v: Vec<f64>) -> f64 {
 }
 
 fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let side: usize = args
+        .iter()
+        .position(|a| a == "--side")
+        .map(|i| {
+            args.get(i + 1)
+                .and_then(|v| v.parse().ok())
+                .expect("--side N")
+        })
+        .unwrap_or(32);
     if std::env::args().any(|a| a == "--convs") {
         conv_shapes();
     }
@@ -22,7 +32,7 @@ fn main() {
     let (mut forward, mut backward) = (Vec::new(), Vec::new());
     let burn_too = !std::env::args().any(|a| a == "--hand");
     for i in 0..if burn_too { 25 } else { 0 } {
-        let x: Tensor<4> = Tensor::random([16, 3, 32, 32], Distribution::Default, &device);
+        let x: Tensor<4> = Tensor::random([16, 3, side, side], Distribution::Default, &device);
         let t = Instant::now();
         let f = encoder.forward(x);
         let d = Tensor::<2>::random(f.dims(), Distribution::Default, &device);
@@ -40,7 +50,7 @@ fn main() {
     }
     if burn_too {
         println!(
-            "tiny encoder, batch 16, 32 px, burn ({}): forward {:.1} ms, backward {:.1} ms (medians of 20)",
+            "tiny encoder, batch 16, {side} px, burn ({}): forward {:.1} ms, backward {:.1} ms (medians of 20)",
             alignist::backend::backend_for(alignist::backend::Workload::Conv),
             median(forward),
             median(backward)
@@ -49,7 +59,7 @@ fn main() {
     let (mut forward, mut backward) = (Vec::new(), Vec::new());
     let crops: Vec<Vec<u8>> = (0..16)
         .map(|i| {
-            (0..32 * 32 * 3)
+            (0..side * side * 3)
                 .map(|j| ((j * 7 + i * 13) % 251) as u8)
                 .collect()
         })
@@ -60,7 +70,7 @@ fn main() {
         let t = Instant::now();
         let model = TrainingEncoder::of(&encoder, alignist::net::Kernels::default())
             .expect("the tiny layout");
-        let pass = model.forward(&crops, 32);
+        let pass = model.forward(&crops, side);
         let fwd = t.elapsed().as_secs_f64() * 1e3;
         let t = Instant::now();
         let grads = model.backward(&pass, &d);
@@ -73,7 +83,7 @@ fn main() {
         }
     }
     println!(
-        "tiny encoder, batch 16, 32 px, by hand (net::encoder_grad): forward {:.1} ms, backward {:.1} ms (medians of 20)",
+        "tiny encoder, batch 16, {side} px, by hand (net::encoder_grad): forward {:.1} ms, backward {:.1} ms (medians of 20)",
         median(forward),
         median(backward)
     );

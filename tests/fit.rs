@@ -133,6 +133,7 @@ fn render_experts_fit_eval_and_load_a_bundle() {
     resume_and_stop_at_finish_a_run(&p);
     assert_eq!(p.eval_overall("2")["images"], 2);
     fresh_renders_fit_with_their_loss_and_sampling(&p);
+    a_warm_start_may_change_the_crop_side_only(&p);
     the_bundle_read_back_scores_as_fit_held_it(&p, &eval);
     bad_arguments_are_refused_naming_them(&p);
     a_corrupt_network_is_refused(&p);
@@ -272,6 +273,62 @@ fn fresh_renders_fit_with_their_loss_and_sampling(p: &Pipeline) {
     let json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
     assert_eq!(json["overall"]["images"], 3);
+}
+
+/// `--init` from the 32 px bundle into a 48 px run: the encoder pools globally, so its weights
+/// carry over, and the manifest records the side they were trained at. Another encoding is
+/// refused, naming the bundle.
+fn a_warm_start_may_change_the_crop_side_only(p: &Pipeline) {
+    let (bundle, experts, dir) = (&p.bundle, &p.experts, &p.dir);
+    let warm = dir.path().join("warm-48");
+    let fit = |encoding: &str| {
+        Command::new(env!("CARGO_BIN_EXE_alignist-train"))
+            .args([
+                "fit",
+                "--fresh",
+                "--experts",
+                s(experts),
+                "--init",
+                s(bundle),
+            ])
+            .args([
+                "--out",
+                s(&warm),
+                "--steps",
+                "2",
+                "--batch",
+                "2",
+                "--k",
+                "16",
+            ])
+            .args([
+                "--image-size",
+                "48",
+                "--eval-images",
+                "0",
+                "--encoding",
+                encoding,
+            ])
+            .output()
+            .unwrap()
+    };
+    let out = fit("cube");
+    assert!(out.status.success(), "{out:?}");
+    let manifest = ModelBundle::load(&warm).unwrap().manifest;
+    assert_eq!(manifest.network.image_size, 48);
+    let init = manifest.provenance.train.init.unwrap();
+    assert_eq!(init.image_size, Some(32));
+    assert!(init.path.contains("models/tiny"), "{}", init.path);
+
+    let refused = fit("ipdf");
+    assert!(!refused.status.success());
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        err.contains("--init")
+            && err.contains("models/tiny")
+            && err.contains("image size may differ"),
+        "{err}"
+    );
 }
 
 /// The bundle read back scores as the network `fit` held in memory.

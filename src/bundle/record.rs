@@ -289,6 +289,10 @@ pub struct InitWeights {
     /// behind a model stays on record.
     #[serde(default)]
     pub trained_by: String,
+    /// The crop side the weights were trained at, when it is not this run's (the encoder pools
+    /// globally, so its weights carry over to another size).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub image_size: Option<u32>,
 }
 
 /// How the K rotations of an image are drawn.

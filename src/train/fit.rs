@@ -270,18 +270,27 @@ fn dataset_data(inputs: &FitInputs, data: &[PathBuf]) -> Result<FitData, FitErro
 
 /// The weights of the bundle in `dir`, checked to be of `network`: the start of a warm restart,
 /// recorded with their checksum and the command that trained them.
+///
+/// The crop side may differ: every layout ends in global average pooling, so the encoder's
+/// weights are the same tensors at any input size (a 32 px network warm-starts a 64 px one). The
+/// side the weights were trained at is recorded beside them.
 pub fn init_weights(dir: &Path, network: &NetworkConfig) -> Result<InitWeights, FitError> {
     let path = dir.display().to_string();
     let bundle = ModelBundle::load(dir).map_err(|source| FitError::Bundle {
         path: path.clone(),
         source,
     })?;
-    if &bundle.manifest.network != network {
+    let theirs = &bundle.manifest.network;
+    let same_tensors = NetworkConfig {
+        image_size: network.image_size,
+        ..theirs.clone()
+    };
+    if &same_tensors != network {
         let json = |n: &NetworkConfig| serde_json::to_string(n).unwrap_or_default();
         return Err(FitError::Invalid(format!(
             "{path}: its network ({}) is not the one asked for ({}); give the same layout, \
-             encoding and image size",
-            json(&bundle.manifest.network),
+             encoding, hidden width and layers (the image size may differ)",
+            json(theirs),
             json(network)
         )));
     }
@@ -297,6 +306,7 @@ pub fn init_weights(dir: &Path, network: &NetworkConfig) -> Result<InitWeights, 
         path: dir.join(NETWORK_FILE).display().to_string(),
         file,
         trained_by: bundle.manifest.provenance.command.clone(),
+        image_size: (theirs.image_size != network.image_size).then_some(theirs.image_size),
     })
 }
 
