@@ -11,6 +11,9 @@ use serde::{Deserialize, Serialize};
 
 use super::Mesh;
 
+/// Depth in front of the camera plane below which a triangle's vertex skips the triangle.
+pub(crate) const NEAR: f64 = 1e-6;
+
 /// A pinhole camera with an image size.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Camera {
@@ -128,7 +131,7 @@ pub fn render(mesh: &Mesh, camera: &Camera, pose: &Pose, options: &RenderOptions
         .collect();
     let screen: Vec<(f64, f64)> = cam.iter().map(|p| camera.project(p)).collect();
     let mut raster = Raster::new(w, h);
-    raster.draw_mesh(mesh, 0, &cam, &screen);
+    raster.draw_mesh(mesh, 0, &cam, &screen, false);
     let face_rgb: Vec<[u8; 3]> = (0..mesh.triangles.len())
         .map(|f| {
             let centroid = mesh.triangles[f]
@@ -192,15 +195,25 @@ impl Raster {
     }
 
     /// Draws every face of `mesh` as object `object` (vertices `cam` in the camera frame,
-    /// `screen` projected).
+    /// `screen` projected); with `cull_back_faces` (a closed, outward-wound mesh seen from
+    /// outside) only the faces turned towards the camera.
     pub(crate) fn draw_mesh(
         &mut self,
         mesh: &Mesh,
         object: u16,
         cam: &[Vector3<f64>],
         screen: &[(f64, f64)],
+        cull_back_faces: bool,
     ) {
         for f in 0..mesh.triangles.len() {
+            if cull_back_faces {
+                // Outward winding: a face turned away from the camera (at the origin) has its
+                // normal along the ray to it.
+                let [a, b, c] = mesh.triangles[f].map(|i| cam[i as usize]);
+                if (b - a).cross(&(c - a)).dot(&a) >= 0.0 {
+                    continue;
+                }
+            }
             self.draw_triangle(mesh, object, f, cam, screen);
         }
     }
@@ -218,7 +231,7 @@ impl Raster {
         let (w, h) = (self.width, self.height);
         let [i0, i1, i2] = mesh.triangles[f].map(|i| i as usize);
         let (z0, z1, z2) = (cam[i0].z, cam[i1].z, cam[i2].z);
-        if z0 <= 1e-6 || z1 <= 1e-6 || z2 <= 1e-6 {
+        if z0 <= NEAR || z1 <= NEAR || z2 <= NEAR {
             return;
         }
         let (p0, p1, p2) = (screen[i0], screen[i1], screen[i2]);

@@ -11,7 +11,7 @@
 
 use nalgebra::{Matrix3, Vector3};
 
-use super::render::Raster;
+use super::render::{NEAR, Raster};
 use super::{Camera, Mesh, MeshColors, Pose, Render};
 
 /// Surface parameters of one object.
@@ -57,8 +57,11 @@ pub struct Lighting {
 /// is the area-weighted mean of its group's face normals. Curved surfaces shade smoothly (both
 /// sides of a smooth edge get the same normal at its ends) and edges sharper than `crease` stay
 /// hard.
+///
+/// Made once per mesh, it also records whether the mesh is closed and wound outwards (its back
+/// faces are then always hidden behind its front faces, and the renderer skips them).
 #[derive(Debug, Clone, PartialEq)]
-pub struct CornerNormals(Vec<[Vector3<f32>; 3]>);
+pub struct CornerNormals(Vec<[Vector3<f32>; 3]>, bool);
 
 impl CornerNormals {
     /// Corner normals with a crease angle of `crease_deg` degrees.
@@ -126,7 +129,17 @@ impl CornerNormals {
                 corners[f][k] = n;
             }
         }
-        CornerNormals(corners)
+        let closed_outward = {
+            let welded = mesh.welded();
+            welded.check_closed().is_ok() && welded.signed_volume() > 0.0
+        };
+        CornerNormals(corners, closed_outward)
+    }
+
+    /// Whether the mesh is closed, consistently wound and wound counter-clockwise seen from
+    /// outside (positive volume): seen from outside, its back faces are hidden.
+    pub fn closed_outward(&self) -> bool {
+        self.1
     }
 
     /// The normals at the three corners of face `f`.
@@ -189,7 +202,10 @@ pub fn render_scene(
             .map(|v| rotations[i] * v.cast::<f64>() + o.pose.translation)
             .collect();
         let screen: Vec<(f64, f64)> = cam.iter().map(|p| camera.project(p)).collect();
-        raster.draw_mesh(o.mesh, i as u16, &cam, &screen);
+        // A closed mesh wholly in front of the camera is seen from outside: its back faces
+        // are hidden behind its front faces, so they are not drawn.
+        let cull = o.normals.closed_outward() && cam.iter().all(|p| p.z > NEAR);
+        raster.draw_mesh(o.mesh, i as u16, &cam, &screen, cull);
         if i == 0 {
             unoccluded_pixels = raster.object_at.iter().filter(|&&o| o == 0).count();
         }
@@ -335,4 +351,75 @@ fn shade_pixel(
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cad::shapes::{ALL_SHAPES, uv_sphere_mesh};
+    use nalgebra::{Rotation3, Vector3};
+    use rand::{RngExt, SeedableRng};
+
+    /// The raster of `mesh` at `pose` through a 96 px camera, back faces culled or not.
+    fn raster(mesh: &Mesh, pose: &Pose, cull: bool) -> Raster {
+        let camera = Camera::square(96);
+        let cam: Vec<Vector3<f64>> = mesh
+            .vertices
+            .iter()
+            .map(|v| pose.rotation * v.cast::<f64>() + pose.translation)
+            .collect();
+        let screen: Vec<(f64, f64)> = cam.iter().map(|p| camera.project(p)).collect();
+        let mut r = Raster::new(96, 96);
+        r.draw_mesh(mesh, 0, &cam, &screen, cull);
+        r
+    }
+
+    #[test]
+    fn closed_outward_meshes_are_recognised() {
+        let mut meshes: Vec<Mesh> = ALL_SHAPES.iter().map(|s| s.mesh()).collect();
+        meshes.push(uv_sphere_mesh(16, 8));
+        for m in &meshes {
+            assert!(CornerNormals::new(m, 35.0).closed_outward(), "{}", m.source);
+            // Wound inwards, or with a face missing: not.
+            let mut inward = m.clone();
+            inward.triangles.iter_mut().for_each(|t| t.swap(1, 2));
+            assert!(!CornerNormals::new(&inward, 35.0).closed_outward());
+            let mut open = m.clone();
+            open.triangles.pop();
+            assert!(!CornerNormals::new(&open, 35.0).closed_outward());
+        }
+    }
+
+    /// Culling the back faces of a closed mesh seen from outside changes no pixel: the same
+    /// depth, face and weights everywhere, at random poses (near enough to fill the frame and
+    /// to be cut by its edge).
+    #[test]
+    fn culling_back_faces_of_closed_meshes_changes_no_pixel() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let mut meshes: Vec<Mesh> = ALL_SHAPES.iter().map(|s| s.mesh()).collect();
+        meshes.push(uv_sphere_mesh(16, 8));
+        let mut covered = 0;
+        for m in &meshes {
+            for _ in 0..20 {
+                let pose = Pose {
+                    rotation: Rotation3::new(Vector3::new(
+                        rng.random_range(-3.0..3.0),
+                        rng.random_range(-3.0..3.0),
+                        rng.random_range(-3.0..3.0),
+                    )),
+                    translation: Vector3::new(
+                        rng.random_range(-0.5..0.5),
+                        rng.random_range(-0.5..0.5),
+                        rng.random_range(1.2..4.0),
+                    ),
+                };
+                let (all, culled) = (raster(m, &pose, false), raster(m, &pose, true));
+                assert_eq!(all.zbuf, culled.zbuf, "{}", m.source);
+                assert_eq!(all.face_at, culled.face_at, "{}", m.source);
+                assert_eq!(all.bary, culled.bary, "{}", m.source);
+                covered += all.face_at.iter().filter(|&&f| f != u32::MAX).count();
+            }
+        }
+        assert!(covered > 100_000, "the poses cover {covered} pixels");
+    }
 }
