@@ -350,7 +350,10 @@ fn the_manifests_levels_cap_what_the_engine_serves() {
     let model = Engine::load_model(path, config).unwrap();
     assert_eq!(model.config().search_max_level, levels.search_max);
     assert_eq!(model.config().max_full_level, levels.full_max);
-    let features = model.features(&[&vec![128u8; 32 * 32 * 3]]).swap_remove(0);
+    let side = model.input_size() as usize;
+    let features = model
+        .features(&[&vec![128u8; side * side * 3]])
+        .swap_remove(0);
     let above = PredictOptions {
         top_k: 1,
         level: Some(levels.search_max + 1),
