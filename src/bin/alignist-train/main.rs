@@ -90,14 +90,14 @@ enum Command {
 /// again, or trimmed off the heap's top when freed, and every step then pays for page faults on
 /// fresh pages (and TLB shootdowns across the threads). Here they stay in the heap: large
 /// allocations are not mapped separately and the heap is not trimmed. Measured on a 64 px
-/// realistic `fit` step (batch 16, K 256, 2 cores): 278 / 252 ms → 202 / 193 ms, the encoder's
-/// backward 143 / 128 → 73 / 68 ms (BENCHMARKS.md, "The allocator").
+/// realistic `fit` step (batch 16, K 256, 2 cores), alternated: 248 / 253 ms → 187 / 184 ms, the
+/// encoder's backward 126 → 65 ms (BENCHMARKS.md, "The allocator in the trainer").
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
 fn keep_freed_buffers_in_the_heap() {
     // SAFETY: mallopt only sets allocator parameters; called before any thread starts.
     unsafe {
-        // glibc refuses a threshold above its heap's maximum over 2 (32 MiB on 64-bit): take the
-        // largest it accepts.
+        // glibc 2.36 takes 1 GiB; a glibc that refuses a threshold above 32 MiB (the largest
+        // its dynamic threshold reaches on 64-bit) gets that.
         if libc::mallopt(libc::M_MMAP_THRESHOLD, 1 << 30) == 0 {
             libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
         }
