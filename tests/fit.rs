@@ -98,6 +98,24 @@ impl Pipeline {
         run(&args)
     }
 
+    /// `fit --fresh` of 2 steps (batch 2, K 16) of the cube's experts into `out`, its outcome
+    /// returned as it is.
+    fn fresh_fit(&self, out: &Path, extra: &[&str]) -> Output {
+        Command::new(env!("CARGO_BIN_EXE_alignist-train"))
+            .args([
+                "fit",
+                "--fresh",
+                "--experts",
+                s(&self.experts),
+                "--out",
+                s(out),
+            ])
+            .args(["--steps", "2", "--batch", "2", "--k", "16"])
+            .args(extra)
+            .output()
+            .unwrap()
+    }
+
     /// `fit` into the bundle.
     fn fit(&self, extra: &[&str]) -> Output {
         self.fit_to(&self.bundle, extra)
@@ -203,37 +221,29 @@ fn resume_and_stop_at_finish_a_run(p: &Pipeline) {
 
 /// Fresh renders instead of --data, with the L1 loss and half of K from the mode table.
 fn fresh_renders_fit_with_their_loss_and_sampling(p: &Pipeline) {
-    let (bundle, experts, dir) = (&p.bundle, &p.experts, &p.dir);
+    let (bundle, dir) = (&p.bundle, &p.dir);
     let report = dir.path().join("report.json");
     // Fresh renders instead of --data, with the L1 loss and half of K from the mode table: the
     // results table names each bundle's method as it was trained (it once printed
     // "alignist (GKL)" for every alignist bundle).
     let fresh = dir.path().join("fresh-l1");
-    let out = run(&[
-        "fit",
-        "--fresh",
-        "--experts",
-        s(experts),
-        "--loss",
-        "l1",
-        "--focused-fraction",
-        "0.5",
-        "--out",
-        s(&fresh),
-        "--steps",
-        "2",
-        "--batch",
-        "2",
-        "--k",
-        "16",
-        "--image-size",
-        "32",
-        "--eval-level",
-        "1",
-        "--eval-images",
-        "4",
-        "--profile",
-    ]);
+    let out = p.fresh_fit(
+        &fresh,
+        &[
+            "--loss",
+            "l1",
+            "--focused-fraction",
+            "0.5",
+            "--image-size",
+            "32",
+            "--eval-level",
+            "1",
+            "--eval-images",
+            "4",
+            "--profile",
+        ],
+    );
+    assert!(out.status.success(), "{out:?}");
     assert!(String::from_utf8_lossy(&out.stdout).contains("step profile"));
     let fresh_manifest = ModelBundle::load(&fresh).unwrap().manifest;
     match fresh_manifest.provenance.train.method {
@@ -279,38 +289,18 @@ fn fresh_renders_fit_with_their_loss_and_sampling(p: &Pipeline) {
 /// carry over, and the manifest records the side they were trained at. Another encoding is
 /// refused, naming the bundle.
 fn a_warm_start_may_change_the_crop_side_only(p: &Pipeline) {
-    let (bundle, experts, dir) = (&p.bundle, &p.experts, &p.dir);
+    let (bundle, dir) = (&p.bundle, &p.dir);
     let warm = dir.path().join("warm-48");
     let fit = |encoding: &str| {
-        Command::new(env!("CARGO_BIN_EXE_alignist-train"))
-            .args([
-                "fit",
-                "--fresh",
-                "--experts",
-                s(experts),
-                "--init",
-                s(bundle),
-            ])
-            .args([
-                "--out",
-                s(&warm),
-                "--steps",
-                "2",
-                "--batch",
-                "2",
-                "--k",
-                "16",
-            ])
-            .args([
-                "--image-size",
-                "48",
-                "--eval-images",
-                "0",
-                "--encoding",
-                encoding,
-            ])
-            .output()
-            .unwrap()
+        let init = [
+            "--init",
+            s(bundle),
+            "--image-size",
+            "48",
+            "--eval-images",
+            "0",
+        ];
+        p.fresh_fit(&warm, &[&init[..], &["--encoding", encoding]].concat())
     };
     let out = fit("cube");
     assert!(out.status.success(), "{out:?}");

@@ -61,7 +61,12 @@ pub struct Lighting {
 /// Made once per mesh, it also records whether the mesh is closed and wound outwards (its back
 /// faces are then always hidden behind its front faces, and the renderer skips them).
 #[derive(Debug, Clone, PartialEq)]
-pub struct CornerNormals(Vec<[Vector3<f32>; 3]>, bool);
+pub struct CornerNormals {
+    /// Per face, the normals at its three corners.
+    corners: Vec<[Vector3<f32>; 3]>,
+    /// Closed and wound outwards: see [`CornerNormals::closed_outward`].
+    closed_outward: bool,
+}
 
 impl CornerNormals {
     /// Corner normals with a crease angle of `crease_deg` degrees.
@@ -133,18 +138,21 @@ impl CornerNormals {
             let welded = mesh.welded();
             welded.check_closed().is_ok() && welded.signed_volume() > 0.0
         };
-        CornerNormals(corners, closed_outward)
+        CornerNormals {
+            corners,
+            closed_outward,
+        }
     }
 
     /// Whether the mesh is closed, consistently wound and wound counter-clockwise seen from
     /// outside (positive volume): seen from outside, its back faces are hidden.
     pub fn closed_outward(&self) -> bool {
-        self.1
+        self.closed_outward
     }
 
     /// The normals at the three corners of face `f`.
     pub fn of(&self, f: usize) -> [Vector3<f32>; 3] {
-        self.0[f]
+        self.corners[f]
     }
 }
 
@@ -314,7 +322,7 @@ fn shade_pixel(
     point: &Vector3<f64>,
     lighting: &Lighting,
 ) -> [f32; 3] {
-    let corners = &object.normals.0[f];
+    let corners = &object.normals.corners[f];
     let n_obj: Vector3<f32> = corners[0] * bary[0] + corners[1] * bary[1] + corners[2] * bary[2];
     let geometric = rotation * object.mesh.face_normal(f).cast::<f64>();
     let mut normal = (rotation * n_obj.cast::<f64>())
