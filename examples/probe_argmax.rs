@@ -18,7 +18,10 @@ fn main() {
     let images = renders.eval_images(model.input_size(), 50, 1 << 40);
     let grid = model.grid(3).unwrap().clone();
     for im in images.iter().filter(|im| im.object == *shape) {
-        let f = model.features(&[&im.rgb]).swap_remove(0);
+        let f = model
+            .features(&[&im.rgb])
+            .expect("crops of the input side")
+            .swap_remove(0);
         let d = model.distribution(&f, 3, None).unwrap();
         let p = &d.probability;
         let best = (0..p.len()).max_by(|&a, &b| p[a].total_cmp(&p[b])).unwrap();

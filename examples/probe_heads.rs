@@ -14,7 +14,10 @@ fn main() {
         .unwrap(),
     );
     let crop = vec![128u8; (model.input_size() * model.input_size() * 3) as usize];
-    let f1 = model.features(&[&crop]).swap_remove(0);
+    let f1 = model
+        .features(&[&crop])
+        .expect("crops of the input side")
+        .swap_remove(0);
     let options = PredictOptions {
         top_k: 5,
         level: Some(3),

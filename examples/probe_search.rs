@@ -48,7 +48,7 @@ fn main() -> anyhow::Result<()> {
             .flat_map(|_| &images)
             .map(|im| {
                 let t = Instant::now();
-                let f = model.features(&[im]);
+                let f = model.features(&[im]).expect("crops of the input side");
                 model
                     .predict_searching(&f, &options, &search, &[None])
                     .expect("search");
@@ -82,9 +82,9 @@ fn time_parts(model: &Model, search: &SearchParams, crop: &[u8], runs: usize) ->
                 .collect(),
         )
     };
-    let features = model.features(&[crop]);
+    let features = model.features(&[crop]).expect("crops of the input side");
     let encoder = timed(&mut || {
-        model.features(&[crop]);
+        model.features(&[crop]).expect("crops of the input side");
     });
     println!("  encoder: {encoder:.1} ms");
     let start_precision = if search.start_level == FINEST {

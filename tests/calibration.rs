@@ -215,7 +215,7 @@ fn a_coarse_level_out_of_f16_range_is_scored_again_in_f32() {
     let model = Engine::load_model(&folder, EngineConfig::default()).unwrap();
     let size = model.input_size() as usize;
     let crop: Vec<u8> = (0..size * size * 3).map(|i| (i * 7 % 256) as u8).collect();
-    let features = model.features(&[&crop]);
+    let features = model.features(&[&crop]).expect("crops of the input side");
     let options = PredictOptions {
         top_k: 5,
         level: Some(4),

@@ -298,7 +298,10 @@ fn the_default_search_finds_the_exhaustive_maximum_at_level_3() {
         ..Default::default()
     };
     for (i, im) in images.iter().enumerate() {
-        let features = model.features(&[&im.rgb]).swap_remove(0);
+        let features = model
+            .features(&[&im.rgb])
+            .expect("crops of the input side")
+            .swap_remove(0);
         let logits = model.logits_at(&features, 3).unwrap();
         let best = logits.iter().copied().fold(f32::MIN, f32::max);
         let top = model.predict(&features, &options, None).unwrap().top[0].cell;
@@ -353,6 +356,7 @@ fn the_manifests_levels_cap_what_the_engine_serves() {
     let side = model.input_size() as usize;
     let features = model
         .features(&[&vec![128u8; side * side * 3]])
+        .expect("crops of the input side")
         .swap_remove(0);
     let above = PredictOptions {
         top_k: 1,
@@ -364,6 +368,25 @@ fn the_manifests_levels_cap_what_the_engine_serves() {
         model.predict(&features, &above, None),
         Err(EngineError::InvalidArgument { .. })
     ));
+}
+
+/// A crop of another side than the model's (a library caller that skipped `Model::prepare`) is
+/// refused by name; the encoder used to panic on its shape.
+#[test]
+fn crops_of_another_side_are_refused_by_name() {
+    use alignist::engine::{Engine, EngineConfig, EngineError};
+    let path = std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/models/symsol1"));
+    let model = Engine::load_model(path, EngineConfig::default()).unwrap();
+    let side = model.input_size() as usize;
+    let small = vec![128u8; 32 * 32 * 3];
+    match model.features(&[&vec![128u8; side * side * 3], &small]) {
+        Err(EngineError::InvalidArgument { field, message }) => {
+            assert_eq!(field, "crops[1]");
+            assert!(message.contains(&format!("{side}×{side}")), "{message}");
+        }
+        other => panic!("expected InvalidArgument, got {:?}", other.map(|f| f.len())),
+    }
+    assert!(model.features(&[]).unwrap().is_empty());
 }
 
 #[test]

@@ -36,7 +36,10 @@ fn prepared(model: &alignist::engine::Model, png: &[u8]) -> Vec<u8> {
 
 /// Image features of a PNG through the model's own preparation and encoder.
 fn features_of(model: &alignist::engine::Model, png: &[u8]) -> Vec<f32> {
-    model.features(&[&prepared(model, png)]).swap_remove(0)
+    model
+        .features(&[&prepared(model, png)])
+        .expect("crops of the input side")
+        .swap_remove(0)
 }
 
 /// The engine's frame front door without a socket: each box's answer is the crop-only answer of
@@ -78,7 +81,10 @@ fn the_engines_predict_frame_answers_each_planned_crop_in_the_camera_frame() {
     let (plan, answers) = model.predict_frame(&query, &options).unwrap();
     assert_eq!((plan.crops.len(), answers.len()), (2, 2));
     for ((crop, ray), answer) in plan.crops.iter().zip(&plan.rays).zip(&answers) {
-        let features = model.features(&[crop]).swap_remove(0);
+        let features = model
+            .features(&[crop])
+            .expect("crops of the input side")
+            .swap_remove(0);
         let alone = model.predict(&features, &options, None).unwrap();
         let turned = alone.in_camera_frame(ray);
         // The frame's crops share one encoder batch: equal cells, probabilities within 1e-4.
@@ -170,7 +176,7 @@ fn a_batched_search_answers_each_image_as_its_own_search_does() {
         .map(|seed| prepared(&model, &cube_png(200 + seed)))
         .collect();
     let refs: Vec<&[u8]> = crops.iter().map(|c| c.as_slice()).collect();
-    let features = model.features(&refs);
+    let features = model.features(&refs).expect("crops of the input side");
     let options = PredictOptions {
         top_k: 10,
         level: Some(4),
@@ -182,7 +188,10 @@ fn a_batched_search_answers_each_image_as_its_own_search_does() {
         .unwrap();
     assert_eq!(many.len(), 3);
     for (i, batched) in many.iter().enumerate() {
-        let one = model.features(&[refs[i]]).swap_remove(0);
+        let one = model
+            .features(&[refs[i]])
+            .expect("crops of the input side")
+            .swap_remove(0);
         let single = model.predict(&one, &options, None).unwrap();
         let cells =
             |p: &alignist::engine::Prediction| p.top.iter().map(|c| c.cell).collect::<Vec<_>>();

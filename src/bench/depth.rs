@@ -96,7 +96,7 @@ pub fn depth_cost(model: &Model, renders: &BundleRenders, n: usize) -> anyhow::R
                 let crop = model
                     .prepare_frame(&request, &intrinsics, &[f.bbox])?
                     .remove(0);
-                let features = model.features(&[&crop.rgb]).swap_remove(0);
+                let features = model.features(&[&crop.rgb])?.swap_remove(0);
                 let before_points = Instant::now();
                 let seen = if with_depth {
                     let object = &model.objects[f.object];

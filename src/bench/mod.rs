@@ -104,7 +104,7 @@ pub fn bench(
         crops.len()
     );
     let peaks = print_peaks(&model);
-    full_grid_figures(&model, &crops[0], bundle, &peaks);
+    full_grid_figures(&model, &crops[0], bundle, &peaks)?;
     // The coarse-to-fine search against the exhaustive level-5 argmax.
     let figures = search::study(&model, crops, &search::candidates(), 5, 10)?;
     search::print(&figures, &model.config().search(), objects);
@@ -202,8 +202,13 @@ fn print_peaks(model: &Model) -> Peaks {
 
 /// Prints the full grids of levels 3 and 4 in f32 (against the FMA `peak` and numpy), in
 /// bfloat16, in f16 and in 8-bit integers.
-fn full_grid_figures(model: &Model, crop: &[u8], bundle: &Path, peaks: &Peaks) {
-    let one = model.features(&[crop]).swap_remove(0);
+fn full_grid_figures(
+    model: &Model,
+    crop: &[u8],
+    bundle: &Path,
+    peaks: &Peaks,
+) -> anyhow::Result<()> {
+    let one = model.features(&[crop])?.swap_remove(0);
     let flops = head_flops_per_rotation(model);
     let mut ours_ms = Vec::new();
     for level in [3u8, 4] {
@@ -266,6 +271,7 @@ fn full_grid_figures(model: &Model, crop: &[u8], bundle: &Path, peaks: &Peaks) {
             );
         }
     }
+    Ok(())
 }
 
 /// Prints and returns the p50 of a top-10 search to level 5, encoder included, over 30 calls.
@@ -280,7 +286,7 @@ fn top_k_latency(model: &Model, crops: &[Vec<u8>]) -> anyhow::Result<f64> {
     for i in 0..30 {
         let crop = &crops[i % crops.len()];
         let t = Instant::now();
-        let f = model.features(&[crop]).swap_remove(0);
+        let f = model.features(&[crop])?.swap_remove(0);
         model.predict(&f, &options, None)?;
         lat.push(t.elapsed().as_secs_f64() * 1e3);
     }
@@ -418,7 +424,7 @@ fn in_process_throughput(
                             raw_size: None,
                             crop: None,
                         })?;
-                        let f = model.features(&[&crop]).swap_remove(0);
+                        let f = model.features(&[&crop])?.swap_remove(0);
                         model.predict(&f, options, None)?;
                     }
                     Ok(())

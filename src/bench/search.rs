@@ -147,7 +147,7 @@ pub fn study(
     let mut times: Vec<Vec<f64>> = vec![Vec::new(); searches.len()];
     let mut disagreements: Vec<Vec<(usize, bool)>> = vec![Vec::new(); searches.len()];
     for (n, crop) in crops.iter().enumerate() {
-        let features = model.features(&[crop]).swap_remove(0);
+        let features = model.features(&[crop])?.swap_remove(0);
         let logits = model.logits_at(&features, level)?;
         let (best, best_logit) = logits
             .iter()
@@ -156,7 +156,7 @@ pub fn study(
         let best_rotation = grid.rotation(best as u64);
         for (s, search) in searches.iter().enumerate() {
             let t = Instant::now();
-            let f = model.features(&[crop]);
+            let f = model.features(&[crop])?;
             let p = model
                 .predict_searching(&f, &options, search, &[None])?
                 .swap_remove(0);

@@ -229,8 +229,10 @@ pub fn calibrate(
     };
     let mut failed = None;
     let measured_ms = time_ms(3, false, || {
-        let f = model.features(&[&grey]);
-        if let Err(e) = model.predict_searching(&f, &options, &chosen.params, &[None]) {
+        let searched = model
+            .features(&[&grey])
+            .and_then(|f| model.predict_searching(&f, &options, &chosen.params, &[None]));
+        if let Err(e) = searched {
             failed = Some(e);
         }
     });
@@ -261,7 +263,7 @@ fn measure_rates(
     grey: &[u8],
     level: u8,
 ) -> Result<Rates, EngineError> {
-    let features = model.features(&[grey]);
+    let features = model.features(&[grey])?;
     let mut rates = Rates {
         encoder: time_ms(RUNS, true, || {
             let _ = model.features(&[grey]);

@@ -205,7 +205,7 @@ impl Model {
         let checked = self.check_frame(query.detections.len(), options)?;
         let plan = self.plan_frame(query)?;
         let crops: Vec<&[u8]> = plan.crops.iter().map(Vec::as_slice).collect();
-        let features = self.features(&crops);
+        let features = self.features(&crops)?;
         let depth: Vec<_> = plan
             .depth
             .iter()

@@ -344,10 +344,26 @@ impl Model {
     }
 
     /// Image features of prepared crops (one encoder pass for the batch), a plain row of `D`
-    /// floats per crop: what every scoring method of the model reads.
-    pub fn features(&self, crops: &[&[u8]]) -> Vec<Vec<f32>> {
-        let images = images_tensor(crops, self.input_size() as usize, &self.device);
-        feature_rows(self.network.encoder.forward(images))
+    /// floats per crop: what every scoring method of the model reads. Each crop must be RGB8 of
+    /// the model's input side ([`Model::prepare`] makes them); another length is an
+    /// `InvalidArgument` naming the crop, never a panic.
+    pub fn features(&self, crops: &[&[u8]]) -> Result<Vec<Vec<f32>>, EngineError> {
+        let side = self.input_size() as usize;
+        let expected = side * side * 3;
+        if let Some((i, crop)) = crops.iter().enumerate().find(|(_, c)| c.len() != expected) {
+            return Err(invalid(
+                &format!("crops[{i}]"),
+                format!(
+                    "{} bytes, not the {expected} of an RGB8 crop of {side}×{side} (the model's input side)",
+                    crop.len()
+                ),
+            ));
+        }
+        if crops.is_empty() {
+            return Ok(Vec::new());
+        }
+        let images = images_tensor(crops, side, &self.device);
+        Ok(feature_rows(self.network.encoder.forward(images)))
     }
 
     /// Length of a feature row.

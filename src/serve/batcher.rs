@@ -225,7 +225,18 @@ fn run(model: Arc<Model>, config: BatchConfig, mut receiver: mpsc::Receiver<Job>
             model.features(&crops)
         }));
         let features = match encoded {
-            Ok(f) => f,
+            Ok(Ok(f)) => f,
+            // The engine refused the crops (prepared crops always have the input side, so this
+            // is a bug upstream): fail the batch's calls, not the thread.
+            Ok(Err(e)) => {
+                tracing::error!("encoder of model '{}' refused a batch: {e}", model.name);
+                for job in jobs {
+                    let _ = job
+                        .reply
+                        .send(Err(format!("encoder refused the batch: {e}")));
+                }
+                continue;
+            }
             Err(panic) => {
                 let message = panic_message(panic.as_ref());
                 tracing::error!("encoder of model '{}' panicked: {message}", model.name);

@@ -155,7 +155,7 @@ pub fn evaluate_depth(
     };
     for (n, im) in images.iter().enumerate() {
         let mut figures = [[f64::NAN; 4]; 3];
-        let features = model.features(&[&im.rgb]).swap_remove(0);
+        let features = model.features(&[&im.rgb])?.swap_remove(0);
         for (k, condition) in [None, Some(clean), Some(noise)].into_iter().enumerate() {
             figures[k] = score_image(model, im, &features, &grid, &centres, condition, &mut rng)?;
         }
