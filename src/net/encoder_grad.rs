@@ -137,24 +137,35 @@ fn for_each_tap(
 }
 
 /// The im2col columns of one image: `[c_in·k·k, ho·wo]`, zero where the window is outside.
-fn im2col(unit: &Unit, x: &[f32], side: (usize, usize), cols: &mut [f32]) {
-    let (_, wo) = unit.out_side(side);
-    let m = unit.out_side(side).0 * wo;
+/// Every value is written once (the zeros only where the window is outside: zeroing the whole
+/// buffer first cost as much as the copies).
+fn im2col(unit: &Unit, x: &[f32], (h, w): (usize, usize), cols: &mut [f32]) {
+    let (ho, wo) = unit.out_side((h, w));
+    let m = ho * wo;
     let (s, k, pad) = (unit.stride, unit.k, unit.k / 2);
-    cols.fill(0.0);
-    for_each_tap(unit, side, |r, oy, start, (lo, hi)| {
-        let out = &mut cols[r * m + oy * wo..][..wo];
-        // The input of output ox: start + ox·s + dx − pad (lo ≥ the first in range).
-        let first = start + lo * s + r % k - pad;
-        match s {
-            1 => out[lo..hi].copy_from_slice(&x[first..first + (hi - lo)]),
-            _ => {
-                for (i, v) in out[lo..hi].iter_mut().enumerate() {
-                    *v = x[first + i * s];
+    for (r, row) in cols[..unit.columns() * m].chunks_exact_mut(m).enumerate() {
+        let (ci, dy, dx) = (r / (k * k), r / k % k, r % k);
+        let (lo, hi) = inside(unit, w, wo, dx);
+        for (oy, out) in row.chunks_exact_mut(wo).enumerate() {
+            let iy = (oy * s + dy).checked_sub(pad).filter(|&iy| iy < h);
+            let Some(iy) = iy.filter(|_| lo < hi) else {
+                out.fill(0.0);
+                continue;
+            };
+            out[..lo].fill(0.0);
+            out[hi..].fill(0.0);
+            // The input of output ox: (ci·h + iy)·w + ox·s + dx − pad (lo ≥ the first in range).
+            let first = (ci * h + iy) * w + lo * s + dx - pad;
+            match s {
+                1 => out[lo..hi].copy_from_slice(&x[first..first + (hi - lo)]),
+                _ => {
+                    for (i, v) in out[lo..hi].iter_mut().enumerate() {
+                        *v = x[first + i * s];
+                    }
                 }
             }
         }
-    });
+    }
 }
 
 /// The transpose of [`im2col`]: each column's gradient added back to its input.
