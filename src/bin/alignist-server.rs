@@ -162,9 +162,13 @@ struct Cli {
 /// and unmapped when freed. glibc's default raises this threshold to the largest block freed so
 /// far, after which a burst of large buffers (say, 24 unfinished 8 MiB bodies) stays in the
 /// process's heap after it is dropped: measured 110 → 281 → 211 MiB against 110 → 281 → ~110
-/// with the threshold fixed (tests/transport.rs).
+/// with the threshold fixed (tests/transport.rs). An operator's own `MALLOC_MMAP_THRESHOLD_`
+/// (glibc's tunable, read before `main`) wins: the threshold is then left as it set it.
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
 fn return_large_buffers_to_the_os() {
+    if std::env::var_os("MALLOC_MMAP_THRESHOLD_").is_some() {
+        return;
+    }
     // SAFETY: mallopt only sets an allocator parameter; called before any thread starts.
     unsafe {
         libc::mallopt(libc::M_MMAP_THRESHOLD, 1 << 20);

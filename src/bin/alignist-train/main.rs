@@ -91,17 +91,22 @@ enum Command {
 /// fresh pages (and TLB shootdowns across the threads). Here they stay in the heap: large
 /// allocations are not mapped separately and the heap is not trimmed. Measured on a 64 px
 /// realistic `fit` step (batch 16, K 256, 2 cores), alternated: 248 / 253 ms → 187 / 184 ms, the
-/// encoder's backward 126 → 65 ms (BENCHMARKS.md, "The allocator in the trainer").
+/// encoder's backward 126 → 65 ms (BENCHMARKS.md, "The allocator in the trainer"). An
+/// operator's own `MALLOC_MMAP_THRESHOLD_` or `MALLOC_TRIM_THRESHOLD_` (glibc's tunables, read
+/// before `main`) wins over the setting it names.
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
 fn keep_freed_buffers_in_the_heap() {
+    let unset = |tunable: &str| std::env::var_os(tunable).is_none();
     // SAFETY: mallopt only sets allocator parameters; called before any thread starts.
     unsafe {
         // glibc 2.36 takes 1 GiB; a glibc that refuses a threshold above 32 MiB (the largest
         // its dynamic threshold reaches on 64-bit) gets that.
-        if libc::mallopt(libc::M_MMAP_THRESHOLD, 1 << 30) == 0 {
+        if unset("MALLOC_MMAP_THRESHOLD_") && libc::mallopt(libc::M_MMAP_THRESHOLD, 1 << 30) == 0 {
             libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
         }
-        libc::mallopt(libc::M_TRIM_THRESHOLD, 1 << 30);
+        if unset("MALLOC_TRIM_THRESHOLD_") {
+            libc::mallopt(libc::M_TRIM_THRESHOLD, 1 << 30);
+        }
     }
 }
 
