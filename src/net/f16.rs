@@ -121,8 +121,12 @@ unsafe fn gemm_f16(
                 let zero = _mm512_setzero_ps();
                 for (r, sums) in sums.iter().enumerate() {
                     let row = r0 + r;
+                    // ReLU with zero first: `VMAXPS` returns its second operand when either
+                    // is NaN, so a row whose f16 values overflowed (inf − inf) stays NaN and is
+                    // scored again in f32, instead of turning into zeros and a finite, wrong
+                    // score.
                     let h: [__m512; 4] = std::array::from_fn(|c| {
-                        _mm512_max_ps(_mm512_add_ps(sums[c], bias[c]), zero)
+                        _mm512_max_ps(zero, _mm512_add_ps(sums[c], bias[c]))
                     });
                     match &mut epilogue {
                         Epilogue::Store { out, stride } => {

@@ -45,9 +45,13 @@ fn round_activations(precision: Precision, values: &mut [f32], width: usize) {
     }
 }
 
+/// `max(v, 0)` that keeps NaN (`f32::max` would return 0): a reduced-precision row that
+/// overflowed must stay non-finite, so that it is scored again in f32.
 fn relu(x: &mut [f32]) {
     for v in x {
-        *v = v.max(0.0);
+        if *v < 0.0 {
+            *v = 0.0;
+        }
     }
 }
 
