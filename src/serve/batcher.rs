@@ -224,26 +224,21 @@ fn run(model: Arc<Model>, config: BatchConfig, mut receiver: mpsc::Receiver<Job>
             fault::maybe_panic();
             model.features(&crops)
         }));
-        let features = match encoded {
-            Ok(Ok(f)) => f,
-            // The engine refused the crops (prepared crops always have the input side, so this
-            // is a bug upstream): fail the batch's calls, not the thread.
-            Ok(Err(e)) => {
-                tracing::error!("encoder of model '{}' refused a batch: {e}", model.name);
-                for job in jobs {
-                    let _ = job
-                        .reply
-                        .send(Err(format!("encoder refused the batch: {e}")));
-                }
-                continue;
-            }
-            Err(panic) => {
-                let message = panic_message(panic.as_ref());
-                tracing::error!("encoder of model '{}' panicked: {message}", model.name);
+        // The engine refusing the crops (prepared crops always have the input side, so that
+        // would be a bug upstream) fails the batch's calls the same way.
+        let encoded = encoded
+            .map_err(|panic| {
                 metrics::counter!("alignist_worker_panics_total", "worker" => "encoder")
                     .increment(1);
+                format!("encoder panicked: {}", panic_message(panic.as_ref()))
+            })
+            .and_then(|f| f.map_err(|e| format!("encoder refused the batch: {e}")));
+        let features = match encoded {
+            Ok(f) => f,
+            Err(message) => {
+                tracing::error!("model '{}': {message}", model.name);
                 for job in jobs {
-                    let _ = job.reply.send(Err(format!("encoder panicked: {message}")));
+                    let _ = job.reply.send(Err(message.clone()));
                 }
                 continue;
             }
