@@ -9,8 +9,9 @@
 //! keeps the configured search's shape and only chooses its coarse precision among f32, bfloat16
 //! and f16 (which rank cells like f32, up to rounding, so each twin is taken to agree as well;
 //! not 8-bit integers, whose scores are a few % off: they are served only where a study
-//! measured them). The
-//! chosen search is then run for real and its latency reported beside the prediction.
+//! measured them). A search in a precision this CPU only emulates is left out where the same
+//! search in f32 is a candidate (it would score the same rows, slower). The chosen search is
+//! then run for real and its latency reported beside the prediction.
 
 use std::collections::BTreeMap;
 use std::time::Instant;
@@ -180,6 +181,34 @@ fn candidates(
     }
 }
 
+/// The candidates less those whose coarse precision is emulated on this CPU (the f32 GEMM with
+/// the precision's rounding, never faster than f32) while their f32 twin, the same search in
+/// f32, is a candidate too: the twin scores the same rows at least as fast and reaches the
+/// target as well, so the emulation is neither timed nor chosen. An emulated search without an
+/// f32 twin stays (it may score fewer rows than any f32 candidate).
+fn without_emulated_twins(
+    candidates: Vec<Candidate>,
+    native: impl Fn(Precision) -> bool,
+) -> Vec<Candidate> {
+    let shape = |p: &SearchParams| {
+        (
+            p.start_level,
+            p.keep,
+            p.keep_mass.map(f64::to_bits),
+            p.keep_taper.to_bits(),
+        )
+    };
+    let f32_shapes: Vec<_> = candidates
+        .iter()
+        .filter(|c| c.params.coarse_precision == Precision::F32)
+        .map(|c| shape(&c.params))
+        .collect();
+    candidates
+        .into_iter()
+        .filter(|c| native(c.params.coarse_precision) || !f32_shapes.contains(&shape(&c.params)))
+        .collect()
+}
+
 /// Chooses the search `model` serves to `level` on this CPU (see the module's doc).
 pub fn calibrate(
     model: &Model,
@@ -190,7 +219,9 @@ pub fn calibrate(
     level: u8,
 ) -> Result<Calibration, EngineError> {
     let started = Instant::now();
-    let candidates = candidates(model, study, configured, target);
+    let candidates = without_emulated_twins(candidates(model, study, configured, target), |p| {
+        model.fused.native(p)
+    });
     if candidates.is_empty() {
         return Err(EngineError::InvalidArgument {
             field: "search study".into(),
@@ -361,7 +392,51 @@ fn choose(rows: &[usize], agreement: &[f64], predicted: &[f64], budget_ms: f64) 
 
 #[cfg(test)]
 mod tests {
-    use super::choose;
+    use super::{Candidate, choose, without_emulated_twins};
+    use crate::engine::SearchParams;
+    use crate::net::Precision;
+
+    fn search(start_level: u8, keep: usize, coarse_precision: Precision) -> Candidate {
+        Candidate {
+            params: SearchParams {
+                start_level,
+                keep,
+                keep_mass: None,
+                keep_taper: 0.5,
+                coarse_precision,
+            },
+            agreement: Some(1.0),
+        }
+    }
+
+    #[test]
+    fn emulated_searches_with_an_f32_twin_are_left_out() {
+        let candidates = vec![
+            search(2, 512, Precision::F32),
+            search(2, 512, Precision::Bf16),
+            search(2, 512, Precision::I8),
+            search(1, 512, Precision::I8),
+            search(1, 512, Precision::F16),
+        ];
+        // bfloat16 and f16 emulated, i8 native: the bf16 twin of an f32 search goes; the f16
+        // search without an f32 twin stays, as do the native ones.
+        let native = |p: Precision| matches!(p, Precision::F32 | Precision::I8);
+        let kept: Vec<_> = without_emulated_twins(candidates.clone(), native)
+            .iter()
+            .map(|c| (c.params.start_level, c.params.coarse_precision))
+            .collect();
+        assert_eq!(
+            kept,
+            [
+                (2, Precision::F32),
+                (2, Precision::I8),
+                (1, Precision::I8),
+                (1, Precision::F16)
+            ]
+        );
+        // Everything native: nothing leaves.
+        assert_eq!(without_emulated_twins(candidates, |_| true).len(), 5);
+    }
 
     #[test]
     fn twins_scoring_the_same_rows_go_to_the_faster_one_even_within_the_tie() {
