@@ -190,22 +190,21 @@ fn without_emulated_twins(
     candidates: Vec<Candidate>,
     native: impl Fn(Precision) -> bool,
 ) -> Vec<Candidate> {
-    let shape = |p: &SearchParams| {
-        (
-            p.start_level,
-            p.keep,
-            p.keep_mass.map(f64::to_bits),
-            p.keep_taper.to_bits(),
-        )
+    let has_f32_twin = |c: &Candidate| {
+        let twin = SearchParams {
+            coarse_precision: Precision::F32,
+            ..c.params
+        };
+        candidates.iter().any(|other| other.params == twin)
     };
-    let f32_shapes: Vec<_> = candidates
+    let kept: Vec<bool> = candidates
         .iter()
-        .filter(|c| c.params.coarse_precision == Precision::F32)
-        .map(|c| shape(&c.params))
+        .map(|c| native(c.params.coarse_precision) || !has_f32_twin(c))
         .collect();
     candidates
         .into_iter()
-        .filter(|c| native(c.params.coarse_precision) || !f32_shapes.contains(&shape(&c.params)))
+        .zip(kept)
+        .filter_map(|(c, keep)| keep.then_some(c))
         .collect()
 }
 
