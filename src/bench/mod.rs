@@ -185,8 +185,9 @@ fn print_peaks(model: &Model) -> Peaks {
     };
     match model.calibration() {
         Some(c) => println!(
-            "calibration ({:.0} ms): {} — agreement {}, predicted {:.1} ms, measured {:.1} ms, budget {} ms; {}",
+            "calibration ({:.0} ms: {}): {} — agreement {}, predicted {:.1} ms, measured {:.1} ms, budget {} ms; {}",
             c.took_ms,
+            c.spent,
             c.chosen,
             c.agreement
                 .map_or("not studied".into(), |a| format!("{a:.3}")),

@@ -1,17 +1,21 @@
 //! Calibration at load: the search a model serves, chosen on the CPU it runs on. A search's
 //! agreement with the exhaustive argmax is the model's (the bundle's search study measured it,
 //! [`SearchStudy`]); its latency is the CPU's. The calibration times what a search is made of on
-//! this CPU — the encoder, a start level in full, and rows of the head in each precision (min of
-//! a few runs each) — predicts each studied search's latency from the rows it scores (a fixed
-//! number per level), and picks, among the searches whose agreement reaches the target, the most
+//! this CPU — the encoder, a start level in full, and rows of the head in each precision (the
+//! minimum of two runs, or one run of a large measurement whose code just ran) — predicts each
+//! studied search's latency from the rows it scores (a fixed number per level), and picks, among
+//! the searches whose agreement reaches the target, the most
 //! agreeing one predicted within the budget (ties: the fastest); when none fits, the fastest of
 //! them, flagged as over budget. It never picks a search below the target. Without a study it
 //! keeps the configured search's shape and only chooses its coarse precision among f32, bfloat16
 //! and f16 (which rank cells like f32, up to rounding, so each twin is taken to agree as well;
 //! not 8-bit integers, whose scores are a few % off: they are served only where a study
 //! measured them). A search in a precision this CPU only emulates is left out where the same
-//! search in f32 is a candidate (it would score the same rows, slower). The chosen search is
-//! then run for real and its latency reported beside the prediction.
+//! search in f32 is a candidate (it would score the same rows, slower). Measurements are made on
+//! demand, for the search with the lowest latency bound among those that may still be chosen:
+//! a cost not measured yet bounds the prediction from below (as 0, or as f32's where the
+//! precision is emulated), and a search whose bound already loses is never timed in full. The
+//! chosen search is then run once for real and its latency reported beside the prediction.
 
 use std::collections::BTreeMap;
 use std::time::Instant;
@@ -26,6 +30,10 @@ pub const DEFAULT_SEARCH_BUDGET_MS: f64 = 25.0;
 
 /// Timed runs of each measurement (the minimum is kept).
 const RUNS: usize = 2;
+
+/// A measurement of more rows than this, whose code a smaller measurement has just run, is timed
+/// once (see [`measure_rates`]).
+const LARGE_ROWS: usize = 1024;
 
 /// Rows of the head timed per precision, many and few (a level's fixed cost).
 const TIMED_ROWS: usize = 2048;
@@ -46,7 +54,8 @@ pub struct Calibration {
     pub agreement: Option<f64>,
     /// Its predicted latency (encoder included), in milliseconds.
     pub predicted_ms: f64,
-    /// Its latency measured once chosen (median of three runs), in milliseconds.
+    /// Its latency measured once chosen (one run, after the rates warmed its parts), in
+    /// milliseconds.
     pub measured_ms: f64,
     /// The latency budget.
     pub budget_ms: f64,
@@ -56,11 +65,44 @@ pub struct Calibration {
     pub eligible: usize,
     /// How long the calibration took, in milliseconds.
     pub took_ms: f64,
+    /// Where that time went.
+    pub spent: Spent,
     /// Why this search, in words.
     pub reason: String,
 }
 
-/// The measured costs a prediction is made of, in milliseconds.
+/// Where a calibration's time went, in milliseconds: timing the encoder, the start levels in
+/// full, the head's rows, and running the chosen search (`check`).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Spent {
+    /// Timing the encoder.
+    pub encoder_ms: f64,
+    /// Timing the start levels in full, in each precision the candidates start in.
+    pub starts_ms: f64,
+    /// Timing the head's rows of the finer levels, in each precision.
+    pub rows_ms: f64,
+    /// Running the chosen search.
+    pub check_ms: f64,
+}
+
+impl std::fmt::Display for Spent {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "encoder {:.0} ms, start levels {:.0} ms, head rows {:.0} ms, the chosen search {:.0} ms",
+            self.encoder_ms, self.starts_ms, self.rows_ms, self.check_ms
+        )
+    }
+}
+
+/// A measurement a prediction needs: a start level in full, or the head's rows, in a precision.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+enum Need {
+    Start(u8, Precision),
+    Rows(Precision),
+}
+
+/// The costs measured so far, in milliseconds.
 struct Rates {
     encoder: f64,
     /// Per start level and precision: scoring the level in full from its projections.
@@ -71,18 +113,51 @@ struct Rates {
 }
 
 impl Rates {
-    /// The predicted latency of `search` to `level`.
-    fn predict(&self, model: &Model, search: &SearchParams, level: u8) -> f64 {
+    /// The predicted latency of `search` to `level`, exact when every cost it is made of was
+    /// measured (the `Need` is `None`). Otherwise a lower bound, with the first measurement
+    /// missing: a cost not measured counts as its f32 counterpart's where the precision is
+    /// `emulated` (the f32 GEMM and a rounding, never faster than f32) and that was measured,
+    /// else as 0.
+    fn predict(
+        &self,
+        model: &Model,
+        search: &SearchParams,
+        level: u8,
+        emulated: impl Fn(Precision) -> bool,
+    ) -> (f64, Option<Need>) {
         let mut ms = self.encoder;
+        let mut missing = None;
         for (l, rows, precision) in rows_per_level(model, search, level) {
-            ms += if l == search.start_level.min(level) {
-                self.start[&(l, precision)]
-            } else {
-                let (fixed, per_row) = self.row[&precision];
-                fixed + rows as f64 * per_row
+            let is_start = l == search.start_level.min(level);
+            let cost = |p: Precision| {
+                if is_start {
+                    self.start.get(&(l, p)).copied()
+                } else {
+                    self.row
+                        .get(&p)
+                        .map(|(fixed, per_row)| fixed + rows as f64 * per_row)
+                }
             };
+            let need = |p: Precision| {
+                if is_start {
+                    Need::Start(l, p)
+                } else {
+                    Need::Rows(p)
+                }
+            };
+            match cost(precision) {
+                Some(c) => ms += c,
+                None => {
+                    let twin = emulated(precision).then(|| cost(Precision::F32));
+                    ms += twin.flatten().unwrap_or(0.0);
+                    missing = missing.or(Some(match twin {
+                        Some(None) => need(Precision::F32),
+                        _ => need(precision),
+                    }));
+                }
+            }
         }
-        ms
+        (ms, missing)
     }
 }
 
@@ -119,19 +194,17 @@ pub fn rows_per_level(
     out
 }
 
-/// Median of `runs` timed calls of `f`, in milliseconds (after one untimed call), or the minimum
-/// with `min`.
-fn time_ms(runs: usize, min: bool, mut f: impl FnMut()) -> f64 {
-    f();
-    let mut t: Vec<f64> = (0..runs)
+/// The minimum of `runs` timed calls of `f`, in milliseconds. No untimed call comes first: the
+/// calibration orders its measurements so that each follows a call of the same code (see
+/// [`measure_rates`]), and a minimum leaves a cold first call out.
+fn min_ms(runs: usize, mut f: impl FnMut()) -> f64 {
+    (0..runs.max(1))
         .map(|_| {
             let s = Instant::now();
             f();
             s.elapsed().as_secs_f64() * 1e3
         })
-        .collect();
-    t.sort_by(f64::total_cmp);
-    if min { t[0] } else { t[t.len() / 2] }
+        .fold(f64::INFINITY, f64::min)
 }
 
 /// A search the calibration may choose, with its studied agreement.
@@ -231,11 +304,6 @@ pub fn calibrate(
     }
     let size = model.input_size() as usize;
     let grey = vec![128u8; size * size * 3];
-    let rates = measure_rates(model, &candidates, &grey, level)?;
-    let predicted: Vec<f64> = candidates
-        .iter()
-        .map(|c| rates.predict(model, &c.params, level))
-        .collect();
     let rows: Vec<usize> = candidates
         .iter()
         .map(|c| {
@@ -249,6 +317,27 @@ pub fn calibrate(
         .iter()
         .map(|c| c.agreement.unwrap_or(0.0))
         .collect();
+    // Measure what the candidates that may still win need, the lowest bound first, until every
+    // such candidate's prediction is exact.
+    let emulated = |p: Precision| !model.fused.native(p);
+    let mut meter = Meter::new(model, &grey, level)?;
+    let estimates = loop {
+        let estimates: Vec<(f64, Option<Need>)> = candidates
+            .iter()
+            .map(|c| meter.rates.predict(model, &c.params, level, emulated))
+            .collect();
+        match next_need(&estimates, &agreement, budget_ms) {
+            Some(need) => meter.measure(need),
+            None => break estimates,
+        }
+    };
+    let mut spent = meter.spent;
+    // A search left with a bound cannot be chosen (see `next_need`).
+    let ruled_out = estimates.iter().filter(|e| e.1.is_some()).count();
+    let predicted: Vec<f64> = estimates
+        .iter()
+        .map(|&(ms, need)| if need.is_none() { ms } else { f64::INFINITY })
+        .collect();
     let (pick, reason) = choose(&rows, &agreement, &predicted, budget_ms);
     let chosen = candidates[pick];
     let options = PredictOptions {
@@ -258,7 +347,9 @@ pub fn calibrate(
         ..Default::default()
     };
     let mut failed = None;
-    let measured_ms = time_ms(3, false, || {
+    let clock = Instant::now();
+    // Once: every part of it ran while the rates were measured.
+    let measured_ms = min_ms(1, || {
         let searched = model
             .features(&[&grey])
             .and_then(|f| model.predict_searching(&f, &options, &chosen.params, &[None]));
@@ -266,6 +357,7 @@ pub fn calibrate(
             failed = Some(e);
         }
     });
+    spent.check_ms = clock.elapsed().as_secs_f64() * 1e3;
     if let Some(e) = failed {
         return Err(e);
     }
@@ -278,64 +370,149 @@ pub fn calibrate(
         within_budget: predicted[pick] <= budget_ms,
         eligible: candidates.len(),
         took_ms: started.elapsed().as_secs_f64() * 1e3,
+        spent,
         reason: match study {
+            Some(_) if ruled_out > 0 => format!(
+                "{reason} ({ruled_out} more ruled out by a lower bound on their latency, not timed in full)"
+            ),
             Some(_) => reason,
             None => format!("no search study in the bundle: the configured search, {reason}"),
         },
     })
 }
 
-/// The encoder's time and the head's rates on this CPU, for every start level and precision
-/// the `candidates` use, measured on the `grey` image.
-fn measure_rates(
-    model: &Model,
-    candidates: &[Candidate],
-    grey: &[u8],
-    level: u8,
-) -> Result<Rates, EngineError> {
-    let features = model.features(&[grey])?;
-    let mut rates = Rates {
-        encoder: time_ms(RUNS, true, || {
-            let _ = model.features(&[grey]);
-        }),
-        start: BTreeMap::new(),
-        row: BTreeMap::new(),
-    };
-    let grid = model
-        .grid(level)
-        .ok_or_else(|| EngineError::InvalidArgument {
-            field: "level".into(),
-            message: format!("{level} is above this model's grids"),
-        })?;
-    let step = (grid.len() / TIMED_ROWS).max(1) as u64;
-    let rotations: Vec<[f32; 9]> = (0..TIMED_ROWS as u64)
-        .map(|i| crate::so3::to_row_major_f32(&grid.rotation((i * step) % grid.len() as u64)))
+/// The measurement to make next, or `None` when none is needed: the one needed by the search
+/// with the lowest bound among those that may still be chosen. `estimates` holds each
+/// candidate's predicted latency, exact where its `Need` is `None`, else a lower bound. A search
+/// with a bound can no longer be chosen (by [`choose`], whatever its exact prediction) when some
+/// exact search is within the budget and it is not (or agrees less than the most agreeing such
+/// search, or as much but is bounded beyond [`TIE`] times the fastest of those); or, when no
+/// exact search is within the budget, when it is not either and is bounded beyond [`TIE`] times
+/// the fastest exact search. Measuring more only lowers those thresholds, so a search ruled out
+/// stays ruled out.
+fn next_need(estimates: &[(f64, Option<Need>)], agreement: &[f64], budget_ms: f64) -> Option<Need> {
+    let exact: Vec<usize> = (0..estimates.len())
+        .filter(|&i| estimates[i].1.is_none())
         .collect();
-    for c in candidates {
-        for (l, _, precision) in rows_per_level(model, &c.params, level) {
-            if l == c.params.start_level.min(level) {
-                rates.start.entry((l, precision)).or_insert_with(|| {
-                    time_ms(RUNS, true, || {
-                        let _ =
-                            model.projected[l as usize].log_weights_of_row(precision, &features[0]);
+    let within: Vec<usize> = exact
+        .iter()
+        .copied()
+        .filter(|&i| estimates[i].0 <= budget_ms)
+        .collect();
+    let most = within
+        .iter()
+        .map(|&i| agreement[i])
+        .fold(f64::NEG_INFINITY, f64::max);
+    let fastest = |set: &mut dyn Iterator<Item = usize>| {
+        set.map(|i| estimates[i].0).fold(f64::INFINITY, f64::min)
+    };
+    let fastest_most = fastest(&mut within.iter().copied().filter(|&i| agreement[i] >= most));
+    let fastest_exact = fastest(&mut exact.iter().copied());
+    let may_win = |i: usize| {
+        let bound = estimates[i].0;
+        if within.is_empty() {
+            bound <= budget_ms || bound <= fastest_exact * TIE
+        } else {
+            bound <= budget_ms
+                && (agreement[i] > most || (agreement[i] >= most && bound <= fastest_most * TIE))
+        }
+    };
+    (0..estimates.len())
+        .filter(|&i| estimates[i].1.is_some() && may_win(i))
+        .min_by(|&a, &b| estimates[a].0.total_cmp(&estimates[b].0))
+        .and_then(|i| estimates[i].1)
+}
+
+/// Measures the costs of a search on this CPU on demand ([`Need`]), on the features of one grey
+/// image, into [`Rates`]. Each measurement is the minimum of [`RUNS`] calls, except a large one
+/// (over [`LARGE_ROWS`] rows) in a precision whose code has already run here: it is timed once.
+/// The few rows are timed before the many.
+struct Meter<'a> {
+    model: &'a Model,
+    features: Vec<Vec<f32>>,
+    /// [`TIMED_ROWS`] rotations spread over the search level, and the first [`SMALL_ROWS`].
+    many: Vec<Vec<[f32; 9]>>,
+    few: Vec<Vec<[f32; 9]>>,
+    rates: Rates,
+    warm: std::collections::BTreeSet<Precision>,
+    spent: Spent,
+}
+
+impl<'a> Meter<'a> {
+    /// Times the encoder on `grey` (its first call computes the features and warms it).
+    fn new(model: &'a Model, grey: &[u8], level: u8) -> Result<Meter<'a>, EngineError> {
+        let clock = Instant::now();
+        let features = model.features(&[grey])?;
+        let encoder = min_ms(RUNS, || {
+            let _ = model.features(&[grey]);
+        });
+        let grid = model
+            .grid(level)
+            .ok_or_else(|| EngineError::InvalidArgument {
+                field: "level".into(),
+                message: format!("{level} is above this model's grids"),
+            })?;
+        let step = (grid.len() / TIMED_ROWS).max(1) as u64;
+        let many: Vec<[f32; 9]> = (0..TIMED_ROWS as u64)
+            .map(|i| crate::so3::to_row_major_f32(&grid.rotation((i * step) % grid.len() as u64)))
+            .collect();
+        Ok(Meter {
+            model,
+            features,
+            few: vec![many[..SMALL_ROWS].to_vec()],
+            many: vec![many],
+            rates: Rates {
+                encoder,
+                start: BTreeMap::new(),
+                row: BTreeMap::new(),
+            },
+            warm: Default::default(),
+            spent: Spent {
+                encoder_ms: clock.elapsed().as_secs_f64() * 1e3,
+                ..Spent::default()
+            },
+        })
+    }
+
+    fn measure(&mut self, need: Need) {
+        let clock = Instant::now();
+        let (model, features) = (self.model, &self.features);
+        match need {
+            Need::Start(l, precision) => {
+                let cells = model.grid(l).map_or(0, |g| g.len());
+                let runs = if cells > LARGE_ROWS && self.warm.contains(&precision) {
+                    1
+                } else {
+                    RUNS
+                };
+                let ms = min_ms(runs, || {
+                    let _ = model.projected[l as usize].log_weights_of_row(precision, &features[0]);
+                });
+                self.rates.start.insert((l, precision), ms);
+                self.spent.starts_ms += clock.elapsed().as_secs_f64() * 1e3;
+            }
+            Need::Rows(precision) => {
+                let time = |rows: &[Vec<[f32; 9]>], runs: usize| {
+                    min_ms(runs, || {
+                        let _ = model.score_rotations_many(features, rows, precision);
                     })
-                });
-            } else {
-                rates.row.entry(precision).or_insert_with(|| {
-                    let time = |rows: &[[f32; 9]]| {
-                        let rows = [rows.to_vec()];
-                        time_ms(RUNS, true, || {
-                            let _ = model.score_rotations_many(&features, &rows, precision);
-                        })
-                    };
-                    let (many, few) = (time(&rotations), time(&rotations[..SMALL_ROWS]));
-                    let per_row = ((many - few) / (TIMED_ROWS - SMALL_ROWS) as f64).max(0.0);
-                    ((few - per_row * SMALL_ROWS as f64).max(0.0), per_row)
-                });
+                };
+                let few = time(&self.few, RUNS);
+                let many = time(&self.many, if TIMED_ROWS > LARGE_ROWS { 1 } else { RUNS });
+                let per_row = ((many - few) / (TIMED_ROWS - SMALL_ROWS) as f64).max(0.0);
+                let fixed = (few - per_row * SMALL_ROWS as f64).max(0.0);
+                self.rates.row.insert(precision, (fixed, per_row));
+                self.spent.rows_ms += clock.elapsed().as_secs_f64() * 1e3;
             }
         }
+        self.warm.insert(need_precision(need));
     }
-    Ok(rates)
+}
+
+fn need_precision(need: Need) -> Precision {
+    match need {
+        Need::Start(_, p) | Need::Rows(p) => p,
+    }
 }
 
 /// The candidate to serve and why: the most agreeing one predicted within `budget_ms`, else the
@@ -391,7 +568,7 @@ fn choose(rows: &[usize], agreement: &[f64], predicted: &[f64], budget_ms: f64) 
 
 #[cfg(test)]
 mod tests {
-    use super::{Candidate, choose, without_emulated_twins};
+    use super::{Candidate, Need, choose, next_need, without_emulated_twins};
     use crate::engine::SearchParams;
     use crate::net::Precision;
 
@@ -452,6 +629,59 @@ mod tests {
         // Out of the tie the faster one wins.
         let (pick, _) = choose(&[1000, 800], &[1.0, 1.0], &[15.0, 20.0], 25.0);
         assert_eq!(pick, 0);
+    }
+
+    #[test]
+    fn a_search_is_measured_only_while_its_bound_may_still_win() {
+        let start = Some(Need::Start(2, Precision::I8));
+        let rows = Some(Need::Rows(Precision::Bf16));
+        // An exact search at 10 ms: a bound beyond TIE × 10 with the same agreement is ruled
+        // out; within it, the search is measured, the lowest bound first.
+        assert_eq!(
+            next_need(&[(10.0, None), (12.0, start)], &[1.0, 1.0], 25.0),
+            None
+        );
+        assert_eq!(
+            next_need(
+                &[(10.0, None), (11.0, start), (10.5, rows)],
+                &[1.0; 3],
+                25.0
+            ),
+            rows
+        );
+        // A more agreeing search is measured while its bound is within the budget, however slow
+        // against the others; a less agreeing one never.
+        assert_eq!(
+            next_need(&[(10.0, None), (20.0, start)], &[0.99, 1.0], 25.0),
+            start
+        );
+        assert_eq!(
+            next_need(&[(10.0, None), (30.0, start)], &[0.99, 1.0], 25.0),
+            None
+        );
+        assert_eq!(
+            next_need(&[(10.0, None), (5.0, start)], &[1.0, 0.99], 25.0),
+            None
+        );
+        // Nothing exact within the budget: a bound within it is measured, and one beyond it only
+        // while it may be the fastest.
+        assert_eq!(
+            next_need(&[(40.0, None), (20.0, start)], &[1.0, 1.0], 25.0),
+            start
+        );
+        assert_eq!(
+            next_need(&[(40.0, None), (45.0, start)], &[1.0, 1.0], 25.0),
+            start
+        );
+        assert_eq!(
+            next_need(&[(40.0, None), (50.0, start)], &[1.0, 1.0], 25.0),
+            None
+        );
+        // Nothing exact yet: everything may win.
+        assert_eq!(
+            next_need(&[(90.0, rows), (50.0, start)], &[1.0, 1.0], 25.0),
+            start
+        );
     }
 
     #[test]

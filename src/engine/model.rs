@@ -236,6 +236,7 @@ impl Model {
             budget_ms = budget,
             within_budget = c.within_budget,
             calibration_ms = c.took_ms,
+            calibration_spent = %c.spent,
             kernels = %self.fused.kernel_paths(),
             "search calibrated: {}",
             c.reason
