@@ -6,7 +6,7 @@
 use std::path::Path;
 
 use alignist::bundle::study::{SEARCH_STUDY_FILE, SearchStudy, StudiedSearch};
-use alignist::engine::calibrate::calibrate;
+use alignist::engine::calibrate::{calibrate, calibrate_within};
 use alignist::engine::{Engine, EngineConfig, Model};
 use alignist::net::Precision;
 
@@ -49,6 +49,29 @@ fn study() -> SearchStudy {
             studied(2, 256, 1.0, "f32", 0.995),
             studied(2, 1024, 1.0, "f32", 1.0),
         ],
+    }
+}
+
+#[test]
+fn a_deadline_cuts_the_measuring_short_but_not_below_the_target() {
+    let model = model();
+    let study = study();
+    let configured = model.config().search();
+    let full = calibrate(&model, Some(&study), &configured, 0.99, 1e9, 5).unwrap();
+    // A deadline already past: measured only until one search's prediction is exact.
+    let short = calibrate_within(&model, Some(&study), &configured, 0.99, 1e9, 5, 0.0).unwrap();
+    assert!(short.agreement.unwrap() >= 0.99, "{short:?}");
+    assert!(
+        short.predicted_ms > 0.0 && short.measured_ms > 0.0,
+        "{short:?}"
+    );
+    assert!(short.spent.measurements >= 1, "{short:?}");
+    assert!(
+        short.spent.measurements <= full.spent.measurements,
+        "{short:?} {full:?}"
+    );
+    if short.chosen != full.chosen {
+        assert!(short.reason.contains("deadline"), "{short:?}");
     }
 }
 

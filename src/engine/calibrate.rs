@@ -14,8 +14,9 @@
 //! search in f32 is a candidate (it would score the same rows, slower). Measurements are made on
 //! demand, for the search with the lowest latency bound among those that may still be chosen:
 //! a cost not measured yet bounds the prediction from below (as 0, or as f32's where the
-//! precision is emulated), and a search whose bound already loses is never timed in full. The
-//! chosen search is then run once for real and its latency reported beside the prediction.
+//! precision is emulated), and a search whose bound already loses is never timed in full. Past a
+//! deadline ([`MEASURING_DEADLINE_MS`]) it measures only until one search's prediction is exact.
+//! The chosen search is then run once for real and its latency reported beside the prediction.
 
 use std::collections::BTreeMap;
 use std::time::Instant;
@@ -38,6 +39,10 @@ const LARGE_ROWS: usize = 1024;
 /// Rows of the head timed per precision, many and few (a level's fixed cost).
 const TIMED_ROWS: usize = 2048;
 const SMALL_ROWS: usize = 64;
+
+/// After this long, a calibration measures only until one search's prediction is exact
+/// ([`calibrate_within`]); it takes 50–90 ms on a 2-core AMD EPYC (docs/BENCHMARKS.md).
+pub const MEASURING_DEADLINE_MS: f64 = 250.0;
 
 /// Predictions within this factor of the fastest count as equally fast.
 const TIE: f64 = 1.15;
@@ -83,14 +88,16 @@ pub struct Spent {
     pub rows_ms: f64,
     /// Running the chosen search.
     pub check_ms: f64,
+    /// Measurements made of start levels and rows (the encoder's and the check's not counted).
+    pub measurements: usize,
 }
 
 impl std::fmt::Display for Spent {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(
             f,
-            "encoder {:.0} ms, start levels {:.0} ms, head rows {:.0} ms, the chosen search {:.0} ms",
-            self.encoder_ms, self.starts_ms, self.rows_ms, self.check_ms
+            "encoder {:.0} ms, {} measurements of start levels {:.0} ms and head rows {:.0} ms, the chosen search {:.0} ms",
+            self.encoder_ms, self.measurements, self.starts_ms, self.rows_ms, self.check_ms
         )
     }
 }
@@ -290,6 +297,29 @@ pub fn calibrate(
     budget_ms: f64,
     level: u8,
 ) -> Result<Calibration, EngineError> {
+    calibrate_within(
+        model,
+        study,
+        configured,
+        target,
+        budget_ms,
+        level,
+        MEASURING_DEADLINE_MS,
+    )
+}
+
+/// [`calibrate`] with another deadline for its measurements: once `deadline_ms` have passed, it
+/// measures only until one search's prediction is exact, and chooses among the exact ones (a
+/// slow or busy CPU still loads its models in bounded time, never below the target).
+pub fn calibrate_within(
+    model: &Model,
+    study: Option<&SearchStudy>,
+    configured: &SearchParams,
+    target: f64,
+    budget_ms: f64,
+    level: u8,
+    deadline_ms: f64,
+) -> Result<Calibration, EngineError> {
     let started = Instant::now();
     let candidates = without_emulated_twins(candidates(model, study, configured, target), |p| {
         model.fused.native(p)
@@ -321,19 +351,33 @@ pub fn calibrate(
     // such candidate's prediction is exact.
     let emulated = |p: Precision| !model.fused.native(p);
     let mut meter = Meter::new(model, &grey, level)?;
+    let mut cut_short = false;
     let estimates = loop {
         let estimates: Vec<(f64, Option<Need>)> = candidates
             .iter()
             .map(|c| meter.rates.predict(model, &c.params, level, emulated))
             .collect();
+        let any_exact = estimates.iter().any(|e| e.1.is_none());
+        let past_deadline = started.elapsed().as_secs_f64() * 1e3 >= deadline_ms;
         match next_need(&estimates, &agreement, budget_ms) {
+            Some(_) if past_deadline && any_exact => {
+                cut_short = true;
+                break estimates;
+            }
             Some(need) => meter.measure(need),
             None => break estimates,
         }
     };
     let mut spent = meter.spent;
-    // A search left with a bound cannot be chosen (see `next_need`).
+    // A search left with a bound cannot be chosen (see `next_need`), or was not measured in time.
     let ruled_out = estimates.iter().filter(|e| e.1.is_some()).count();
+    let left_out = if cut_short {
+        format!(
+            "measuring stopped at the {deadline_ms} ms deadline: {ruled_out} searches not timed in full"
+        )
+    } else {
+        format!("{ruled_out} more ruled out by a lower bound on their latency, not timed in full")
+    };
     let predicted: Vec<f64> = estimates
         .iter()
         .map(|&(ms, need)| if need.is_none() { ms } else { f64::INFINITY })
@@ -371,12 +415,16 @@ pub fn calibrate(
         eligible: candidates.len(),
         took_ms: started.elapsed().as_secs_f64() * 1e3,
         spent,
-        reason: match study {
-            Some(_) if ruled_out > 0 => format!(
-                "{reason} ({ruled_out} more ruled out by a lower bound on their latency, not timed in full)"
-            ),
-            Some(_) => reason,
-            None => format!("no search study in the bundle: the configured search, {reason}"),
+        reason: {
+            let reason = match study {
+                Some(_) => reason,
+                None => format!("no search study in the bundle: the configured search, {reason}"),
+            };
+            if ruled_out > 0 {
+                format!("{reason} ({left_out})")
+            } else {
+                reason
+            }
         },
     })
 }
@@ -506,6 +554,7 @@ impl<'a> Meter<'a> {
             }
         }
         self.warm.insert(need_precision(need));
+        self.spent.measurements += 1;
     }
 }
 
