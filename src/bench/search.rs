@@ -126,12 +126,7 @@ pub fn study(
     level: u8,
     top_k: usize,
 ) -> Result<Vec<SearchFigures>, EngineError> {
-    let grid = model
-        .grid(level)
-        .ok_or_else(|| EngineError::InvalidArgument {
-            field: "level".into(),
-            message: format!("{level} is above this model's grids"),
-        })?;
+    let grid = model.grid_at(level)?;
     let options = PredictOptions {
         top_k,
         level: Some(level),

@@ -494,12 +494,7 @@ impl<'a> Meter<'a> {
         let encoder = min_ms(RUNS, || {
             let _ = model.features(&[grey]);
         });
-        let grid = model
-            .grid(level)
-            .ok_or_else(|| EngineError::InvalidArgument {
-                field: "level".into(),
-                message: format!("{level} is above this model's grids"),
-            })?;
+        let grid = model.grid_at(level)?;
         let step = (grid.len() / TIMED_ROWS).max(1) as u64;
         let many: Vec<[f32; 9]> = (0..TIMED_ROWS as u64)
             .map(|i| crate::so3::to_row_major_f32(&grid.rotation((i * step) % grid.len() as u64)))

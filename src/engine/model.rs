@@ -447,15 +447,7 @@ impl Model {
         if let Some(projected) = self.projected.get(level as usize) {
             return Ok(projected.log_weights_of_row(precision, features));
         }
-        let grid = self.grids.get(level as usize).ok_or_else(|| {
-            invalid(
-                "level",
-                format!(
-                    "{level} is above this model's grids (0–{})",
-                    self.grids.len() - 1
-                ),
-            )
-        })?;
+        let grid = self.grid_at(level)?;
         let image = self.fused.image_term(features);
         let encoding = &self.manifest.network.encoding;
         let n = grid.len() as u64;
@@ -744,6 +736,20 @@ impl Model {
     /// The grid of `level` (up to the highest level this model serves).
     pub fn grid(&self, level: u8) -> Option<&GridLevel> {
         self.grids.get(level as usize)
+    }
+
+    /// The grid of `level`, or an `InvalidArgument` naming the field `level` when it is above
+    /// this model's grids.
+    pub fn grid_at(&self, level: u8) -> Result<&GridLevel, EngineError> {
+        self.grid(level).ok_or_else(|| {
+            invalid(
+                "level",
+                format!(
+                    "{level} is above this model's grids (0–{})",
+                    self.grids.len() - 1
+                ),
+            )
+        })
     }
 
     /// The engine configuration the model was built with.
