@@ -33,7 +33,7 @@ pub const DEFAULT_SEARCH_BUDGET_MS: f64 = 25.0;
 const RUNS: usize = 2;
 
 /// A measurement of more rows than this, whose code a smaller measurement has just run, is timed
-/// once (see [`measure_rates`]).
+/// once (see [`Meter`]).
 const LARGE_ROWS: usize = 1024;
 
 /// Rows of the head timed per precision, many and few (a level's fixed cost).
@@ -203,7 +203,7 @@ pub fn rows_per_level(
 
 /// The minimum of `runs` timed calls of `f`, in milliseconds. No untimed call comes first: the
 /// calibration orders its measurements so that each follows a call of the same code (see
-/// [`measure_rates`]), and a minimum leaves a cold first call out.
+/// [`Meter`]), and a minimum leaves a cold first call out.
 fn min_ms(runs: usize, mut f: impl FnMut()) -> f64 {
     (0..runs.max(1))
         .map(|_| {
@@ -347,28 +347,14 @@ pub fn calibrate_within(
         .iter()
         .map(|c| c.agreement.unwrap_or(0.0))
         .collect();
-    // Measure what the candidates that may still win need, the lowest bound first, until every
-    // such candidate's prediction is exact.
-    let emulated = |p: Precision| !model.fused.native(p);
-    let mut meter = Meter::new(model, &grey, level)?;
-    let mut cut_short = false;
-    let estimates = loop {
-        let estimates: Vec<(f64, Option<Need>)> = candidates
-            .iter()
-            .map(|c| meter.rates.predict(model, &c.params, level, emulated))
-            .collect();
-        let any_exact = estimates.iter().any(|e| e.1.is_none());
-        let past_deadline = started.elapsed().as_secs_f64() * 1e3 >= deadline_ms;
-        match next_need(&estimates, &agreement, budget_ms) {
-            Some(_) if past_deadline && any_exact => {
-                cut_short = true;
-                break estimates;
-            }
-            Some(need) => meter.measure(need),
-            None => break estimates,
-        }
-    };
-    let mut spent = meter.spent;
+    let meter = Meter::new(model, &grey, level)?;
+    let (estimates, mut spent, cut_short) = estimate(
+        meter,
+        &candidates,
+        &agreement,
+        (level, budget_ms),
+        (started, deadline_ms),
+    );
     // A search left with a bound cannot be chosen (see `next_need`), or was not measured in time.
     let ruled_out = estimates.iter().filter(|e| e.1.is_some()).count();
     let left_out = if cut_short {
@@ -384,27 +370,9 @@ pub fn calibrate_within(
         .collect();
     let (pick, reason) = choose(&rows, &agreement, &predicted, budget_ms);
     let chosen = candidates[pick];
-    let options = PredictOptions {
-        top_k: TOP_K,
-        level: Some(level),
-        mode_angle_deg: None,
-        ..Default::default()
-    };
-    let mut failed = None;
     let clock = Instant::now();
-    // Once: every part of it ran while the rates were measured.
-    let measured_ms = min_ms(1, || {
-        let searched = model
-            .features(&[&grey])
-            .and_then(|f| model.predict_searching(&f, &options, &chosen.params, &[None]));
-        if let Err(e) = searched {
-            failed = Some(e);
-        }
-    });
+    let measured_ms = run_once(model, &grey, &chosen.params, level)?;
     spent.check_ms = clock.elapsed().as_secs_f64() * 1e3;
-    if let Some(e) = failed {
-        return Err(e);
-    }
     Ok(Calibration {
         chosen: chosen.params,
         agreement: chosen.agreement,
@@ -427,6 +395,56 @@ pub fn calibrate_within(
             }
         },
     })
+}
+
+/// The latency of one top-[`TOP_K`] `search` to `level` on `grey`, encoder included, in
+/// milliseconds: run once, since every part of it ran while the rates were measured.
+fn run_once(
+    model: &Model,
+    grey: &[u8],
+    search: &SearchParams,
+    level: u8,
+) -> Result<f64, EngineError> {
+    let options = PredictOptions {
+        top_k: TOP_K,
+        level: Some(level),
+        mode_angle_deg: None,
+        ..Default::default()
+    };
+    let clock = Instant::now();
+    model
+        .features(&[grey])
+        .and_then(|f| model.predict_searching(&f, &options, search, &[None]))?;
+    Ok(clock.elapsed().as_secs_f64() * 1e3)
+}
+
+/// Each candidate's predicted latency, exact or (when it cannot be chosen) a lower bound with
+/// what it still needs: `meter` measures what the candidates that may still be chosen need, the
+/// lowest bound first, until every such candidate's prediction is exact, or, once `deadline_ms`
+/// after `started` have passed, one is. Also what the measuring spent, and whether the deadline
+/// cut it short.
+fn estimate(
+    mut meter: Meter,
+    candidates: &[Candidate],
+    agreement: &[f64],
+    (level, budget_ms): (u8, f64),
+    (started, deadline_ms): (Instant, f64),
+) -> (Vec<(f64, Option<Need>)>, Spent, bool) {
+    let model = meter.model;
+    let emulated = |p: Precision| !model.fused.native(p);
+    loop {
+        let estimates: Vec<(f64, Option<Need>)> = candidates
+            .iter()
+            .map(|c| meter.rates.predict(model, &c.params, level, emulated))
+            .collect();
+        let any_exact = estimates.iter().any(|e| e.1.is_none());
+        let past_deadline = started.elapsed().as_secs_f64() * 1e3 >= deadline_ms;
+        match next_need(&estimates, agreement, budget_ms) {
+            Some(_) if past_deadline && any_exact => return (estimates, meter.spent, true),
+            Some(need) => meter.measure(need),
+            None => return (estimates, meter.spent, false),
+        }
+    }
 }
 
 /// The measurement to make next, or `None` when none is needed: the one needed by the search
