@@ -41,7 +41,7 @@ const TIMED_ROWS: usize = 2048;
 const SMALL_ROWS: usize = 64;
 
 /// After this long, a calibration measures only until one search's prediction is exact
-/// ([`calibrate_within`]); it takes 50–90 ms on a 2-core AMD EPYC (docs/BENCHMARKS.md).
+/// ([`calibrate_within`]); it took 45–90 ms a model on a 2-core AMD EPYC (docs/BENCHMARKS.md).
 pub const MEASURING_DEADLINE_MS: f64 = 250.0;
 
 /// Predictions within this factor of the fastest count as equally fast.
@@ -370,9 +370,8 @@ pub fn calibrate_within(
         .collect();
     let (pick, reason) = choose(&rows, &agreement, &predicted, budget_ms);
     let chosen = candidates[pick];
-    let clock = Instant::now();
     let measured_ms = run_once(model, &grey, &chosen.params, level)?;
-    spent.check_ms = clock.elapsed().as_secs_f64() * 1e3;
+    spent.check_ms = measured_ms;
     Ok(Calibration {
         chosen: chosen.params,
         agreement: chosen.agreement,
@@ -500,7 +499,6 @@ struct Meter<'a> {
     many: Vec<Vec<[f32; 9]>>,
     few: Vec<Vec<[f32; 9]>>,
     rates: Rates,
-    warm: std::collections::BTreeSet<Precision>,
     spent: Spent,
 }
 
@@ -527,7 +525,6 @@ impl<'a> Meter<'a> {
                 start: BTreeMap::new(),
                 row: BTreeMap::new(),
             },
-            warm: Default::default(),
             spent: Spent {
                 encoder_ms: clock.elapsed().as_secs_f64() * 1e3,
                 ..Spent::default()
@@ -535,18 +532,21 @@ impl<'a> Meter<'a> {
         })
     }
 
+    /// Whether a measurement in `precision` has run here (its code is warm).
+    fn ran(&self, precision: Precision) -> bool {
+        self.rates.row.contains_key(&precision)
+            || self.rates.start.keys().any(|&(_, p)| p == precision)
+    }
+
     fn measure(&mut self, need: Need) {
         let clock = Instant::now();
         let (model, features) = (self.model, &self.features);
+        // Once for a large measurement whose code just ran, else the minimum of RUNS.
+        let runs = |rows: usize, warm: bool| if rows > LARGE_ROWS && warm { 1 } else { RUNS };
         match need {
             Need::Start(l, precision) => {
                 let cells = model.grid(l).map_or(0, |g| g.len());
-                let runs = if cells > LARGE_ROWS && self.warm.contains(&precision) {
-                    1
-                } else {
-                    RUNS
-                };
-                let ms = min_ms(runs, || {
+                let ms = min_ms(runs(cells, self.ran(precision)), || {
                     let _ = model.projected[l as usize].log_weights_of_row(precision, &features[0]);
                 });
                 self.rates.start.insert((l, precision), ms);
@@ -559,21 +559,14 @@ impl<'a> Meter<'a> {
                     })
                 };
                 let few = time(&self.few, RUNS);
-                let many = time(&self.many, if TIMED_ROWS > LARGE_ROWS { 1 } else { RUNS });
+                let many = time(&self.many, runs(TIMED_ROWS, true));
                 let per_row = ((many - few) / (TIMED_ROWS - SMALL_ROWS) as f64).max(0.0);
                 let fixed = (few - per_row * SMALL_ROWS as f64).max(0.0);
                 self.rates.row.insert(precision, (fixed, per_row));
                 self.spent.rows_ms += clock.elapsed().as_secs_f64() * 1e3;
             }
         }
-        self.warm.insert(need_precision(need));
         self.spent.measurements += 1;
-    }
-}
-
-fn need_precision(need: Need) -> Precision {
-    match need {
-        Need::Start(_, p) | Need::Rows(p) => p,
     }
 }
 
@@ -697,53 +690,36 @@ mod tests {
     fn a_search_is_measured_only_while_its_bound_may_still_win() {
         let start = Some(Need::Start(2, Precision::I8));
         let rows = Some(Need::Rows(Precision::Bf16));
-        // An exact search at 10 ms: a bound beyond TIE × 10 with the same agreement is ruled
-        // out; within it, the search is measured, the lowest bound first.
-        assert_eq!(
-            next_need(&[(10.0, None), (12.0, start)], &[1.0, 1.0], 25.0),
-            None
-        );
-        assert_eq!(
-            next_need(
-                &[(10.0, None), (11.0, start), (10.5, rows)],
-                &[1.0; 3],
-                25.0
+        // (estimates, agreement, the measurement expected next), budget 25 ms.
+        let cases = [
+            // An exact search at 10 ms: a bound beyond TIE × 10 with the same agreement is ruled
+            // out; within it, the search is measured, the lowest bound first.
+            (vec![(10.0, None), (12.0, start)], vec![1.0, 1.0], None),
+            (
+                vec![(10.0, None), (11.0, start), (10.5, rows)],
+                vec![1.0; 3],
+                rows,
             ),
-            rows
-        );
-        // A more agreeing search is measured while its bound is within the budget, however slow
-        // against the others; a less agreeing one never.
-        assert_eq!(
-            next_need(&[(10.0, None), (20.0, start)], &[0.99, 1.0], 25.0),
-            start
-        );
-        assert_eq!(
-            next_need(&[(10.0, None), (30.0, start)], &[0.99, 1.0], 25.0),
-            None
-        );
-        assert_eq!(
-            next_need(&[(10.0, None), (5.0, start)], &[1.0, 0.99], 25.0),
-            None
-        );
-        // Nothing exact within the budget: a bound within it is measured, and one beyond it only
-        // while it may be the fastest.
-        assert_eq!(
-            next_need(&[(40.0, None), (20.0, start)], &[1.0, 1.0], 25.0),
-            start
-        );
-        assert_eq!(
-            next_need(&[(40.0, None), (45.0, start)], &[1.0, 1.0], 25.0),
-            start
-        );
-        assert_eq!(
-            next_need(&[(40.0, None), (50.0, start)], &[1.0, 1.0], 25.0),
-            None
-        );
-        // Nothing exact yet: everything may win.
-        assert_eq!(
-            next_need(&[(90.0, rows), (50.0, start)], &[1.0, 1.0], 25.0),
-            start
-        );
+            // A more agreeing search is measured while its bound is within the budget, however
+            // slow against the others; a less agreeing one never.
+            (vec![(10.0, None), (20.0, start)], vec![0.99, 1.0], start),
+            (vec![(10.0, None), (30.0, start)], vec![0.99, 1.0], None),
+            (vec![(10.0, None), (5.0, start)], vec![1.0, 0.99], None),
+            // Nothing exact within the budget: a bound within it is measured, and one beyond it
+            // only while it may be the fastest.
+            (vec![(40.0, None), (20.0, start)], vec![1.0, 1.0], start),
+            (vec![(40.0, None), (45.0, start)], vec![1.0, 1.0], start),
+            (vec![(40.0, None), (50.0, start)], vec![1.0, 1.0], None),
+            // Nothing exact yet: everything may win.
+            (vec![(90.0, rows), (50.0, start)], vec![1.0, 1.0], start),
+        ];
+        for (estimates, agreement, expected) in cases {
+            assert_eq!(
+                next_need(&estimates, &agreement, 25.0),
+                expected,
+                "{estimates:?} {agreement:?}"
+            );
+        }
     }
 
     #[test]
