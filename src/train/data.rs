@@ -9,7 +9,7 @@ use rand_chacha::ChaCha8Rng;
 
 use crate::bundle::model::ModelBundle;
 use crate::cad::{Mesh, RenderOptions};
-use crate::data::realism::{Realism, SceneAssets, realistic_crop};
+use crate::data::realism::{Realism, RealisticCrop, SceneAssets, realistic_crop};
 use crate::data::virtual_crop::{RenderedCrop, frame_camera, random_placement, render_crop};
 use crate::data::{BopDataset, DataError};
 use crate::experts::energy::visible_points;
@@ -238,6 +238,25 @@ impl FreshRenders {
         seed: u64,
         realism: Realism,
     ) -> Vec<EvalImage> {
+        self.realistic_eval_crops(size, per_object, seed, realism)
+            .into_iter()
+            .map(|(i, crop)| EvalImage {
+                object: names[i].clone(),
+                rgb: crop.rgb,
+                equivalents: equivalents(&crop.r_virtual, &symmetries[i]),
+            })
+            .collect()
+    }
+
+    /// The crops of [`FreshRenders::realistic_eval_images`] (same `seed`, same scenes) with their
+    /// renders, visible fractions and object indices; object by object, `per_object` each.
+    pub fn realistic_eval_crops(
+        &self,
+        size: u32,
+        per_object: usize,
+        seed: u64,
+        realism: Realism,
+    ) -> Vec<(usize, RealisticCrop)> {
         use rayon::prelude::*;
         let assets = SceneAssets::new(&self.meshes, realism);
         let draws: Vec<(usize, u64)> = (0..self.meshes.len())
@@ -247,12 +266,10 @@ impl FreshRenders {
             .par_iter()
             .map(|&(i, j)| {
                 let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x4ea1 ^ ((i as u64) << 32) ^ j);
-                let crop = realistic_crop(&assets, i, size, self.supersample, &mut rng);
-                EvalImage {
-                    object: names[i].clone(),
-                    rgb: crop.rgb,
-                    equivalents: equivalents(&crop.r_virtual, &symmetries[i]),
-                }
+                (
+                    i,
+                    realistic_crop(&assets, i, size, self.supersample, &mut rng),
+                )
             })
             .collect()
     }
