@@ -40,12 +40,14 @@ fn stream(seed: u64, n: usize) -> Vec<f32> {
         .collect()
 }
 
-/// Two encoders with the same weights and statistics, each with its own running state (a copy
-/// through the record: two seeded inits do not draw the same weights).
-fn encoders(device: &Device, seed: u64) -> (Encoder, Encoder) {
+/// Two encoders of `layout` with the same weights and statistics, each with its own running
+/// state (a copy through the record: two seeded inits do not draw the same weights). A
+/// `tiny_deep` one is a `tiny` one deepened, its added blocks at their identity start.
+fn encoders(device: &Device, seed: u64, layout: ResNetLayout) -> (Encoder, Encoder) {
     device.seed(seed);
-    let reference = EncoderConfig::new(ResNetLayout::Tiny).init(device);
-    let copy = EncoderConfig::new(ResNetLayout::Tiny)
+    let tiny = EncoderConfig::new(ResNetLayout::Tiny).init(device);
+    let reference = tiny.deepened(ResNetLayout::Tiny, layout, device).unwrap();
+    let copy = EncoderConfig::new(layout)
         .init(device)
         .load_record(reference.clone().into_record());
     (reference, copy)
@@ -55,13 +57,15 @@ fn encoders(device: &Device, seed: u64) -> (Encoder, Encoder) {
 fn the_hand_written_encoder_trains_as_burns_autodiff() {
     // 16 px: every stage halves evenly; 9 px: odd sides, windows cut by the edges (9, 5, 3, 2).
     for size in [SIZE, 9] {
-        check(size);
+        check(size, ResNetLayout::Tiny);
     }
+    // Blocks at their identity start: zero scale and shift, gradients through them all the same.
+    check(SIZE, ResNetLayout::TinyDeep);
 }
 
-fn check(size: usize) {
+fn check(size: usize, layout: ResNetLayout) {
     let device = alignist::backend::device_for(alignist::backend::Workload::Conv).autodiff();
-    let (reference, ours) = encoders(&device, 5);
+    let (reference, ours) = encoders(&device, 5, layout);
     let crops: Vec<Vec<u8>> = (0..IMAGES)
         .map(|i| {
             stream(i as u64 + 1, size * size * 3)
@@ -85,7 +89,7 @@ fn check(size: usize) {
         TrainingEncoder::of(&ours, Kernels::default()).expect("the tiny layout runs by hand");
     let pass = model.forward(&crops, size);
     let e = relative(pass.features(), &burn_features, 1e-6);
-    assert!(e <= 1e-4, "{size} px: features off by {e:.2e}");
+    assert!(e <= 1e-4, "{layout:?} {size} px: features off by {e:.2e}");
     let grads = model.backward(&pass, &d);
     let mut our_grads = GradientsParams::new();
     let ours_ids = model.param_ids();
@@ -94,9 +98,10 @@ fn check(size: usize) {
     let reference_ids = TrainingEncoder::of(&reference, Kernels::default())
         .unwrap()
         .param_ids();
+    let blocks: usize = if layout == ResNetLayout::Tiny { 4 } else { 8 };
     assert_eq!(
         reference_ids.len(),
-        1 + 2 * 4 + 3,
+        1 + 2 * blocks + 3,
         "stem, two per block, three shortcuts"
     );
     for (unit, (r, o)) in reference_ids.iter().zip(&ours_ids).enumerate() {
@@ -116,12 +121,12 @@ fn check(size: usize) {
         ];
         for (which, pair) in ["weight", "gamma", "beta"].iter().zip(pairs) {
             let (Some(r), Some(o)) = pair else {
-                panic!("{size} px, unit {unit}: a {which} gradient is missing");
+                panic!("{layout:?} {size} px, unit {unit}: a {which} gradient is missing");
             };
             let e = relative(&o, &r, 1e-3);
             assert!(
                 e <= 1e-4,
-                "{size} px, unit {unit}: {which} gradient off by {e:.2e}"
+                "{layout:?} {size} px, unit {unit}: {which} gradient off by {e:.2e}"
             );
         }
     }
@@ -139,7 +144,7 @@ fn check(size: usize) {
     let e = relative(&inference(&ours), &inference(&reference), 1e-6);
     assert!(
         e <= 1e-4,
-        "{size} px: inference features (running statistics) off by {e:.2e}"
+        "{layout:?} {size} px: inference features (running statistics) off by {e:.2e}"
     );
 }
 
@@ -153,7 +158,7 @@ fn layouts_with_a_stem_pool_are_left_to_burn() {
 #[test]
 fn the_encoder_gradients_do_not_depend_on_the_thread_count() {
     let device = alignist::backend::device_for(alignist::backend::Workload::Conv).autodiff();
-    let (a, b) = encoders(&device, 8);
+    let (a, b) = encoders(&device, 8, ResNetLayout::Tiny);
     let crops: Vec<Vec<u8>> = (0..7)
         .map(|i| {
             stream(i + 40, SIZE * SIZE * 3)

@@ -151,7 +151,7 @@ fn render_experts_fit_eval_and_load_a_bundle() {
     resume_and_stop_at_finish_a_run(&p);
     assert_eq!(p.eval_overall("2")["images"], 2);
     fresh_renders_fit_with_their_loss_and_sampling(&p);
-    a_warm_start_may_change_the_crop_side_only(&p);
+    a_warm_start_may_change_the_crop_side_and_deepen_the_encoder(&p);
     the_bundle_read_back_scores_as_fit_held_it(&p, &eval);
     bad_arguments_are_refused_naming_them(&p);
     a_corrupt_network_is_refused(&p);
@@ -288,7 +288,7 @@ fn fresh_renders_fit_with_their_loss_and_sampling(p: &Pipeline) {
 /// `--init` from the 32 px bundle into a 48 px run: the encoder pools globally, so its weights
 /// carry over, and the manifest records the side they were trained at. Another encoding is
 /// refused, naming the bundle.
-fn a_warm_start_may_change_the_crop_side_only(p: &Pipeline) {
+fn a_warm_start_may_change_the_crop_side_and_deepen_the_encoder(p: &Pipeline) {
     let (bundle, dir) = (&p.bundle, &p.dir);
     let warm = dir.path().join("warm-48");
     let fit = |encoding: &str| {
@@ -319,6 +319,33 @@ fn a_warm_start_may_change_the_crop_side_only(p: &Pipeline) {
             && err.contains("image size may differ"),
         "{err}"
     );
+
+    // A layout with more blocks per stage starts from the tiny weights; another is refused.
+    let deep = dir.path().join("warm-deep");
+    let deepen = |layout: &str| {
+        let args = [
+            "--init",
+            s(bundle),
+            "--layout",
+            layout,
+            "--eval-images",
+            "0",
+        ];
+        p.fresh_fit(&deep, &args)
+    };
+    let out = deepen("tiny-deep");
+    assert!(out.status.success(), "{out:?}");
+    let manifest = ModelBundle::load(&deep).unwrap().manifest;
+    assert_eq!(
+        manifest.network.layout,
+        alignist::net::ResNetLayout::TinyDeep
+    );
+    let init = manifest.provenance.train.init.unwrap();
+    assert_eq!(init.layout, Some(alignist::net::ResNetLayout::Tiny));
+    let refused = deepen("resnet18");
+    assert!(!refused.status.success());
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(err.contains("deepens it"), "{err}");
 }
 
 /// The bundle read back scores as the network `fit` held in memory.

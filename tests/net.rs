@@ -129,6 +129,37 @@ fn encoder_and_head_give_one_score_per_image_and_rotation() {
 }
 
 #[test]
+fn a_deepened_encoder_computes_the_same_features_with_more_blocks() {
+    use burn::module::Module;
+    let d = alignist::backend::device_for(alignist::backend::Workload::Conv);
+    let tiny = EncoderConfig::new(ResNetLayout::Tiny).init(&d);
+    let images: Tensor<4> = Tensor::random([3, 3, 24, 24], Distribution::Default, &d);
+    let values = |t: Tensor<2>| t.into_data().try_to_vec::<f32>().unwrap();
+    let before = values(tiny.clone().valid().forward(images.clone()));
+    let deep = tiny
+        .deepened(ResNetLayout::Tiny, ResNetLayout::TinyDeep, &d)
+        .expect("tiny_deep deepens tiny");
+    let fresh = EncoderConfig::new(ResNetLayout::TinyDeep).init(&d);
+    assert_eq!(deep.num_params(), fresh.num_params());
+    assert!(deep.num_params() > EncoderConfig::new(ResNetLayout::Tiny).init(&d).num_params());
+    let after = values(deep.clone().valid().forward(images));
+    assert_eq!(before.len(), after.len());
+    for (a, b) in before.iter().zip(&after) {
+        assert!((a - b).abs() <= 1e-6 * a.abs().max(1.0), "{a} != {b}");
+    }
+    // Only the same stem, widths and block kind with no fewer blocks per stage deepen.
+    assert!(ResNetLayout::TinyDeep.deepens(ResNetLayout::Tiny));
+    assert!(ResNetLayout::Tiny.deepens(ResNetLayout::Tiny));
+    assert!(!ResNetLayout::Tiny.deepens(ResNetLayout::TinyDeep));
+    assert!(!ResNetLayout::Resnet18.deepens(ResNetLayout::Tiny));
+    assert!(!ResNetLayout::Resnet50.deepens(ResNetLayout::Resnet18));
+    assert!(
+        deep.deepened(ResNetLayout::TinyDeep, ResNetLayout::Resnet18, &d)
+            .is_none()
+    );
+}
+
+#[test]
 fn an_output_scale_multiplies_the_combined_log_density() {
     let d = device();
     let enc = RotationEncoding::Cube;

@@ -408,6 +408,7 @@ fn a_warm_restart_starts_from_the_given_weights_and_checks_them() {
             file: entry.clone(),
             trained_by: "the test's first run".into(),
             image_size: None,
+            layout: None,
         }),
         ..cfg.clone()
     };

@@ -293,6 +293,10 @@ pub struct InitWeights {
     /// globally, so its weights carry over to another size).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub image_size: Option<u32>,
+    /// The encoder layout the weights were trained in, when this run's deepens it (its added
+    /// blocks start as identities).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub layout: Option<crate::net::ResNetLayout>,
 }
 
 /// How the K rotations of an image are drawn.

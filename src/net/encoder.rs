@@ -2,11 +2,12 @@
 //! bottleneck residual blocks with BatchNorm, global average pooling, and a feature vector.
 //!
 //! Layouts: `tiny` (the CPU default: basic blocks [1, 1, 1, 1], widths 16…128, a 3×3 stem for
-//! 64×64 crops), `resnet18` (basic [2, 2, 2, 2], 64…512) and `resnet50` (bottleneck
+//! 64×64 crops), `tiny_deep` (the same with two blocks per stage: a trained `tiny` encoder
+//! warm-starts it unchanged, [`Encoder::deepened`]), `resnet18` (basic [2, 2, 2, 2], 64…512) and `resnet50` (bottleneck
 //! [3, 4, 6, 3], 64…512 × 4 = 2048 features) with the 7×7/2 stem and max-pool for 224×224 crops.
 
 use burn::config::Config;
-use burn::module::Module;
+use burn::module::{Module, Param};
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::pool::{AdaptiveAvgPool2d, AdaptiveAvgPool2dConfig, MaxPool2d, MaxPool2dConfig};
 use burn::nn::{BatchNorm, BatchNormConfig, PaddingConfig2d};
@@ -20,6 +21,9 @@ use serde::{Deserialize, Serialize};
 pub enum ResNetLayout {
     /// Basic blocks [1, 1, 1, 1], widths 16, 32, 64, 128, 3×3 stem (CPU default).
     Tiny,
+    /// Basic blocks [2, 2, 2, 2], widths 16, 32, 64, 128, 3×3 stem: `tiny` with a second block
+    /// per stage (a `tiny` network warm-starts it, the added blocks starting as identities).
+    TinyDeep,
     /// ResNet-18: basic blocks [2, 2, 2, 2], widths 64 … 512.
     Resnet18,
     /// ResNet-50: bottleneck blocks [3, 4, 6, 3], widths 64 … 512, expansion 4.
@@ -30,6 +34,7 @@ impl ResNetLayout {
     fn blocks(&self) -> [usize; 4] {
         match self {
             ResNetLayout::Tiny => [1, 1, 1, 1],
+            ResNetLayout::TinyDeep => [2, 2, 2, 2],
             ResNetLayout::Resnet18 => [2, 2, 2, 2],
             ResNetLayout::Resnet50 => [3, 4, 6, 3],
         }
@@ -37,9 +42,29 @@ impl ResNetLayout {
 
     fn base_width(&self) -> usize {
         match self {
-            ResNetLayout::Tiny => 16,
+            ResNetLayout::Tiny | ResNetLayout::TinyDeep => 16,
             _ => 64,
         }
+    }
+
+    /// A 3×3 stride-1 stem without a max-pool (the small crops of the CPU layouts), else the
+    /// 7×7/2 stem and a max-pool of ImageNet ResNets.
+    fn small_stem(&self) -> bool {
+        matches!(self, ResNetLayout::Tiny | ResNetLayout::TinyDeep)
+    }
+
+    /// Whether an encoder of layout `from` becomes one of this layout by adding blocks only (the
+    /// same stem, widths and block kind, at least as many blocks per stage): its weights then
+    /// warm-start this layout ([`Encoder::deepened`]).
+    pub fn deepens(&self, from: ResNetLayout) -> bool {
+        self.small_stem() == from.small_stem()
+            && self.base_width() == from.base_width()
+            && self.bottleneck() == from.bottleneck()
+            && self
+                .blocks()
+                .iter()
+                .zip(from.blocks())
+                .all(|(a, b)| *a >= b)
     }
 
     fn bottleneck(&self) -> bool {
@@ -132,6 +157,20 @@ impl Block {
         Block { layers, shortcut }
     }
 
+    /// A block of `channels` in and out (stride 1, no projection) that starts as the identity
+    /// on the non-negative activations between blocks: its last BatchNorm's scale and shift are
+    /// zero, so `relu(0 + x) = x` (the zero-initialised residual of Goyal et al. 2017), while
+    /// the scale's gradient `Σ dy·x̂` is not zero and lets it learn.
+    fn identity(channels: usize, bottleneck: bool, device: &Device) -> Self {
+        let width = if bottleneck { channels / 4 } else { channels };
+        let mut block = Block::new(channels, width, 1, bottleneck, device);
+        if let Some(last) = block.layers.last_mut() {
+            last.bn.gamma = Param::from_tensor(Tensor::zeros([channels], device));
+            last.bn.beta = Param::from_tensor(Tensor::zeros([channels], device));
+        }
+        block
+    }
+
     /// The main path's conv + BatchNorm pairs and the projection shortcut.
     pub(crate) fn parts(&self) -> (&[ConvBn], Option<&ConvBn>) {
         (&self.layers, self.shortcut.as_ref())
@@ -168,7 +207,7 @@ impl EncoderConfig {
     pub fn init(&self, device: &Device) -> Encoder {
         let layout = self.layout;
         let base = layout.base_width();
-        let (stem, stem_pool) = if layout == ResNetLayout::Tiny {
+        let (stem, stem_pool) = if layout.small_stem() {
             (ConvBn::new(3, base, 3, 1, device), None)
         } else {
             (
@@ -217,6 +256,25 @@ impl Encoder {
                 s.sync_running_stats();
             }
         }
+    }
+
+    /// This encoder, of layout `from`, as one of layout `to` that computes the same features:
+    /// each stage's blocks followed by the blocks `to` adds there, each starting as the identity.
+    /// `None` when `to` does not deepen `from` ([`ResNetLayout::deepens`]).
+    pub fn deepened(self, from: ResNetLayout, to: ResNetLayout, device: &Device) -> Option<Self> {
+        if !to.deepens(from) {
+            return None;
+        }
+        let mut source = self.blocks.into_iter();
+        let mut blocks = Vec::new();
+        for (stage, (&have, &want)) in from.blocks().iter().zip(&to.blocks()).enumerate() {
+            blocks.extend(source.by_ref().take(have));
+            let width = from.base_width() << stage;
+            let channels = if from.bottleneck() { width * 4 } else { width };
+            blocks
+                .extend((have..want).map(|_| Block::identity(channels, from.bottleneck(), device)));
+        }
+        Some(Encoder { blocks, ..self })
     }
 
     /// The stem, whether a max-pool follows it, and the residual blocks.

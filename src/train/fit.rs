@@ -272,8 +272,9 @@ fn dataset_data(inputs: &FitInputs, data: &[PathBuf]) -> Result<FitData, FitErro
 /// recorded with their checksum and the command that trained them.
 ///
 /// The crop side may differ: every layout ends in global average pooling, so the encoder's
-/// weights are the same tensors at any input size (a 32 px network warm-starts a 64 px one). The
-/// side the weights were trained at is recorded beside them.
+/// weights are the same tensors at any input size (a 32 px network warm-starts a 64 px one). So
+/// may the layout, where this run's deepens theirs (`tiny` → `tiny_deep`: the added blocks start
+/// as identities). The side and layout the weights were trained in are recorded beside them.
 pub fn init_weights(dir: &Path, network: &NetworkConfig) -> Result<InitWeights, FitError> {
     let path = dir.display().to_string();
     let bundle = ModelBundle::load(dir).map_err(|source| FitError::Bundle {
@@ -281,15 +282,22 @@ pub fn init_weights(dir: &Path, network: &NetworkConfig) -> Result<InitWeights, 
         source,
     })?;
     let theirs = &bundle.manifest.network;
+    let deepened = network.layout != theirs.layout && network.layout.deepens(theirs.layout);
     let same_tensors = NetworkConfig {
         image_size: network.image_size,
+        layout: if deepened {
+            network.layout
+        } else {
+            theirs.layout
+        },
         ..theirs.clone()
     };
     if &same_tensors != network {
         let json = |n: &NetworkConfig| serde_json::to_string(n).unwrap_or_default();
         return Err(FitError::Invalid(format!(
-            "{path}: its network ({}) is not the one asked for ({}); give the same layout, \
-             encoding, hidden width and layers (the image size may differ)",
+            "{path}: its network ({}) is not the one asked for ({}); give the same encoding, \
+             hidden width and layers, and its layout or one that deepens it (the image size may \
+             differ)",
             json(theirs),
             json(network)
         )));
@@ -307,6 +315,7 @@ pub fn init_weights(dir: &Path, network: &NetworkConfig) -> Result<InitWeights, 
         file,
         trained_by: bundle.manifest.provenance.command.clone(),
         image_size: (theirs.image_size != network.image_size).then_some(theirs.image_size),
+        layout: deepened.then_some(theirs.layout),
     })
 }
 
