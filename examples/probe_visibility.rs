@@ -11,7 +11,6 @@
 //! `cargo run --release --example probe_visibility [BUNDLE] [IMAGES_PER_OBJECT] [LEVEL]`
 use alignist::bundle::model::ModelBundle;
 use alignist::data::realism::{Realism, RealisticCrop};
-use alignist::so3::equivalents;
 use alignist::train::data::BundleRenders;
 use alignist::train::eval::{EvalImage, evaluate};
 
@@ -76,11 +75,8 @@ fn main() -> anyhow::Result<()> {
             .iter()
             .filter(|(i, _)| *i == object)
             .map(|(_, crop)| {
-                let image = EvalImage {
-                    object: name.clone(),
-                    rgb: crop.rgb.clone(),
-                    equivalents: equivalents(&crop.r_virtual, &renders.symmetries[object]),
-                };
+                let group = &renders.symmetries[object];
+                let image = EvalImage::labelled(name, crop.rgb.clone(), &crop.r_virtual, group);
                 (image, properties(crop, size))
             })
             .collect();

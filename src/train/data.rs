@@ -14,7 +14,6 @@ use crate::data::virtual_crop::{RenderedCrop, frame_camera, random_placement, re
 use crate::data::{BopDataset, DataError};
 use crate::experts::energy::visible_points;
 use crate::experts::select::{VISIBLE_POINTS, visible_points_at};
-use crate::so3::equivalents;
 
 use super::eval::EvalImage;
 
@@ -190,16 +189,9 @@ impl FreshRenders {
                 )
                 .expect("a placed object's box has an area");
                 let in_virtual = view.r_ray.inverse() * pose.rotation;
-                corrected.push(EvalImage {
-                    object: names[i].clone(),
-                    rgb: rgb.clone(),
-                    equivalents: equivalents(&in_virtual, &symmetries[i]),
-                });
-                uncorrected.push(EvalImage {
-                    object: names[i].clone(),
-                    rgb,
-                    equivalents: equivalents(&pose.rotation, &symmetries[i]),
-                });
+                let labelled = |rgb, r| EvalImage::labelled(&names[i], rgb, r, &symmetries[i]);
+                corrected.push(labelled(rgb.clone(), &in_virtual));
+                uncorrected.push(labelled(rgb, &pose.rotation));
             }
         }
         (corrected, uncorrected)
@@ -218,10 +210,8 @@ impl FreshRenders {
     ) -> Vec<EvalImage> {
         self.eval_crops(size, per_object, seed)
             .into_iter()
-            .map(|(i, crop)| EvalImage {
-                object: names[i].clone(),
-                rgb: crop.rgb,
-                equivalents: equivalents(&crop.r_virtual, &symmetries[i]),
+            .map(|(i, crop)| {
+                EvalImage::labelled(&names[i], crop.rgb, &crop.r_virtual, &symmetries[i])
             })
             .collect()
     }
@@ -240,10 +230,8 @@ impl FreshRenders {
     ) -> Vec<EvalImage> {
         self.realistic_eval_crops(size, per_object, seed, realism)
             .into_iter()
-            .map(|(i, crop)| EvalImage {
-                object: names[i].clone(),
-                rgb: crop.rgb,
-                equivalents: equivalents(&crop.r_virtual, &symmetries[i]),
+            .map(|(i, crop)| {
+                EvalImage::labelled(&names[i], crop.rgb, &crop.r_virtual, &symmetries[i])
             })
             .collect()
     }

@@ -24,6 +24,23 @@ pub struct EvalImage {
     pub equivalents: Vec<Rotation3<f64>>,
 }
 
+impl EvalImage {
+    /// The crop `rgb` of object `object` at rotation `r_gt`, with its equivalents under the
+    /// object's proper symmetries `group`.
+    pub fn labelled(
+        object: &str,
+        rgb: Vec<u8>,
+        r_gt: &Rotation3<f64>,
+        group: &[Rotation3<f64>],
+    ) -> Self {
+        EvalImage {
+            object: object.to_string(),
+            rgb,
+            equivalents: crate::so3::equivalents(r_gt, group),
+        }
+    }
+}
+
 /// The finest level evaluated or scored in full: level 5 already has 2 359 296 cells (level 6,
 /// [`crate::so3::MAX_LEVEL`], eight times more, is only searched).
 pub const MAX_EVAL_LEVEL: u8 = 5;
