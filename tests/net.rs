@@ -708,11 +708,11 @@ impl Tolerance {
         f32: 0.02,
     };
     /// Bytes round 8 times more coarsely than f16, but the sums are exact and the emulation
-    /// rounds the same values (measured on the shipped head: worst 3.3 % from f32, mean gap to
-    /// the emulation 1e-5).
+    /// rounds the same values (measured on the shipped heads: worst 3.3 % from f32 on r9's,
+    /// 5.6 % on r11's, in one of 12 rows; mean gap to the emulation below 1e-5 on both).
     const I8: Tolerance = Tolerance {
         emulated: 4e-3,
         emulated_mean: 5e-4,
-        f32: 0.05,
+        f32: 0.08,
     };
 }
