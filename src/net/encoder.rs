@@ -3,8 +3,9 @@
 //!
 //! Layouts: `tiny` (the CPU default: basic blocks [1, 1, 1, 1], widths 16…128, a 3×3 stem for
 //! 64×64 crops), `tiny_deep` (the same with two blocks per stage: a trained `tiny` encoder
-//! warm-starts it unchanged, [`Encoder::deepened`]), `resnet18` (basic [2, 2, 2, 2], 64…512) and `resnet50` (bottleneck
-//! [3, 4, 6, 3], 64…512 × 4 = 2048 features) with the 7×7/2 stem and max-pool for 224×224 crops.
+//! warm-starts it unchanged, [`Encoder::deepened`]), `resnet18` (basic [2, 2, 2, 2], 64…512) and
+//! `resnet50` (bottleneck [3, 4, 6, 3], 64…512 × 4 = 2048 features) with the 7×7/2 stem and
+//! max-pool for 224×224 crops.
 
 use burn::config::Config;
 use burn::module::{Module, Param};

@@ -282,10 +282,9 @@ pub fn init_weights(dir: &Path, network: &NetworkConfig) -> Result<InitWeights, 
         source,
     })?;
     let theirs = &bundle.manifest.network;
-    let deepened = network.layout != theirs.layout && network.layout.deepens(theirs.layout);
     let same_tensors = NetworkConfig {
         image_size: network.image_size,
-        layout: if deepened {
+        layout: if network.layout.deepens(theirs.layout) {
             network.layout
         } else {
             theirs.layout
@@ -315,7 +314,7 @@ pub fn init_weights(dir: &Path, network: &NetworkConfig) -> Result<InitWeights, 
         file,
         trained_by: bundle.manifest.provenance.command.clone(),
         image_size: (theirs.image_size != network.image_size).then_some(theirs.image_size),
-        layout: deepened.then_some(theirs.layout),
+        layout: (theirs.layout != network.layout).then_some(theirs.layout),
     })
 }
 

@@ -250,25 +250,29 @@ fn starting_point(
     if let Some(init) = &config.init {
         let to = config.network.layout;
         let from = init.layout.unwrap_or(to);
-        let theirs = crate::net::NetworkConfig {
-            layout: from,
-            ..config.network.clone()
-        };
         let fail = |message: String| TrainError::Checkpoint {
             path: init.path.clone(),
             message,
         };
-        let mut loaded = crate::bundle::load_weights(
-            crate::backend::seeded_init(device, config.seed, || theirs.init(device)),
-            Path::new(&init.path),
-            &init.file,
-        )
-        .map_err(|e| fail(format!("the weights to start from: {e}")))?;
-        // The added blocks' convolutions are drawn from the run's seed, as a fresh network's.
-        loaded.encoder = crate::backend::seeded_init(device, config.seed, || {
-            loaded.encoder.deepened(from, to, device)
-        })
-        .ok_or_else(|| fail(format!("a {from:?} encoder does not warm-start {to:?}")))?;
+        // The run's own network takes the weights, or one of their layout when it deepens it.
+        let start = if from == to {
+            network
+        } else {
+            let theirs = crate::net::NetworkConfig {
+                layout: from,
+                ..config.network.clone()
+            };
+            crate::backend::seeded_init(device, config.seed, || theirs.init(device))
+        };
+        let mut loaded = crate::bundle::load_weights(start, Path::new(&init.path), &init.file)
+            .map_err(|e| fail(format!("the weights to start from: {e}")))?;
+        if from != to {
+            // The added blocks' convolutions are drawn from the run's seed, as a fresh network's.
+            loaded.encoder = crate::backend::seeded_init(device, config.seed, || {
+                loaded.encoder.deepened(from, to, device)
+            })
+            .ok_or_else(|| fail(format!("a {from:?} encoder does not warm-start {to:?}")))?;
+        }
         // As after a checkpoint: loading runs ops on the parameters, fork gives them a graph.
         return Ok((loaded.valid().train().fork(device), optim, 0));
     }
