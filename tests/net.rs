@@ -676,9 +676,50 @@ fn the_f16_head_agrees_with_its_emulation_and_stays_near_f32() {
 /// f32 sums' order flips a byte's rounding.
 #[test]
 fn the_i8_head_agrees_with_its_emulation_and_stays_near_f32() {
+    // Under `widest` a core with AMX-INT8 runs the tiles (`TDPBUSD`); capped at AVX-512, the
+    // 512-bit `VPDPBUSD` kernel.
     assert_heads_close(Precision::I8, Tolerance::I8);
+    assert_heads_close_on(Precision::I8, Tolerance::I8, alignist::net::Kernels::Avx512);
     // The 256-bit AVX-VNNI kernel, where the core has it (else the emulation again).
     assert_heads_close_on(Precision::I8, Tolerance::I8, alignist::net::Kernels::Avx2);
+}
+
+/// The 8-bit head's tile kernel (`TDPBUSD`: its loop, tile pointers into the packed panels and
+/// epilogue) on tiles emulated in software, on any core (a core with AMX-INT8 runs the tiles
+/// themselves in the test above): the emulation's scores within the 8-bit tolerances, on a
+/// width that pads to the 64-column panel and on the shipped head.
+#[test]
+fn the_amx_int8_kernel_on_emulated_tiles_agrees_with_the_i8_emulation() {
+    use alignist::net::{FusedHead, Kernels, ReducedHead};
+    let encoding = RotationEncoding::Cube;
+    let head = HeadConfig::new(32, encoding.dim())
+        .with_hidden(40)
+        .with_layers(4)
+        .init(&device())
+        .with_output_biases(-2.5, 1.5);
+    let bundle = alignist::bundle::model::ModelBundle::load(std::path::Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/models/symsol1"
+    )))
+    .unwrap();
+    for (fused, encoding, what) in [
+        (
+            FusedHead::with_kernels(&head, Kernels::Portable),
+            &encoding,
+            "width 40, AMX int8 emulated",
+        ),
+        (
+            FusedHead::with_kernels(&bundle.network.head, Kernels::Portable),
+            &bundle.manifest.network.encoding,
+            "shipped, AMX int8 emulated",
+        ),
+    ] {
+        let tiles = ReducedHead::amx_int8_emulated(&fused);
+        assert_eq!(tiles.kernel_name(), "AMX int8 tiles, emulated");
+        assert!(!tiles.is_native());
+        let got = |image: &[f32], rows: alignist::net::Rows<'_>| tiles.branch_scores(image, rows);
+        assert_kernel_close(&fused, encoding, Precision::I8, &got, Tolerance::I8, what);
+    }
 }
 
 /// How far a reduced-precision head may be from its emulation and from f32, relative to a

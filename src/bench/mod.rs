@@ -135,8 +135,9 @@ struct Peaks {
     bf16: Option<f64>,
     f16: Option<f64>,
     i8: Option<f64>,
-    /// `TDPBF16PS` on AMX tiles, where the core has them and the OS grants them.
+    /// `TDPBF16PS` and `TDPBUSD` on AMX tiles, where the core has them and the OS grants them.
     amx: Option<f64>,
+    amx_i8: Option<f64>,
 }
 
 /// Prints the matmul peak of the library GEMM, the FMA peaks of this CPU and the load-time
@@ -163,14 +164,15 @@ fn print_peaks(model: &Model) -> Peaks {
         peak::reduced_peak(peak::ReducedOp::Bf16Dot),
         peak::reduced_peak(peak::ReducedOp::I8Dot),
     );
-    let amx = peak::amx_peak();
+    let (amx, amx_i8) = (peak::amx_peak(), peak::amx_int8_peak());
     let shown = |g: Option<f64>| g.map_or("not on this CPU".into(), |g| format!("{g:.1} GFLOP/s"));
     println!(
-        "reduced-precision peaks (probe, 512-bit): f16 FMA (VFMADD231PH) {}, bfloat16 dot (VDPBF16PS) {}, int8 dot (VPDPBUSD) {}; AMX bfloat16 tiles (TDPBF16PS) {}",
+        "reduced-precision peaks (probe, 512-bit): f16 FMA (VFMADD231PH) {}, bfloat16 dot (VDPBF16PS) {}, int8 dot (VPDPBUSD) {}; AMX tiles: bfloat16 (TDPBF16PS) {}, int8 (TDPBUSD) {}",
         shown(f16),
         shown(bf16),
         shown(i8).replace("GFLOP/s", "GOP/s"),
-        shown(amx)
+        shown(amx),
+        shown(amx_i8).replace("GFLOP/s", "GOP/s")
     );
     let peaks = Peaks {
         f32: if kernels.allows_avx512() {
@@ -182,6 +184,7 @@ fn print_peaks(model: &Model) -> Peaks {
         f16,
         i8,
         amx,
+        amx_i8,
     };
     match model.calibration() {
         Some(c) => println!(
@@ -241,10 +244,15 @@ fn full_grid_figures(
     } else {
         peaks.bf16
     };
+    let i8_peak = if model.kernel_name(Precision::I8) == crate::net::amx::KERNEL_NAME_I8 {
+        peaks.amx_i8
+    } else {
+        peaks.i8
+    };
     for (precision, peak) in [
         (Precision::Bf16, bf16_peak),
         (Precision::F16, peaks.f16),
-        (Precision::I8, peaks.i8),
+        (Precision::I8, i8_peak),
     ] {
         for &(level, f32_ms) in &ours_ms {
             let grid_len = model.grid(level).map_or(0, |g| g.len());

@@ -199,6 +199,17 @@ pub fn amx_peak() -> Option<f64> {
     }))
 }
 
+/// The rate of `TDPBUSD` on AMX tiles (16 × 16 × 64 byte multiply-adds into a tile of i32) over
+/// the pool's threads in GOP/s, or `None` where the core has no AMX-INT8 granted.
+pub fn amx_int8_peak() -> Option<f64> {
+    use crate::net::amx::{ROUND_MULTIPLY_ADDS_I8, amx_int8_peak_rounds};
+    amx_int8_peak_rounds(1)?;
+    let ops_per_run = (AMX_ROUNDS * ROUND_MULTIPLY_ADDS_I8 * 2) as f64;
+    Some(pool_gflops(ops_per_run, |_| {
+        amx_int8_peak_rounds(AMX_ROUNDS).unwrap_or(0.0)
+    }))
+}
+
 /// Independent f16 accumulators: LLVM keeps f16 vectors in 16 of the 32 zmm registers and
 /// spilled 3 of 16 chains to the stack, which made the probe measure store forwarding.
 const CHAINS_F16: usize = 12;

@@ -1,7 +1,9 @@
 //! The bfloat16 head on AMX tiles (`TDPBF16PS`), where the core has AMX-BF16 and the OS grants
 //! the tile state: the same rounded values as [`super::bf16`] (weights and every GEMM's input in
 //! bfloat16, f32 accumulation), so it ranks the same cells as the `VDPBF16PS` kernel and the
-//! emulation, up to the order of the f32 sums.
+//! emulation, up to the order of the f32 sums. And the 8-bit head's GEMM on AMX-INT8 tiles
+//! (`TDPBUSD`, [`gemm_i8_tiles`]): the bytes of [`super::i8`], exact i32 sums, so it scores
+//! what the `VPDPBUSD` kernel scores.
 //!
 //! One `TDPBF16PS` multiplies a tile of 16 rows × 32 bfloat16 by 32 × 16 and adds into 16 × 16
 //! f32: 8 192 multiply-adds, against 32 for one 512-bit `VDPBF16PS`. The kernel runs in the tile
@@ -21,6 +23,8 @@ use super::tiles::{from_bf16, to_bf16};
 
 /// The kernel's name in logs and the bench.
 pub const KERNEL_NAME: &str = "AMX bf16 tiles";
+/// The 8-bit kernel's name.
+pub const KERNEL_NAME_I8: &str = "AMX int8 tiles";
 
 /// Rows of the kernel's block (two tiles of 16 rows).
 pub const MR: usize = 32;
@@ -74,6 +78,11 @@ pub(super) trait TileUnit {
     /// # Safety
     /// [`TileUnit::configure`] ran.
     unsafe fn dot<const C: u8, const A: u8, const B: u8>(&mut self);
+    /// `TDPBUSD C, A, B`: `C[m][n] += Σ_k Σ_t u8(A[m][4k+t])·i8(B[k][4n+t])` in i32.
+    ///
+    /// # Safety
+    /// [`TileUnit::configure`] ran.
+    unsafe fn dot_bytes<const C: u8, const A: u8, const B: u8>(&mut self);
     /// `TILESTORED`: 16 rows of 64 bytes to `base`, `stride` bytes apart.
     ///
     /// # Safety
@@ -126,6 +135,15 @@ impl TileUnit for AmxTiles {
     }
 
     #[inline(always)]
+    unsafe fn dot_bytes<const C: u8, const A: u8, const B: u8>(&mut self) {
+        // SAFETY: the caller's contract.
+        unsafe {
+            std::arch::asm!("tdpbusd tmm{c}, tmm{a}, tmm{b}", c = const C, a = const A,
+                b = const B, options(nostack, nomem));
+        }
+    }
+
+    #[inline(always)]
     unsafe fn store<const T: u8>(&mut self, base: *mut u8, stride: usize) {
         // SAFETY: the caller's contract.
         unsafe {
@@ -149,6 +167,7 @@ impl TileUnit for AmxTiles {
     unsafe fn zero<const T: u8>(&mut self) {}
     unsafe fn load<const T: u8>(&mut self, _: *const u8, _: usize) {}
     unsafe fn dot<const C: u8, const A: u8, const B: u8>(&mut self) {}
+    unsafe fn dot_bytes<const C: u8, const A: u8, const B: u8>(&mut self) {}
     unsafe fn store<const T: u8>(&mut self, _: *mut u8, _: usize) {}
     unsafe fn release(&mut self) {}
 }
@@ -206,6 +225,27 @@ impl TileUnit for EmulatedTiles {
                 for (k, b_row) in b.iter().enumerate() {
                     acc += bf16(&a[m], 2 * k) * bf16(b_row, 2 * n);
                     acc += bf16(&a[m], 2 * k + 1) * bf16(b_row, 2 * n + 1);
+                }
+                cell.copy_from_slice(&acc.to_le_bytes());
+            }
+        }
+    }
+
+    unsafe fn dot_bytes<const C: u8, const A: u8, const B: u8>(&mut self) {
+        assert!(
+            C != A && C != B && A != B,
+            "TDPBUSD takes three distinct tiles"
+        );
+        let (a, b) = (*self.tile(A), *self.tile(B));
+        for (m, c_row) in self.tile(C).iter_mut().enumerate() {
+            for n in 0..TILE_BYTES / 4 {
+                let cell = &mut c_row[4 * n..4 * n + 4];
+                let mut acc = i32::from_le_bytes(cell.try_into().expect("4 bytes"));
+                for (k, b_row) in b.iter().enumerate() {
+                    for t in 0..4 {
+                        acc = acc
+                            .wrapping_add(a[m][4 * k + t] as i32 * b_row[4 * n + t] as i8 as i32);
+                    }
                 }
                 cell.copy_from_slice(&acc.to_le_bytes());
             }
@@ -359,24 +399,281 @@ unsafe fn finish_avx512(
     }
 }
 
+/// Columns of a packed panel of the 8-bit head ([`super::i8::NR`]): the tiles take it in two
+/// blocks of [`NR`].
+pub(super) const I8_PANEL: usize = 64;
+
+/// A block of [`MR`] × [`NR`] integer sums as the tiles leave it, row-major.
+type BytesBlock = [i32; MR * NR];
+
+/// What an 8-bit layer's epilogue needs besides the sums: every column's bias and scale, the
+/// input rows' scales.
+#[derive(Clone, Copy)]
+pub(super) struct BytesScales<'a> {
+    /// `[panels × 64]`.
+    pub(super) bias: &'a [f32],
+    /// `[panels × 64]`: a weight byte times its column's scale is the weight.
+    pub(super) columns: &'a [f32],
+    /// One per input row: an activation byte times its row's scale is the activation.
+    pub(super) rows: &'a [f32],
+}
+
+/// `relu(acc · s_row · s_col + b)` of one block (rows `r0..r0 + MR`, columns `column..column +
+/// NR`) into the epilogue: `(block, scales, column, first row, epilogue)`.
+type FinishBytes = unsafe fn(&BytesBlock, BytesScales<'_>, usize, usize, &mut Epilogue<'_, f32>);
+
+/// The 8-bit head's GEMM on `tiles` (`TDPBUSD`): `rows` rows of activation bytes (`stride`
+/// bytes apart) times `layer` (packed `[panel][group][64][4]` as [`super::i8`] packs it), each
+/// block of 32 × 32 sums leaving the tiles through `finish` as `relu(acc · s_row · s_col + b)`.
+/// The B tiles are read straight from the packed panels: a group's row of 64 columns × 4 bytes
+/// is 256 bytes, 16 of its columns one tile row of 64.
+///
+/// # Safety
+/// `tiles` may run (see [`TileUnit`]); `rows` is a multiple of [`MR`], `layer.groups` of 16;
+/// `input` holds `rows × stride` bytes with `stride ≥ 4 × groups`; `scales` hold the layer's
+/// `panels × 64` columns and `rows` rows; a `Store` output holds `rows` rows of its stride (≥
+/// `panels × 64`), a `Dot` `rows` dots and `panels × 64` weights.
+pub(super) unsafe fn gemm_i8_tiles<T: TileUnit>(
+    (tiles, finish): (&mut T, FinishBytes),
+    layer: &Packed<u8>,
+    scales: BytesScales<'_>,
+    (input, stride): (&[u8], usize),
+    rows: usize,
+    mut epilogue: Epilogue<'_, f32>,
+) {
+    const GROUP: usize = 4;
+    let groups = layer.groups;
+    let panel_row = I8_PANEL * GROUP;
+    assert!(
+        rows.is_multiple_of(MR)
+            && groups.is_multiple_of(TILE_BYTES / GROUP)
+            && input.len() >= rows * stride
+            && stride >= GROUP * groups
+            && scales.bias.len() >= layer.panels * I8_PANEL
+            && scales.columns.len() >= layer.panels * I8_PANEL
+            && scales.rows.len() >= rows
+            && layer.weight.len() >= layer.panels * groups * panel_row,
+        "the AMX int8 kernel's shapes"
+    );
+    let steps = groups / (TILE_BYTES / GROUP);
+    let mut block: BytesBlock = [0; MR * NR];
+    let out = block.as_mut_ptr() as *mut u8;
+    let c_stride = 4 * NR;
+    // SAFETY (every tile load and store below): the A tiles read rows r0..r0 + 32 of `input`,
+    // bytes 64s..64s + 64 ≤ 4·groups ≤ stride; the B tiles read groups 16s..16s + 16 of the
+    // panel, bytes 4·(32h)..4·(32h + 32) of each group's 256; the C tiles write the 32 × 32 block.
+    unsafe {
+        tiles.configure();
+        for panel in 0..layer.panels {
+            let weights = layer.weight.as_ptr().add(panel * groups * panel_row);
+            for half in 0..I8_PANEL / NR {
+                let column = panel * I8_PANEL + half * NR;
+                let weights = weights.add(half * NR * GROUP);
+                for r0 in (0..rows).step_by(MR) {
+                    let a = input.as_ptr().add(r0 * stride);
+                    tiles.zero::<0>();
+                    tiles.zero::<1>();
+                    tiles.zero::<2>();
+                    tiles.zero::<3>();
+                    for s in 0..steps {
+                        let a = a.add(s * TILE_BYTES);
+                        let b = weights.add(s * TILE_ROWS * panel_row);
+                        tiles.load::<4>(a, stride);
+                        tiles.load::<5>(a.add(TILE_ROWS * stride), stride);
+                        tiles.load::<6>(b, panel_row);
+                        tiles.load::<7>(b.add(TILE_BYTES), panel_row);
+                        tiles.dot_bytes::<0, 4, 6>();
+                        tiles.dot_bytes::<1, 4, 7>();
+                        tiles.dot_bytes::<2, 5, 6>();
+                        tiles.dot_bytes::<3, 5, 7>();
+                    }
+                    tiles.store::<0>(out, c_stride);
+                    tiles.store::<1>(out.add(TILE_BYTES), c_stride);
+                    tiles.store::<2>(out.add(TILE_ROWS * c_stride), c_stride);
+                    tiles.store::<3>(out.add(TILE_ROWS * c_stride + TILE_BYTES), c_stride);
+                    finish(&block, scales, column, r0, &mut epilogue);
+                }
+            }
+        }
+        tiles.release();
+    }
+}
+
+/// The epilogue of one block of integer sums, per value (`mul_add` as the vector kernels' FMA).
+///
+/// # Safety
+/// The epilogue's buffers hold the block's rows and columns.
+unsafe fn finish_bytes_scalar(
+    block: &BytesBlock,
+    scales: BytesScales<'_>,
+    column: usize,
+    r0: usize,
+    epilogue: &mut Epilogue<'_, f32>,
+) {
+    for (r, sums) in block.chunks_exact(NR).enumerate() {
+        let (row, s) = (r0 + r, scales.rows[r0 + r]);
+        let h = sums
+            .iter()
+            .zip(&scales.columns[column..column + NR])
+            .zip(&scales.bias[column..column + NR])
+            .map(|((&acc, &c), &b)| (acc as f32).mul_add(c * s, b).max(0.0));
+        match epilogue {
+            Epilogue::Store { out, stride } => {
+                for (o, h) in out[row * *stride + column..][..NR].iter_mut().zip(h) {
+                    *o = h;
+                }
+            }
+            Epilogue::Dot { weights, dots } => {
+                dots[row] += h.zip(&weights[column..]).map(|(h, w)| h * w).sum::<f32>();
+            }
+        }
+    }
+}
+
+/// [`finish_bytes_scalar`] on AVX-512, as the `VPDPBUSD` kernel's epilogue computes it.
+///
+/// # Safety
+/// As [`finish_bytes_scalar`], and the core has AVX-512F.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn finish_bytes_avx512(
+    block: &BytesBlock,
+    scales: BytesScales<'_>,
+    column: usize,
+    r0: usize,
+    epilogue: &mut Epilogue<'_, f32>,
+) {
+    use std::arch::x86_64::*;
+    // SAFETY (every load and store): the block's rows and columns are in bounds.
+    unsafe {
+        let at = |v: &[f32], c: usize| _mm512_loadu_ps(v.as_ptr().add(column + 16 * c));
+        let bias: [__m512; 2] = std::array::from_fn(|c| at(scales.bias, c));
+        let columns: [__m512; 2] = std::array::from_fn(|c| at(scales.columns, c));
+        let zero = _mm512_setzero_ps();
+        for r in 0..MR {
+            let row = r0 + r;
+            let s = _mm512_set1_ps(scales.rows[row]);
+            let h: [__m512; 2] = std::array::from_fn(|c| {
+                let acc = _mm512_loadu_si512(block.as_ptr().add(r * NR + 16 * c) as *const _);
+                let scaled = _mm512_fmadd_ps(
+                    _mm512_cvtepi32_ps(acc),
+                    _mm512_mul_ps(columns[c], s),
+                    bias[c],
+                );
+                _mm512_max_ps(scaled, zero)
+            });
+            match epilogue {
+                Epilogue::Store { out, stride } => {
+                    let o = out.as_mut_ptr().add(row * *stride + column);
+                    _mm512_storeu_ps(o, h[0]);
+                    _mm512_storeu_ps(o.add(16), h[1]);
+                }
+                Epilogue::Dot { weights, dots } => {
+                    let w = weights.as_ptr().add(column);
+                    let sum = _mm512_mul_ps(h[0], _mm512_loadu_ps(w));
+                    let sum = _mm512_fmadd_ps(h[1], _mm512_loadu_ps(w.add(16)), sum);
+                    dots[row] += _mm512_reduce_add_ps(sum);
+                }
+            }
+        }
+    }
+}
+
+/// [`gemm_i8_tiles`] on the core's tiles.
+///
+/// # Safety
+/// As [`gemm_i8_tiles`], and [`amx_int8_available`] holds.
+#[cfg(target_arch = "x86_64")]
+pub(super) unsafe fn gemm_i8_amx(
+    layer: &Packed<u8>,
+    scales: BytesScales<'_>,
+    input: (&[u8], usize),
+    rows: usize,
+    epilogue: Epilogue<'_, f32>,
+) {
+    // SAFETY: the caller's contract; AMX-INT8 cores have AVX-512F (checked with it).
+    unsafe {
+        gemm_i8_tiles(
+            (&mut AmxTiles, finish_bytes_avx512),
+            layer,
+            scales,
+            input,
+            rows,
+            epilogue,
+        )
+    }
+}
+
+/// [`gemm_i8_tiles`] on [`EmulatedTiles`] (its epilogue on AVX-512 where the core has it): on
+/// any core, for the tests.
+///
+/// # Safety
+/// As [`gemm_i8_tiles`].
+pub(super) unsafe fn gemm_i8_emulated(
+    layer: &Packed<u8>,
+    scales: BytesScales<'_>,
+    input: (&[u8], usize),
+    rows: usize,
+    epilogue: Epilogue<'_, f32>,
+) {
+    #[cfg(target_arch = "x86_64")]
+    let finish: FinishBytes = if std::is_x86_feature_detected!("avx512f") {
+        finish_bytes_avx512
+    } else {
+        finish_bytes_scalar
+    };
+    #[cfg(not(target_arch = "x86_64"))]
+    let finish: FinishBytes = finish_bytes_scalar;
+    // SAFETY: the caller's contract; `finish_bytes_avx512` only where the core has it.
+    unsafe {
+        gemm_i8_tiles(
+            (&mut EmulatedTiles::new(), finish),
+            layer,
+            scales,
+            input,
+            rows,
+            epilogue,
+        )
+    }
+}
+
 /// Multiply-adds of one round of [`amx_peak_rounds`]: four `TDPBF16PS` of 16 × 16 × 32.
 pub const ROUND_MULTIPLY_ADDS: usize = 4 * TILE_ROWS * TILE_ROWS * K_STEP;
 
+/// Multiply-adds of one round of [`amx_int8_peak_rounds`]: four `TDPBUSD` of 16 × 16 × 64.
+pub const ROUND_MULTIPLY_ADDS_I8: usize = 4 * TILE_ROWS * TILE_ROWS * TILE_BYTES;
+
 /// `rounds` rounds of four independent `TDPBF16PS` on tiles loaded once (the bench's AMX peak
-/// probe), or `None` where the core has no AMX granted. Returns a value of the result, which
-/// the caller keeps from being optimised away.
+/// probe), or `None` where the core has no AMX-BF16 granted. Returns a value of the result,
+/// which the caller keeps from being optimised away.
 pub fn amx_peak_rounds(rounds: usize) -> Option<f32> {
     // SAFETY: the tiles run only where AMX is granted.
-    native_available().then(|| unsafe { tile_rounds(&mut AmxTiles, rounds) })
+    native_available().then(|| unsafe { tile_rounds::<_, false>(&mut AmxTiles, rounds) })
 }
 
-/// The loop of [`amx_peak_rounds`] on `tiles`: A = 1, B = 2⁻¹⁰, so that no sum overflows.
+/// The same with `TDPBUSD` (bytes into i32), or `None` where the core has no AMX-INT8 granted.
+pub fn amx_int8_peak_rounds(rounds: usize) -> Option<f32> {
+    // SAFETY: the tiles run only where AMX-INT8 is granted.
+    amx_int8_available().then(|| unsafe { tile_rounds::<_, true>(&mut AmxTiles, rounds) })
+}
+
+/// The loop of the peak probes on `tiles`: `TDPBF16PS` with A = 1, B = 2⁻¹⁰ (no sum overflows),
+/// or with `BYTES` `TDPBUSD` with A = B = 1 (each round adds 64 to every i32 sum).
 ///
 /// # Safety
 /// `tiles` may run (see [`TileUnit`]).
-unsafe fn tile_rounds<T: TileUnit>(tiles: &mut T, rounds: usize) -> f32 {
-    let a = [to_bf16(1.0); TILE_ROWS * K_STEP];
-    let b = [to_bf16(1.0 / 1024.0); TILE_ROWS * K_STEP];
+unsafe fn tile_rounds<T: TileUnit, const BYTES: bool>(tiles: &mut T, rounds: usize) -> f32 {
+    let (a, b) = if BYTES {
+        (
+            [0x0101u16; TILE_ROWS * K_STEP],
+            [0x0101u16; TILE_ROWS * K_STEP],
+        )
+    } else {
+        (
+            [to_bf16(1.0); TILE_ROWS * K_STEP],
+            [to_bf16(1.0 / 1024.0); TILE_ROWS * K_STEP],
+        )
+    };
     let mut c = [0f32; TILE_ROWS * TILE_ROWS];
     let (a, b) = (a.as_ptr() as *const u8, b.as_ptr() as *const u8);
     // SAFETY: every tile reads or writes one of the 16 × 64-byte buffers above.
@@ -391,36 +688,63 @@ unsafe fn tile_rounds<T: TileUnit>(tiles: &mut T, rounds: usize) -> f32 {
         tiles.load::<6>(b, TILE_BYTES);
         tiles.load::<7>(b, TILE_BYTES);
         for _ in 0..rounds {
-            tiles.dot::<0, 4, 6>();
-            tiles.dot::<1, 4, 7>();
-            tiles.dot::<2, 5, 6>();
-            tiles.dot::<3, 5, 7>();
+            if BYTES {
+                tiles.dot_bytes::<0, 4, 6>();
+                tiles.dot_bytes::<1, 4, 7>();
+                tiles.dot_bytes::<2, 5, 6>();
+                tiles.dot_bytes::<3, 5, 7>();
+            } else {
+                tiles.dot::<0, 4, 6>();
+                tiles.dot::<1, 4, 7>();
+                tiles.dot::<2, 5, 6>();
+                tiles.dot::<3, 5, 7>();
+            }
         }
         tiles.store::<3>(c.as_mut_ptr() as *mut u8, TILE_BYTES);
         tiles.release();
     }
-    c[0]
+    if BYTES {
+        c[0].to_bits() as i32 as f32
+    } else {
+        c[0]
+    }
 }
 
 /// Whether the core has AMX-TILE and AMX-BF16 and the OS saves their state (CPUID and XCR0), and
 /// on Linux, whether it granted this process the tile data (`arch_prctl(ARCH_REQ_XCOMP_PERM)`,
 /// asked once).
 pub fn amx_available() -> bool {
+    tiles_available(AMX_BF16)
+}
+
+/// The same for AMX-INT8 (`TDPBUSD`).
+pub fn amx_int8_available() -> bool {
+    tiles_available(AMX_INT8)
+}
+
+/// CPUID.(7,0):EDX bits of AMX-BF16 and AMX-INT8.
+const AMX_BF16: u32 = 1 << 22;
+const AMX_INT8: u32 = 1 << 25;
+
+/// Whether the core has AMX-TILE and the instructions of `edx_bit`, and the tile state is
+/// granted (asked once per process).
+fn tiles_available(edx_bit: u32) -> bool {
     #[cfg(target_arch = "x86_64")]
     {
         static GRANTED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-        *GRANTED.get_or_init(|| amx_in_cpu() && amx_granted())
+        amx_in_cpu(edx_bit) && *GRANTED.get_or_init(amx_granted)
     }
     #[cfg(not(target_arch = "x86_64"))]
     {
+        let _ = edx_bit;
         false
     }
 }
 
-/// CPUID.(7,0):EDX bits 22 (AMX-BF16) and 24 (AMX-TILE); XCR0 bits 17 and 18 (tile config and
-/// data) enabled by the OS.
+/// CPUID.(7,0):EDX `edx_bit` and bit 24 (AMX-TILE); XCR0 bits 17 and 18 (tile config and data)
+/// enabled by the OS.
 #[cfg(target_arch = "x86_64")]
-fn amx_in_cpu() -> bool {
+fn amx_in_cpu(edx_bit: u32) -> bool {
     use std::arch::x86_64::{__cpuid, __cpuid_count, _xgetbv};
     // SAFETY: CPUID is on every x86-64 core; XGETBV only where CPUID says OSXSAVE.
     unsafe {
@@ -429,7 +753,7 @@ fn amx_in_cpu() -> bool {
         }
         let edx = __cpuid_count(7, 0).edx;
         let osxsave = __cpuid(1).ecx & (1 << 27) != 0;
-        let tiles = edx & (1 << 22) != 0 && edx & (1 << 24) != 0;
+        let tiles = edx & edx_bit != 0 && edx & (1 << 24) != 0;
         tiles && osxsave && (_xgetbv(0) >> 17) & 0b11 == 0b11
     }
 }
@@ -602,6 +926,44 @@ mod tests {
         }
     }
 
+    /// `TDPBUSD` on the emulated tiles: A's bytes unsigned, B's signed, four products per i32
+    /// sum, added into C (which starts at −1 000 here).
+    #[test]
+    fn the_emulated_byte_product_takes_a_unsigned_and_b_signed() {
+        // a[m][i] = (37m + 11i) mod 256, b[k][4n + t] = (13k + 7n + 5t) mod 256 as signed.
+        let a: Vec<u8> = (0..16 * 64)
+            .map(|j| ((37 * (j / 64) + 11 * (j % 64)) % 256) as u8)
+            .collect();
+        let b: Vec<u8> = (0..16 * 64)
+            .map(|j| ((13 * (j / 64) + 7 * (j % 64 / 4) + 5 * (j % 4)) % 256) as u8)
+            .collect();
+        let mut c = vec![-1000i32; 16 * 16];
+        let mut tiles = EmulatedTiles::new();
+        // SAFETY: every row read or written lies in the buffers above.
+        unsafe {
+            tiles.configure();
+            tiles.load::<0>(c.as_ptr() as *const u8, 64);
+            tiles.load::<4>(a.as_ptr(), 64);
+            tiles.load::<6>(b.as_ptr(), 64);
+            tiles.dot_bytes::<0, 4, 6>();
+            tiles.store::<0>(c.as_mut_ptr() as *mut u8, 64);
+            tiles.release();
+        }
+        for m in 0..16 {
+            for n in 0..16 {
+                let want: i64 = -1000
+                    + (0..16)
+                        .flat_map(|k| (0..4).map(move |t| (k, t)))
+                        .map(|(k, t)| {
+                            a[m * 64 + 4 * k + t] as i64 * b[k * 64 + 4 * n + t] as i8 as i64
+                        })
+                        .sum::<i64>();
+                assert_eq!(c[m * 16 + n] as i64, want, "C[{m}][{n}]");
+            }
+        }
+        assert!(b.iter().any(|&v| (v as i8) < 0) && a.iter().any(|&v| v > 127));
+    }
+
     /// The tile configuration is palette 1 with 8 tiles of 16 rows × 64 bytes, and nothing else.
     #[test]
     fn the_tile_configuration_is_palette_1_with_full_tiles() {
@@ -616,12 +978,16 @@ mod tests {
         assert!(c[56..].iter().all(|&b| b == 0));
     }
 
-    /// The peak probe's loop: each round adds 32 · 2⁻¹⁰ to every sum of every accumulator.
+    /// The peak probes' loop: each round adds 32 · 2⁻¹⁰ to every sum of every accumulator (64 in
+    /// bytes).
     #[test]
     fn the_peak_probes_rounds_add_up() {
         // SAFETY: emulated tiles.
-        let sum = unsafe { tile_rounds(&mut EmulatedTiles::new(), 3) };
+        let sum = unsafe { tile_rounds::<_, false>(&mut EmulatedTiles::new(), 3) };
         assert_eq!(sum, 3.0 * 32.0 / 1024.0);
+        // SAFETY: emulated tiles.
+        let sum = unsafe { tile_rounds::<_, true>(&mut EmulatedTiles::new(), 3) };
+        assert_eq!(sum, 3.0 * 64.0);
     }
 
     /// The two epilogues give the same activations (bfloat16 bits) and output dot products; the

@@ -388,7 +388,8 @@ enum Path {
 impl ReducedHead {
     /// The native kernel of `precision` when `kernels` allows it and this core has its
     /// instructions (and every branch has a hidden layer), else the emulation: bfloat16 on AMX
-    /// tiles, else on `VDPBF16PS`; f16 on `VFMADD231PH`; i8 on `VPDPBUSD` (512- or 256-bit).
+    /// tiles, else on `VDPBF16PS`; f16 on `VFMADD231PH`; i8 on AMX-INT8 tiles, else on
+    /// `VPDPBUSD` (512- or 256-bit).
     pub(super) fn new(head: &HeadWeights, precision: Precision, kernels: Kernels) -> ReducedHead {
         let native = match precision {
             // 256-bit AVX-VNNI where the kernels are capped and the core has it.
@@ -423,9 +424,20 @@ impl ReducedHead {
         ReducedHead(Path::AmxEmulated(Box::new(native)))
     }
 
+    /// The 8-bit head's tile kernel (`TDPBUSD`) on tiles emulated in software
+    /// ([`super::amx::gemm_i8_tiles`]), on any core. For the tests.
+    pub fn amx_int8_emulated(head: &FusedHead) -> ReducedHead {
+        let native = I8Head::amx_emulated(&head.weights).expect("every branch has a hidden layer");
+        ReducedHead(Path::I8(Box::new(native)))
+    }
+
     /// Whether this is a native kernel.
     pub fn is_native(&self) -> bool {
-        !matches!(self.0, Path::Emulated(_) | Path::AmxEmulated(_))
+        match &self.0 {
+            Path::Emulated(_) | Path::AmxEmulated(_) => false,
+            Path::I8(native) => native.is_native(),
+            _ => true,
+        }
     }
 
     /// The kernel it runs on, in words.

@@ -18,7 +18,13 @@
 //! scale needs its maximum). The branches' last hidden layer feeds the f32 output dot product.
 //! Elsewhere the same rounding is emulated on the f32 GEMM (`FusedHead`'s emulation), so a
 //! search ranks the same cells on any machine, up to the order of the f32 sums.
+//!
+//! Where the core has AMX-INT8 (and the kernels are not capped), the same GEMMs run on tiles
+//! (`TDPBUSD`, [`super::amx::gemm_i8_tiles`], blocks of 32 rows × 32 columns) reading the same
+//! packed bytes; the integer sums are the same, so are the scores up to the order of the
+//! output dot product's f32 sums.
 
+use super::amx::{self, BytesScales};
 use super::dense::Dense;
 use super::kernels::Kernels;
 use super::native::{Epilogue, Packed};
@@ -42,7 +48,41 @@ enum Isa {
     /// AVX-VNNI (the VEX form, on cores with AVX2 and no AVX-512, or with the kernels capped at
     /// 256 bits): 256-bit `VPDPBUSD`, blocks of 6 rows × 16 columns.
     AvxVnni,
+    /// Neither: scalar roundings, only beside [`Tiles::Emulated`] (the tests on any core).
+    Scalar,
 }
+
+/// Where the GEMMs run: the `VPDPBUSD` kernel of the [`Isa`], or AMX-INT8 tiles.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Tiles {
+    /// The `VPDPBUSD` kernel.
+    None,
+    /// `TDPBUSD` on the core's tiles.
+    Amx,
+    /// The tile kernel on tiles emulated in software.
+    Emulated,
+}
+
+impl Tiles {
+    /// Rows of the GEMMs' blocks: every tile's rows are padded to a multiple of it.
+    fn mr(self) -> usize {
+        match self {
+            Tiles::None => MR,
+            Tiles::Amx | Tiles::Emulated => amx::MR,
+        }
+    }
+
+    /// A layer's inputs are padded to a multiple of this (a tile row holds 64 bytes).
+    fn inputs(self) -> usize {
+        match self {
+            Tiles::None => GROUP,
+            Tiles::Amx | Tiles::Emulated => 64,
+        }
+    }
+}
+
+// The tiles read the panels this module packs.
+const _: () = assert!(NR == amx::I8_PANEL);
 
 /// Whether this core has the 256-bit AVX-VNNI kernel's instructions.
 pub fn avx_vnni_available() -> bool {
@@ -125,6 +165,7 @@ struct I8Branch {
 #[derive(Debug, Clone)]
 pub(super) struct I8Head {
     isa: Isa,
+    tiles: Tiles,
     width: usize,
     /// Width rounded up to [`NR`]: the stride of every activation row.
     padded: usize,
@@ -152,13 +193,32 @@ impl I8Head {
     /// (AVX-512 VNNI, else AVX-VNNI), or `None` when it has neither or a branch has no hidden
     /// layer (or one of another width).
     pub(super) fn new(head: &HeadWeights, kernels: Kernels) -> Option<I8Head> {
-        let isa = if kernels.allows_avx512() && native_available() {
-            Isa::Avx512
+        let (isa, tiles) = if kernels.allows_avx512() && native_available() {
+            let amx = kernels.allows_amx() && amx::amx_int8_available();
+            (Isa::Avx512, if amx { Tiles::Amx } else { Tiles::None })
         } else if kernels.allows_own() && avx_vnni_available() {
-            Isa::AvxVnni
+            (Isa::AvxVnni, Tiles::None)
         } else {
             return None;
         };
+        I8Head::packed(head, isa, tiles)
+    }
+
+    /// The tile kernel on tiles emulated in software, on any core (its roundings on the widest
+    /// vectors the core has): for the tests. `None` as [`I8Head::new`].
+    pub(super) fn amx_emulated(head: &HeadWeights) -> Option<I8Head> {
+        let isa = if native_available() {
+            Isa::Avx512
+        } else if avx_vnni_available() {
+            Isa::AvxVnni
+        } else {
+            Isa::Scalar
+        };
+        I8Head::packed(head, isa, Tiles::Emulated)
+    }
+
+    /// `head` in bytes for `isa` and `tiles`.
+    fn packed(head: &HeadWeights, isa: Isa, tiles: Tiles) -> Option<I8Head> {
         let width = head.width;
         let padded = width.div_ceil(NR) * NR;
         let branches = head
@@ -171,9 +231,13 @@ impl I8Head {
         let rotation = &head.rotation;
         Some(I8Head {
             isa,
+            tiles,
             width,
             padded,
-            rotation: I8Layer::of_encoding(rotation, rotation.inputs.next_multiple_of(GROUP)),
+            rotation: I8Layer::of_encoding(
+                rotation,
+                rotation.inputs.next_multiple_of(tiles.inputs()),
+            ),
             encoding: rotation.inputs,
             branches,
         })
@@ -181,10 +245,17 @@ impl I8Head {
 
     /// The kernel it runs on, in words.
     pub(super) fn kernel_name(&self) -> &'static str {
-        match self.isa {
-            Isa::Avx512 => "AVX-512 VNNI kernel",
-            Isa::AvxVnni => "AVX-VNNI kernel (256-bit)",
+        match (self.tiles, self.isa) {
+            (Tiles::Amx, _) => amx::KERNEL_NAME_I8,
+            (Tiles::Emulated, _) => "AMX int8 tiles, emulated",
+            (Tiles::None, Isa::Avx512) => "AVX-512 VNNI kernel",
+            (Tiles::None, _) => "AVX-VNNI kernel (256-bit)",
         }
+    }
+
+    /// Whether it runs on the core's own instructions (not on emulated tiles).
+    pub(super) fn is_native(&self) -> bool {
+        self.tiles != Tiles::Emulated
     }
 
     /// Both branches' log-weights of `rows`, for one image's term of the first layer.
@@ -197,7 +268,8 @@ impl I8Head {
         for (b, i) in first_bias.iter_mut().zip(image_term) {
             *b += i;
         }
-        let blocked = TILE_ROWS.div_ceil(MR) * MR;
+        let mr = self.tiles.mr();
+        let blocked = TILE_ROWS.div_ceil(mr) * mr;
         let e_stride = GROUP * self.rotation.packed.groups;
         by_tiles(
             given,
@@ -225,6 +297,7 @@ impl I8Head {
                         Isa::AvxVnni => {
                             self.tile_avx_vnni(image_term, &first_bias, tile, scratch, out)
                         }
+                        Isa::Scalar => self.tile(image_term, &first_bias, tile, scratch, out),
                     }
                 }
             },
@@ -284,7 +357,8 @@ impl I8Head {
     ) {
         let (w, stride) = (self.width, self.padded);
         let rows = out[0].len();
-        let blocked = rows.div_ceil(MR) * MR;
+        let mr = self.tiles.mr();
+        let blocked = rows.div_ceil(mr) * mr;
         // SAFETY: the caller's contract.
         unsafe { self.shared_input(image_term, first_bias, given, scratch, blocked) };
         let Scratch {
@@ -317,14 +391,14 @@ impl I8Head {
                         dots: &mut *dots,
                     };
                     // SAFETY: as above; `input` holds `blocked` rows of `stride`.
-                    unsafe { gemm(self.isa, layer, bias, input, blocked, dot) };
+                    unsafe { self.gemm(layer, bias, input, blocked, dot) };
                 } else {
                     let store = Epilogue::Store {
                         out: &mut values[..],
                         stride,
                     };
                     // SAFETY: as above.
-                    unsafe { gemm(self.isa, layer, bias, input, blocked, store) };
+                    unsafe { self.gemm(layer, bias, input, blocked, store) };
                     rows_to_u8(self.isa, values, output, out_scales, blocked, (w, stride));
                 }
             }
@@ -389,8 +463,46 @@ impl I8Head {
                 // SAFETY: the core has the kernel's features (the caller's contract); `e` holds
                 // `blocked` rows of `e_stride` = 4 × groups, `e_scales` and the output
                 // `blocked` rows, `first_bias` the layer's panels × NR values.
-                unsafe { gemm(self.isa, &self.rotation, first_bias, input, blocked, store) };
+                unsafe { self.gemm(&self.rotation, first_bias, input, blocked, store) };
                 rows_to_u8(self.isa, values, x, sx, blocked, (w, stride));
+            }
+        }
+    }
+}
+
+impl I8Head {
+    /// [`gemm`] on the head's tiles, or its `VPDPBUSD` kernel.
+    ///
+    /// # Safety
+    /// As [`gemm`] (`rows` a multiple of `self.tiles.mr()`), and the core has what
+    /// [`I8Head::new`] checked.
+    #[inline(always)]
+    unsafe fn gemm(
+        &self,
+        layer: &I8Layer,
+        bias: &[f32],
+        input: Input<'_>,
+        rows: usize,
+        epilogue: Epilogue<'_, f32>,
+    ) {
+        let scales = BytesScales {
+            bias,
+            columns: &layer.scales,
+            rows: input.scales,
+        };
+        let bytes = (input.bytes, input.stride);
+        // SAFETY: the caller's contract; layers were packed with inputs padded to 64 bytes for
+        // the tiles.
+        unsafe {
+            match self.tiles {
+                #[cfg(target_arch = "x86_64")]
+                Tiles::Amx => amx::gemm_i8_amx(&layer.packed, scales, bytes, rows, epilogue),
+                #[cfg(not(target_arch = "x86_64"))]
+                Tiles::Amx => unreachable!("AMX is only built on x86_64"),
+                Tiles::Emulated => {
+                    amx::gemm_i8_emulated(&layer.packed, scales, bytes, rows, epilogue)
+                }
+                Tiles::None => gemm(self.isa, layer, bias, input, rows, epilogue),
             }
         }
     }
@@ -608,6 +720,7 @@ unsafe fn gemm(
         match isa {
             Isa::Avx512 => gemm_avx512(layer, bias, input, rows, epilogue),
             Isa::AvxVnni => gemm_avx_vnni(layer, bias, input, rows, epilogue),
+            Isa::Scalar => unreachable!("the scalar roundings run only beside emulated tiles"),
         }
     }
     #[cfg(not(target_arch = "x86_64"))]

@@ -4,12 +4,13 @@
 /// The widest kernels a head may use; each falls back to the next narrower one the core has.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Kernels {
-    /// The widest the core has: AMX tiles for bfloat16 where the core has AMX-BF16, AVX-512 (f32,
+    /// The widest the core has: AMX tiles for bfloat16 and 8-bit integers where the core has
+    /// AMX-BF16 and AMX-INT8, AVX-512 (f32,
     /// bfloat16 with AVX-512 BF16, f16 with AVX-512 FP16, 8-bit with AVX-512 VNNI), else AVX2;
     /// the library GEMM is the `gemm` crate (512-bit where the core has AVX-512).
     #[default]
     Widest,
-    /// As [`Kernels::Widest`] without AMX tiles (bfloat16 on `VDPBF16PS`).
+    /// As [`Kernels::Widest`] without AMX tiles (bfloat16 on `VDPBF16PS`, 8-bit on `VPDPBUSD`).
     Avx512,
     /// The project's kernels at most 256-bit; bfloat16 and f16 emulated; the library GEMM is
     /// matrixmultiply (which picks its own kernel at run time, 512-bit on AVX-512 cores).
