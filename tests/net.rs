@@ -757,3 +757,65 @@ impl Tolerance {
         f32: 0.08,
     };
 }
+
+/// The hand-written inference encoder (BatchNorms folded into the convolutions, ReLU and the
+/// residual add on the GEMM's output) computes burn's eval-mode features: on the shipped
+/// `tiny_deep` encoder (projection shortcuts, strided stages, trained running statistics) and on
+/// a fresh `tiny` one after two training-mode passes, at batches of 1 and 3,
+/// under the widest kernels and capped at AVX2 (matrixmultiply's GEMM).
+#[test]
+fn the_folded_inference_encoder_computes_burns_eval_features() {
+    use alignist::net::{EncoderConfig, InferenceEncoder, Kernels, ResNetLayout, network};
+    let conv = alignist::backend::device_for(alignist::backend::Workload::Conv);
+    let bundle = alignist::bundle::model::ModelBundle::load(std::path::Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/models/symsol1"
+    )))
+    .unwrap();
+    let side = bundle.manifest.network.image_size as usize;
+    let crop = |seed: usize, side: usize| -> Vec<u8> {
+        (0..side * side * 3)
+            .map(|i| ((i * 131 + seed * 977) % 251) as u8)
+            .collect()
+    };
+    // A fresh tiny encoder, its running statistics updated by two training-mode passes.
+    let train = conv.clone().autodiff();
+    train.seed(7);
+    let fresh = EncoderConfig::new(ResNetLayout::Tiny).init(&train);
+    for seed in 0..2 {
+        let crops: Vec<Vec<u8>> = (0..4).map(|i| crop(10 * seed + i, 32)).collect();
+        let refs: Vec<&[u8]> = crops.iter().map(Vec::as_slice).collect();
+        let _ = fresh.forward(network::images_tensor(&refs, 32, &train));
+    }
+    let fresh = burn::module::Module::valid(&fresh);
+    for (encoder, side, what) in [
+        (&bundle.network.encoder, side, "shipped"),
+        (&fresh, 32, "fresh tiny"),
+    ] {
+        for kernels in [Kernels::Widest, Kernels::Avx2] {
+            let folded = InferenceEncoder::of(encoder, kernels).expect("a CPU layout");
+            for batch in [1usize, 3] {
+                let crops: Vec<Vec<u8>> = (0..batch).map(|i| crop(i, side)).collect();
+                let refs: Vec<&[u8]> = crops.iter().map(Vec::as_slice).collect();
+                let want: Vec<f32> = network::feature_rows(
+                    encoder.forward(network::images_tensor(&refs, side, &conv)),
+                )
+                .concat();
+                let got = folded.features(&refs, side);
+                assert_eq!(got.len(), want.len(), "{what}");
+                let scale = want.iter().map(|v| v.abs()).fold(0f32, f32::max);
+                let worst = got
+                    .iter()
+                    .zip(&want)
+                    .map(|(g, w)| (g - w).abs())
+                    .fold(0f32, f32::max);
+                eprintln!("{what}, {kernels}, batch {batch}: worst {worst:.2e} of max {scale:.3}");
+                assert!(scale > 0.0, "{what}: features all zero");
+                assert!(
+                    worst <= 1e-4 * scale.max(1.0),
+                    "{what} {kernels} batch {batch}: {worst}"
+                );
+            }
+        }
+    }
+}

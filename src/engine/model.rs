@@ -49,8 +49,12 @@ pub struct Model {
     pub manifest: crate::bundle::model::ModelManifest,
     /// Objects.
     pub objects: Vec<ModelObject>,
-    /// The network on the convolution backend: its encoder runs here.
+    /// The network on the convolution backend: its encoder runs here where [`Model::encoder`]
+    /// does not.
     pub(super) network: Network,
+    /// The encoder with its BatchNorms folded in, by hand ([`crate::net::InferenceEncoder`]),
+    /// for the layouts it runs (the CPU ones); `None` leaves the encoder to burn.
+    pub(super) encoder: Option<crate::net::InferenceEncoder>,
     pub(super) device: Device,
     /// The head for inference, fused ([`FusedHead`]): every scoring of the engine runs on it.
     pub(super) fused: Arc<FusedHead>,
@@ -201,6 +205,7 @@ impl Model {
             path: path.to_path_buf(),
             manifest: bundle.manifest,
             objects,
+            encoder: crate::net::InferenceEncoder::of(&bundle.network.encoder, config.kernels),
             network: bundle.network,
             device,
             fused,
@@ -362,6 +367,11 @@ impl Model {
         }
         if crops.is_empty() {
             return Ok(Vec::new());
+        }
+        if let Some(encoder) = &self.encoder {
+            let dim = self.feature_dim();
+            let rows = encoder.features(crops, side);
+            return Ok(rows.chunks_exact(dim).map(<[f32]>::to_vec).collect());
         }
         let images = images_tensor(crops, side, &self.device);
         Ok(feature_rows(self.network.encoder.forward(images)))

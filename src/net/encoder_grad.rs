@@ -49,11 +49,11 @@ impl Act {
 
 /// One conv + BatchNorm pair's weights and ids.
 #[derive(Debug, Clone)]
-struct Unit {
+pub(super) struct Unit {
     /// `[c_out, c_in·k·k]`.
-    weight: Vec<f32>,
+    pub(super) weight: Vec<f32>,
     c_in: usize,
-    c_out: usize,
+    pub(super) c_out: usize,
     k: usize,
     stride: usize,
     gamma: Vec<f32>,
@@ -64,12 +64,24 @@ struct Unit {
 
 impl Unit {
     fn of(unit: &ConvBn) -> Option<Unit> {
+        unit.parts()
+            .1
+            .training
+            .is_enabled()
+            .then(|| Unit::read(unit))
+            .flatten()
+    }
+
+    /// The pair's weights, whatever its BatchNorm's training flag (the inference forward folds
+    /// the running statistics in), or `None` for a convolution this path does not run (a
+    /// bias, groups, dilation, a non-square or even kernel).
+    pub(super) fn read(unit: &ConvBn) -> Option<Unit> {
         let (conv, bn) = unit.parts();
         let weight = conv.weight.val();
         let [c_out, c_in, k, k2] = weight.dims();
         let square = k == k2 && conv.stride[0] == conv.stride[1] && k % 2 == 1;
         let plain = conv.bias.is_none() && conv.groups == 1 && conv.dilation == [1, 1];
-        if !square || !plain || !bn.training.is_enabled() {
+        if !square || !plain {
             return None;
         }
         Some(Unit {
@@ -85,11 +97,22 @@ impl Unit {
         })
     }
 
-    fn columns(&self) -> usize {
+    pub(super) fn columns(&self) -> usize {
         self.c_in * self.k * self.k
     }
 
-    fn out_side(&self, (h, w): (usize, usize)) -> (usize, usize) {
+    /// `γ / sqrt(var + ε)` and `β − mean · γ / sqrt(var + ε)` per output channel: the
+    /// BatchNorm's inference affine map for its running `mean` and `variance`.
+    pub(super) fn inference_affine(&self, mean: &[f32], variance: &[f32]) -> (Vec<f32>, Vec<f32>) {
+        (0..self.c_out)
+            .map(|c| {
+                let scale = self.gamma[c] / (variance[c] as f64 + self.epsilon).sqrt() as f32;
+                (scale, self.beta[c] - mean[c] * scale)
+            })
+            .unzip()
+    }
+
+    pub(super) fn out_side(&self, (h, w): (usize, usize)) -> (usize, usize) {
         let pad = self.k / 2;
         (
             (h + 2 * pad - self.k) / self.stride + 1,
@@ -139,11 +162,25 @@ fn for_each_tap(
 /// The im2col columns of one image: `[c_in·k·k, ho·wo]`, zero where the window is outside.
 /// Every value is written once, the zeros only where the window is outside (zeroing the whole
 /// buffer first made the 64 px encoder 8–11 % slower: BENCHMARKS, "… and `im2col` without the fill").
-fn im2col(unit: &Unit, x: &[f32], (h, w): (usize, usize), cols: &mut [f32]) {
+fn im2col(unit: &Unit, x: &[f32], side: (usize, usize), cols: &mut [f32]) {
+    let m = unit.out_side(side).0 * unit.out_side(side).1;
+    im2col_rows(unit, x, side, 0, &mut cols[..unit.columns() * m]);
+}
+
+/// Rows `first..` of [`im2col`]'s columns, as many as `cols` holds (whole rows of `ho·wo`): so
+/// that threads can fill one image's columns in parts.
+pub(super) fn im2col_rows(
+    unit: &Unit,
+    x: &[f32],
+    (h, w): (usize, usize),
+    first: usize,
+    cols: &mut [f32],
+) {
     let (ho, wo) = unit.out_side((h, w));
     let m = ho * wo;
     let (s, k, pad) = (unit.stride, unit.k, unit.k / 2);
-    for (r, row) in cols[..unit.columns() * m].chunks_exact_mut(m).enumerate() {
+    for (r, row) in cols.chunks_exact_mut(m).enumerate() {
+        let r = first + r;
         let (ci, dy, dx) = (r / (k * k), r / k % k, r % k);
         let (lo, hi) = inside(unit, w, wo, dx);
         for (oy, out) in row.chunks_exact_mut(wo).enumerate() {

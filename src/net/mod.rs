@@ -5,6 +5,7 @@ pub mod amx;
 pub mod bf16;
 pub(crate) mod dense;
 pub mod encoder;
+pub mod encoder_eval;
 pub mod encoder_grad;
 pub mod f16;
 pub mod fused;
@@ -19,6 +20,7 @@ pub mod tiles;
 mod weights;
 
 pub use encoder::{Encoder, EncoderConfig, ResNetLayout};
+pub use encoder_eval::InferenceEncoder;
 pub use encoder_grad::{EncoderGrads, EncoderPass, TrainingEncoder};
 pub use fused::{FusedHead, ReducedHead};
 pub use head::{BranchScores, DualHead, HeadConfig};

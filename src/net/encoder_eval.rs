@@ -1,0 +1,183 @@
+//! The encoder's inference forward by hand, for serving: the layouts of [`super::encoder_grad`]
+//! (basic blocks, no stem max-pool), each convolution with its BatchNorm's running statistics
+//! folded in (`W' = W·γ/σ`, `b' = β − mean·γ/σ`, σ = `sqrt(var + ε)`), so a unit is one GEMM over
+//! its im2col columns plus a bias, and the ReLU and the residual add ride on the same pass.
+//!
+//! burn's forward on the conv backend runs every op as its own tensor pass (and a batch of one
+//! on one core); here both cores share each image: the im2col rows and the GEMM's output
+//! channels are split between them. `tests/net.rs` holds its features to burn's within 1e-4.
+
+use rayon::prelude::*;
+
+use super::dense::{Strided, gemm, read};
+use super::encoder::{ConvBn, Encoder};
+use super::encoder_grad::{Unit, im2col_rows};
+use super::kernels::Kernels;
+
+/// A convolution with its BatchNorm folded in.
+#[derive(Debug, Clone)]
+struct Folded {
+    /// The weights scaled per output channel (`Unit::weight` holds `[c_out, c_in·k·k]`).
+    unit: Unit,
+    bias: Vec<f32>,
+}
+
+impl Folded {
+    fn of(conv_bn: &ConvBn) -> Option<Folded> {
+        let mut unit = Unit::read(conv_bn)?;
+        let bn = conv_bn.parts().1;
+        let mean = read(bn.running_mean.value_sync());
+        let variance = read(bn.running_var.value_sync());
+        let (scale, bias) = unit.inference_affine(&mean, &variance);
+        let columns = unit.columns();
+        for (row, s) in unit.weight.chunks_exact_mut(columns).zip(&scale) {
+            row.iter_mut().for_each(|w| *w *= s);
+        }
+        Some(Folded { unit, bias })
+    }
+
+    /// `W'·cols(x) + b'` of one image (`[c_in, h, w]`) into `[c_out, ho, wo]`, with its side,
+    /// then as `after` says; `cols` is scratch.
+    fn forward(
+        &self,
+        kernels: Kernels,
+        (x, side): (&[f32], (usize, usize)),
+        after: After<'_>,
+        cols: &mut Vec<f32>,
+    ) -> (Vec<f32>, (usize, usize)) {
+        let unit = &self.unit;
+        let out = unit.out_side(side);
+        let (n, m) = (unit.columns(), out.0 * out.1);
+        cols.resize(n * m, 0.0);
+        // Rows of columns per task: a few tasks per thread, whole rows.
+        let tasks = 2 * rayon::current_num_threads();
+        let rows = n.div_ceil(tasks).max(1);
+        cols[..n * m]
+            .par_chunks_mut(rows * m)
+            .enumerate()
+            .for_each(|(t, chunk)| im2col_rows(unit, x, side, t * rows, chunk));
+        let mut y = vec![0.0; unit.c_out * m];
+        let channels = unit.c_out.div_ceil(rayon::current_num_threads()).max(1);
+        let cols = &cols[..n * m];
+        y.par_chunks_mut(channels * m)
+            .enumerate()
+            .for_each(|(t, y)| {
+                let first = t * channels;
+                let c = y.len() / m;
+                let w = Strided::rows(&unit.weight[first * n..(first + c) * n], n);
+                gemm(kernels, [c, n, m], w, Strided::rows(cols, m), 0.0, y);
+                for (ch, plane) in y.chunks_exact_mut(m).enumerate() {
+                    let b = self.bias[first + ch];
+                    match after {
+                        After::AddRelu(r) => {
+                            let r = &r[(first + ch) * m..(first + ch + 1) * m];
+                            for (v, r) in plane.iter_mut().zip(r) {
+                                *v = (*v + b + r).max(0.0);
+                            }
+                        }
+                        After::Relu => plane.iter_mut().for_each(|v| *v = (*v + b).max(0.0)),
+                        After::Nothing => plane.iter_mut().for_each(|v| *v += b),
+                    }
+                }
+            });
+        (y, out)
+    }
+}
+
+/// What follows a folded convolution in the same pass.
+#[derive(Debug, Clone, Copy)]
+enum After<'a> {
+    /// The stem and a block's first unit.
+    Relu,
+    /// A projection shortcut.
+    Nothing,
+    /// A block's second unit: the shortcut's output (same shape) added, then the ReLU.
+    AddRelu(&'a [f32]),
+}
+
+/// A residual block's folded units.
+#[derive(Debug, Clone)]
+struct FoldedBlock {
+    first: Folded,
+    second: Folded,
+    shortcut: Option<Folded>,
+}
+
+/// The encoder for inference with every BatchNorm folded into its convolution.
+#[derive(Debug, Clone)]
+pub struct InferenceEncoder {
+    stem: Folded,
+    blocks: Vec<FoldedBlock>,
+    kernels: Kernels,
+}
+
+impl InferenceEncoder {
+    /// `encoder`'s weights and running statistics for GEMMs on `kernels`, or `None` for a
+    /// layout this path does not run (a stem max-pool, bottleneck blocks): burn runs those.
+    pub fn of(encoder: &Encoder, kernels: Kernels) -> Option<InferenceEncoder> {
+        let (stem, stem_pool, blocks) = encoder.parts();
+        if stem_pool {
+            return None;
+        }
+        let blocks = blocks
+            .iter()
+            .map(|block| {
+                let (layers, shortcut) = block.parts();
+                let [first, second] = layers else {
+                    return None;
+                };
+                Some(FoldedBlock {
+                    first: Folded::of(first)?,
+                    second: Folded::of(second)?,
+                    shortcut: match shortcut {
+                        Some(s) => Some(Folded::of(s)?),
+                        None => None,
+                    },
+                })
+            })
+            .collect::<Option<Vec<_>>>()?;
+        Some(InferenceEncoder {
+            stem: Folded::of(stem)?,
+            blocks,
+            kernels,
+        })
+    }
+
+    /// The features of RGB8 crops of `size`² (values / 255, as burn's forward reads them):
+    /// `[images, feature_dim]` row-major.
+    pub fn features(&self, crops: &[&[u8]], size: usize) -> Vec<f32> {
+        let rows: Vec<Vec<f32>> = crops
+            .par_iter()
+            .map(|crop| self.image_features(crop, size))
+            .collect();
+        rows.concat()
+    }
+
+    fn image_features(&self, crop: &[u8], size: usize) -> Vec<f32> {
+        let k = self.kernels;
+        let mut cols = Vec::new();
+        let image = super::network::images_nchw(&[crop], size);
+        let (mut x, mut side) =
+            self.stem
+                .forward(k, (&image, (size, size)), After::Relu, &mut cols);
+        for block in &self.blocks {
+            let hidden = block.first.forward(k, (&x, side), After::Relu, &mut cols);
+            let shortcut = block
+                .shortcut
+                .as_ref()
+                .map(|s| s.forward(k, (&x, side), After::Nothing, &mut cols).0);
+            let residual = shortcut.as_deref().unwrap_or(&x);
+            let second = block.second.forward(
+                k,
+                (&hidden.0, hidden.1),
+                After::AddRelu(residual),
+                &mut cols,
+            );
+            (x, side) = second;
+        }
+        let plane = side.0 * side.1;
+        x.chunks_exact(plane)
+            .map(|p| p.iter().sum::<f32>() / plane as f32)
+            .collect()
+    }
+}
