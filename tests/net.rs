@@ -625,7 +625,23 @@ fn the_bf16_head_agrees_with_its_emulation_and_stays_near_f32() {
 /// pads to the 32-column panel and on the shipped head.
 #[test]
 fn the_amx_kernel_on_emulated_tiles_agrees_with_the_bf16_emulation() {
-    use alignist::net::{FusedHead, Kernels, ReducedHead};
+    assert_emulated_tiles_close(
+        Precision::Bf16,
+        Tolerance::BF16,
+        alignist::net::ReducedHead::amx_emulated,
+        "AMX bf16 tiles, emulated",
+    );
+}
+
+/// A head on emulated tiles (`tiles_of` a head on the portable kernels) against the emulation of
+/// `precision` on the f32 GEMM, on a small random head (width 40) and on the shipped one.
+fn assert_emulated_tiles_close(
+    precision: Precision,
+    tolerance: Tolerance,
+    tiles_of: fn(&alignist::net::FusedHead) -> alignist::net::ReducedHead,
+    kernel: &str,
+) {
+    use alignist::net::{FusedHead, Kernels};
     let encoding = RotationEncoding::Cube;
     let head = HeadConfig::new(32, encoding.dim())
         .with_hidden(40)
@@ -641,25 +657,20 @@ fn the_amx_kernel_on_emulated_tiles_agrees_with_the_bf16_emulation() {
         (
             FusedHead::with_kernels(&head, Kernels::Portable),
             &encoding,
-            "width 40, AMX emulated",
+            "width 40",
         ),
         (
             FusedHead::with_kernels(&bundle.network.head, Kernels::Portable),
             &bundle.manifest.network.encoding,
-            "shipped, AMX emulated",
+            "shipped",
         ),
     ] {
-        let tiles = ReducedHead::amx_emulated(&fused);
-        assert_eq!(tiles.kernel_name(), "AMX bf16 tiles, emulated");
+        let tiles = tiles_of(&fused);
+        assert_eq!(tiles.kernel_name(), kernel);
+        assert!(!tiles.is_native());
         let got = |image: &[f32], rows: alignist::net::Rows<'_>| tiles.branch_scores(image, rows);
-        assert_kernel_close(
-            &fused,
-            encoding,
-            Precision::Bf16,
-            &got,
-            Tolerance::BF16,
-            what,
-        );
+        let what = format!("{what}, {kernel}");
+        assert_kernel_close(&fused, encoding, precision, &got, tolerance, &what);
     }
 }
 
@@ -690,36 +701,12 @@ fn the_i8_head_agrees_with_its_emulation_and_stays_near_f32() {
 /// width that pads to the 64-column panel and on the shipped head.
 #[test]
 fn the_amx_int8_kernel_on_emulated_tiles_agrees_with_the_i8_emulation() {
-    use alignist::net::{FusedHead, Kernels, ReducedHead};
-    let encoding = RotationEncoding::Cube;
-    let head = HeadConfig::new(32, encoding.dim())
-        .with_hidden(40)
-        .with_layers(4)
-        .init(&device())
-        .with_output_biases(-2.5, 1.5);
-    let bundle = alignist::bundle::model::ModelBundle::load(std::path::Path::new(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/models/symsol1"
-    )))
-    .unwrap();
-    for (fused, encoding, what) in [
-        (
-            FusedHead::with_kernels(&head, Kernels::Portable),
-            &encoding,
-            "width 40, AMX int8 emulated",
-        ),
-        (
-            FusedHead::with_kernels(&bundle.network.head, Kernels::Portable),
-            &bundle.manifest.network.encoding,
-            "shipped, AMX int8 emulated",
-        ),
-    ] {
-        let tiles = ReducedHead::amx_int8_emulated(&fused);
-        assert_eq!(tiles.kernel_name(), "AMX int8 tiles, emulated");
-        assert!(!tiles.is_native());
-        let got = |image: &[f32], rows: alignist::net::Rows<'_>| tiles.branch_scores(image, rows);
-        assert_kernel_close(&fused, encoding, Precision::I8, &got, Tolerance::I8, what);
-    }
+    assert_emulated_tiles_close(
+        Precision::I8,
+        Tolerance::I8,
+        alignist::net::ReducedHead::amx_int8_emulated,
+        "AMX int8 tiles, emulated",
+    );
 }
 
 /// How far a reduced-precision head may be from its emulation and from f32, relative to a

@@ -298,7 +298,7 @@ unsafe fn gemm_tiles<T: TileUnit>(
     let steps = pairs / (K_STEP / 2);
     let mut block: Block = [0.0; MR * NR];
     let out = block.as_mut_ptr() as *mut u8;
-    let (a_stride, b_stride, c_stride) = (2 * stride, 4 * NR, 4 * NR);
+    let (a_stride, b_stride) = (2 * stride, 4 * NR);
     // SAFETY (every tile load and store below): the A tiles read rows r0..r0 + 32 of `input`,
     // inputs 32s..32s + 32 < 2·pairs ≤ stride; the B tiles read pairs 16s..16s + 16 of the
     // panel, columns 0..32; the C tiles write the 32 × 32 block.
@@ -308,30 +308,73 @@ unsafe fn gemm_tiles<T: TileUnit>(
             let weights = layer.weight.as_ptr().add(panel * pairs * NR * 2) as *const u8;
             for r0 in (0..rows).step_by(MR) {
                 let a = input.as_ptr().add(r0 * stride) as *const u8;
-                tiles.zero::<0>();
-                tiles.zero::<1>();
-                tiles.zero::<2>();
-                tiles.zero::<3>();
-                for s in 0..steps {
-                    let a = a.add(s * TILE_BYTES);
-                    let b = weights.add(s * TILE_ROWS * b_stride);
-                    tiles.load::<4>(a, a_stride);
-                    tiles.load::<5>(a.add(TILE_ROWS * a_stride), a_stride);
-                    tiles.load::<6>(b, b_stride);
-                    tiles.load::<7>(b.add(TILE_BYTES), b_stride);
-                    tiles.dot::<0, 4, 6>();
-                    tiles.dot::<1, 4, 7>();
-                    tiles.dot::<2, 5, 6>();
-                    tiles.dot::<3, 5, 7>();
-                }
-                tiles.store::<0>(out, c_stride);
-                tiles.store::<1>(out.add(TILE_BYTES), c_stride);
-                tiles.store::<2>(out.add(TILE_ROWS * c_stride), c_stride);
-                tiles.store::<3>(out.add(TILE_ROWS * c_stride + TILE_BYTES), c_stride);
+                tile_block::<_, false>(tiles, (a, a_stride), (weights, b_stride), steps, out);
                 finish(&block, bias, panel, r0, &mut epilogue);
             }
         }
         tiles.release();
+    }
+}
+
+/// One block of [`MR`] × [`NR`] sums into `out` (row-major, 4 bytes a sum): `steps` steps of
+/// two A tiles (16 rows each, from `a` with its row stride) times two B tiles (16 columns each,
+/// 64 bytes apart, from `b` with its stride, the next step's 16 tile rows further), four
+/// accumulators; `TDPBF16PS`, or with `BYTES` `TDPBUSD`.
+///
+/// # Safety
+/// The tiles are configured; every A and B tile of the `steps` and the 32 rows of 128 bytes at
+/// `out` are in bounds.
+#[inline(always)]
+unsafe fn tile_block<T: TileUnit, const BYTES: bool>(
+    tiles: &mut T,
+    (a, a_stride): (*const u8, usize),
+    (b, b_stride): (*const u8, usize),
+    steps: usize,
+    out: *mut u8,
+) {
+    let c_stride = 4 * NR;
+    // SAFETY: the caller's contract.
+    unsafe {
+        tiles.zero::<0>();
+        tiles.zero::<1>();
+        tiles.zero::<2>();
+        tiles.zero::<3>();
+        for s in 0..steps {
+            let a = a.add(s * TILE_BYTES);
+            let b = b.add(s * TILE_ROWS * b_stride);
+            tiles.load::<4>(a, a_stride);
+            tiles.load::<5>(a.add(TILE_ROWS * a_stride), a_stride);
+            tiles.load::<6>(b, b_stride);
+            tiles.load::<7>(b.add(TILE_BYTES), b_stride);
+            four_dots::<_, BYTES>(tiles);
+        }
+        tiles.store::<0>(out, c_stride);
+        tiles.store::<1>(out.add(TILE_BYTES), c_stride);
+        tiles.store::<2>(out.add(TILE_ROWS * c_stride), c_stride);
+        tiles.store::<3>(out.add(TILE_ROWS * c_stride + TILE_BYTES), c_stride);
+    }
+}
+
+/// The four products of a step: accumulators 0–3 += A tiles 4, 5 × B tiles 6, 7 (`TDPBF16PS`,
+/// or with `BYTES` `TDPBUSD`).
+///
+/// # Safety
+/// The tiles are configured.
+#[inline(always)]
+unsafe fn four_dots<T: TileUnit, const BYTES: bool>(tiles: &mut T) {
+    // SAFETY: the caller's contract.
+    unsafe {
+        if BYTES {
+            tiles.dot_bytes::<0, 4, 6>();
+            tiles.dot_bytes::<1, 4, 7>();
+            tiles.dot_bytes::<2, 5, 6>();
+            tiles.dot_bytes::<3, 5, 7>();
+        } else {
+            tiles.dot::<0, 4, 6>();
+            tiles.dot::<1, 4, 7>();
+            tiles.dot::<2, 5, 6>();
+            tiles.dot::<3, 5, 7>();
+        }
     }
 }
 
@@ -458,7 +501,6 @@ pub(super) unsafe fn gemm_i8_tiles<T: TileUnit>(
     let steps = groups / (TILE_BYTES / GROUP);
     let mut block: BytesBlock = [0; MR * NR];
     let out = block.as_mut_ptr() as *mut u8;
-    let c_stride = 4 * NR;
     // SAFETY (every tile load and store below): the A tiles read rows r0..r0 + 32 of `input`,
     // bytes 64s..64s + 64 ≤ 4·groups ≤ stride; the B tiles read groups 16s..16s + 16 of the
     // panel, bytes 4·(32h)..4·(32h + 32) of each group's 256; the C tiles write the 32 × 32 block.
@@ -470,27 +512,8 @@ pub(super) unsafe fn gemm_i8_tiles<T: TileUnit>(
                 let column = panel * I8_PANEL + half * NR;
                 let weights = weights.add(half * NR * GROUP);
                 for r0 in (0..rows).step_by(MR) {
-                    let a = input.as_ptr().add(r0 * stride);
-                    tiles.zero::<0>();
-                    tiles.zero::<1>();
-                    tiles.zero::<2>();
-                    tiles.zero::<3>();
-                    for s in 0..steps {
-                        let a = a.add(s * TILE_BYTES);
-                        let b = weights.add(s * TILE_ROWS * panel_row);
-                        tiles.load::<4>(a, stride);
-                        tiles.load::<5>(a.add(TILE_ROWS * stride), stride);
-                        tiles.load::<6>(b, panel_row);
-                        tiles.load::<7>(b.add(TILE_BYTES), panel_row);
-                        tiles.dot_bytes::<0, 4, 6>();
-                        tiles.dot_bytes::<1, 4, 7>();
-                        tiles.dot_bytes::<2, 5, 6>();
-                        tiles.dot_bytes::<3, 5, 7>();
-                    }
-                    tiles.store::<0>(out, c_stride);
-                    tiles.store::<1>(out.add(TILE_BYTES), c_stride);
-                    tiles.store::<2>(out.add(TILE_ROWS * c_stride), c_stride);
-                    tiles.store::<3>(out.add(TILE_ROWS * c_stride + TILE_BYTES), c_stride);
+                    let a = (input.as_ptr().add(r0 * stride), stride);
+                    tile_block::<_, true>(tiles, a, (weights, panel_row), steps, out);
                     finish(&block, scales, column, r0, &mut epilogue);
                 }
             }
@@ -688,17 +711,7 @@ unsafe fn tile_rounds<T: TileUnit, const BYTES: bool>(tiles: &mut T, rounds: usi
         tiles.load::<6>(b, TILE_BYTES);
         tiles.load::<7>(b, TILE_BYTES);
         for _ in 0..rounds {
-            if BYTES {
-                tiles.dot_bytes::<0, 4, 6>();
-                tiles.dot_bytes::<1, 4, 7>();
-                tiles.dot_bytes::<2, 5, 6>();
-                tiles.dot_bytes::<3, 5, 7>();
-            } else {
-                tiles.dot::<0, 4, 6>();
-                tiles.dot::<1, 4, 7>();
-                tiles.dot::<2, 5, 6>();
-                tiles.dot::<3, 5, 7>();
-            }
+            four_dots::<_, BYTES>(tiles);
         }
         tiles.store::<3>(c.as_mut_ptr() as *mut u8, TILE_BYTES);
         tiles.release();
