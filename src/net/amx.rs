@@ -727,12 +727,14 @@ unsafe fn tile_rounds<T: TileUnit, const BYTES: bool>(tiles: &mut T, rounds: usi
 /// on Linux, whether it granted this process the tile data (`arch_prctl(ARCH_REQ_XCOMP_PERM)`,
 /// asked once).
 pub fn amx_available() -> bool {
-    tiles_available(AMX_BF16)
+    static BF16: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *BF16.get_or_init(|| tiles_available(AMX_BF16))
 }
 
 /// The same for AMX-INT8 (`TDPBUSD`).
 pub fn amx_int8_available() -> bool {
-    tiles_available(AMX_INT8)
+    static INT8: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *INT8.get_or_init(|| tiles_available(AMX_INT8))
 }
 
 /// CPUID.(7,0):EDX bits of AMX-BF16 and AMX-INT8.
@@ -740,7 +742,8 @@ const AMX_BF16: u32 = 1 << 22;
 const AMX_INT8: u32 = 1 << 25;
 
 /// Whether the core has AMX-TILE and the instructions of `edx_bit`, and the tile state is
-/// granted (asked once per process).
+/// granted (asked once per process). Callers cache the answer: CPUID leaves a virtual machine
+/// (about a microsecond), and the kernels ask before every GEMM.
 fn tiles_available(edx_bit: u32) -> bool {
     #[cfg(target_arch = "x86_64")]
     {
