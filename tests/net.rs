@@ -788,7 +788,7 @@ fn the_folded_inference_encoder_computes_burns_eval_features() {
                     encoder.forward(network::images_tensor(&refs, side, &conv)),
                 )
                 .concat();
-                let got = folded.features(&refs, side);
+                let got = folded.features(&refs, side).concat();
                 assert_eq!(got.len(), want.len(), "{what}");
                 let scale = want.iter().map(|v| v.abs()).fold(0f32, f32::max);
                 let worst = got

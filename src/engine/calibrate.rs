@@ -41,7 +41,7 @@ const TIMED_ROWS: usize = 2048;
 const SMALL_ROWS: usize = 64;
 
 /// After this long, a calibration measures only until one search's prediction is exact
-/// ([`calibrate_within`]); it took 45–100 ms a model on a 2-core AMD EPYC and 73–113 ms on a
+/// ([`calibrate_within`]); it took 45–100 ms a model on a 2-core AMD EPYC and 73–101 ms on a
 /// 2-core Intel Xeon with AMX (docs/BENCHMARKS.md).
 pub const MEASURING_DEADLINE_MS: f64 = 250.0;
 

@@ -369,9 +369,7 @@ impl Model {
             return Ok(Vec::new());
         }
         if let Some(encoder) = &self.encoder {
-            let dim = self.feature_dim();
-            let rows = encoder.features(crops, side);
-            return Ok(rows.chunks_exact(dim).map(<[f32]>::to_vec).collect());
+            return Ok(encoder.features(crops, side));
         }
         let images = images_tensor(crops, side, &self.device);
         Ok(feature_rows(self.network.encoder.forward(images)))

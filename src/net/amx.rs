@@ -742,8 +742,8 @@ const AMX_BF16: u32 = 1 << 22;
 const AMX_INT8: u32 = 1 << 25;
 
 /// Whether the core has AMX-TILE and the instructions of `edx_bit`, and the tile state is
-/// granted (asked once per process). Callers cache the answer: CPUID leaves a virtual machine
-/// (about a microsecond), and the kernels ask before every GEMM.
+/// granted (asked once per process). Its callers keep the answer, as the standard library keeps
+/// `is_x86_feature_detected!`'s.
 fn tiles_available(edx_bit: u32) -> bool {
     #[cfg(target_arch = "x86_64")]
     {

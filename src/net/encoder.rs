@@ -124,6 +124,9 @@ impl ConvBn {
     }
 }
 
+/// A basic block's units: the first and second convolution and the projection shortcut.
+pub(crate) type BasicUnits<'a> = (&'a ConvBn, &'a ConvBn, Option<&'a ConvBn>);
+
 /// A residual block: basic (3×3, 3×3) or bottleneck (1×1, 3×3, 1×1), with a projection
 /// shortcut when the shape changes.
 #[derive(Module, Debug)]
@@ -281,6 +284,19 @@ impl Encoder {
     /// The stem, whether a max-pool follows it, and the residual blocks.
     pub(crate) fn parts(&self) -> (&ConvBn, bool, &[Block]) {
         (&self.stem, self.stem_pool.is_some(), &self.blocks)
+    }
+
+    /// The stem and each block's units (first, second, projection shortcut) where the layout
+    /// is one the hand-written passes run (basic blocks, no stem max-pool), else `None`.
+    pub(crate) fn basic_units(&self) -> Option<(&ConvBn, Vec<BasicUnits<'_>>)> {
+        if self.stem_pool.is_some() {
+            return None;
+        }
+        let blocks = self.blocks.iter().map(|block| match block.parts() {
+            ([first, second], shortcut) => Some((first, second, shortcut)),
+            _ => None,
+        });
+        Some((&self.stem, blocks.collect::<Option<Vec<_>>>()?))
     }
 
     /// `[B, 3, H, W]` → `[B, feature_dim]`.

@@ -3,9 +3,8 @@
 //! folded in (`W' = W·γ/σ`, `b' = β − mean·γ/σ`, σ = `sqrt(var + ε)`), so a unit is one GEMM over
 //! its im2col columns plus a bias, and the ReLU and the residual add ride on the same pass.
 //!
-//! burn's forward on the conv backend runs every op as its own tensor pass (and a batch of one
-//! on one core); here both cores share each image: the im2col rows and the GEMM's output
-//! channels are split between them. `tests/net.rs` holds its features to burn's within 1e-4.
+//! burn's forward on the conv backend runs every op as its own tensor pass; here both cores
+//! share each image: the im2col rows and the GEMM's output channels are split between them. `tests/net.rs` holds its features to burn's within 1e-4.
 
 use rayon::prelude::*;
 
@@ -115,17 +114,10 @@ impl InferenceEncoder {
     /// `encoder`'s weights and running statistics for GEMMs on `kernels`, or `None` for a
     /// layout this path does not run (a stem max-pool, bottleneck blocks): burn runs those.
     pub fn of(encoder: &Encoder, kernels: Kernels) -> Option<InferenceEncoder> {
-        let (stem, stem_pool, blocks) = encoder.parts();
-        if stem_pool {
-            return None;
-        }
+        let (stem, blocks) = encoder.basic_units()?;
         let blocks = blocks
-            .iter()
-            .map(|block| {
-                let (layers, shortcut) = block.parts();
-                let [first, second] = layers else {
-                    return None;
-                };
+            .into_iter()
+            .map(|(first, second, shortcut)| {
                 Some(FoldedBlock {
                     first: Folded::of(first)?,
                     second: Folded::of(second)?,
@@ -143,14 +135,13 @@ impl InferenceEncoder {
         })
     }
 
-    /// The features of RGB8 crops of `size`² (values / 255, as burn's forward reads them):
-    /// `[images, feature_dim]` row-major.
-    pub fn features(&self, crops: &[&[u8]], size: usize) -> Vec<f32> {
-        let rows: Vec<Vec<f32>> = crops
+    /// The features of RGB8 crops of `size`² (values / 255, as burn's forward reads them), a
+    /// row per crop.
+    pub fn features(&self, crops: &[&[u8]], size: usize) -> Vec<Vec<f32>> {
+        crops
             .par_iter()
             .map(|crop| self.image_features(crop, size))
-            .collect();
-        rows.concat()
+            .collect()
     }
 
     fn image_features(&self, crop: &[u8], size: usize) -> Vec<f32> {

@@ -512,17 +512,10 @@ impl TrainingEncoder {
     /// this path runs (a stem max-pool, bottleneck blocks, a frozen BatchNorm): burn's autodiff
     /// trains those.
     pub fn of(encoder: &Encoder, kernels: Kernels) -> Option<TrainingEncoder> {
-        let (stem, stem_pool, blocks) = encoder.parts();
-        if stem_pool {
-            return None;
-        }
+        let (stem, blocks) = encoder.basic_units()?;
         let mut units = vec![Unit::of(stem)?];
         let mut indices = Vec::new();
-        for block in blocks {
-            let (layers, shortcut) = block.parts();
-            let [first, second] = layers else {
-                return None;
-            };
+        for (first, second, shortcut) in blocks {
             let at = units.len();
             units.push(Unit::of(first)?);
             units.push(Unit::of(second)?);

@@ -468,9 +468,7 @@ impl I8Head {
             }
         }
     }
-}
 
-impl I8Head {
     /// [`gemm`] on the head's tiles, or its `VPDPBUSD` kernel.
     ///
     /// # Safety
