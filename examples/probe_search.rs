@@ -4,10 +4,11 @@
 //! encoder, the start level in full, each refined level, and the rest (cell rotations, softmax,
 //! selection, modes) as the difference.
 //! `cargo run --release --example probe_search [BUNDLE] [START] [KEEP] [f32|bf16|f16|i8] [REPEATS]
-//! [TAPER] [KEEP_MASS]` (with a keep by mass, the parts are timed at the most cells kept).
+//! [TAPER] [KEEP_MASS|-] [RESCORE_FINEST: true|false]` (with a keep by mass, the parts are timed
+//! at the most cells kept; `-`: no keep by mass).
 use std::time::Instant;
 
-use alignist::engine::{Engine, EngineConfig, Model, PredictOptions, SearchParams};
+use alignist::engine::{Engine, EngineConfig, Model, PredictOptions, RESCORED_CELLS, SearchParams};
 use alignist::net::Precision;
 use alignist::so3::to_row_major_f32;
 
@@ -23,11 +24,16 @@ fn main() -> anyhow::Result<()> {
     let search = SearchParams {
         start_level: arg(2, "2").parse()?,
         keep: arg(3, "1024").parse()?,
-        keep_mass: args.get(7).map(|m| m.parse()).transpose()?,
+        keep_mass: args
+            .get(7)
+            .filter(|m| *m != "-")
+            .map(|m| m.parse())
+            .transpose()?,
         keep_taper: arg(6, "0.5").parse()?,
         coarse_precision: arg(4, "bf16")
             .parse::<Precision>()
             .map_err(anyhow::Error::msg)?,
+        rescore_finest: arg(8, "false").parse()?,
     };
     let repeats: usize = arg(5, "20").parse()?;
     let bundle = alignist::bundle::model::ModelBundle::load(&path)?;
@@ -110,7 +116,7 @@ fn time_parts(model: &Model, search: &SearchParams, crop: &[u8], runs: usize) ->
             .map(|c| to_row_major_f32(&grid.rotation(c * 97 % grid.len() as u64)))
             .collect();
         let precision = if level == FINEST {
-            Precision::F32
+            search.finest_precision()
         } else {
             search.coarse_precision
         };
@@ -119,6 +125,20 @@ fn time_parts(model: &Model, search: &SearchParams, crop: &[u8], runs: usize) ->
         });
         println!(
             "  level {level} ({} rotations, {precision}, encodings included): {t:.1} ms",
+            rotations.len()
+        );
+        parts += t;
+    }
+    if search.rescores() {
+        let grid = model.grid(FINEST).expect("grid");
+        let rotations: Vec<[f32; 9]> = (0..RESCORED_CELLS.max(10) as u64)
+            .map(|c| to_row_major_f32(&grid.rotation(c * 97 % grid.len() as u64)))
+            .collect();
+        let t = timed(&mut || {
+            model.score_rotations_many(&features, std::slice::from_ref(&rotations), Precision::F32);
+        });
+        println!(
+            "  level {FINEST} rescored ({} rotations, f32): {t:.1} ms",
             rotations.len()
         );
         parts += t;

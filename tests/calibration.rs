@@ -31,6 +31,7 @@ fn studied(
         keep_mass: None,
         keep_taper: taper,
         coarse_precision: precision.into(),
+        rescore_finest: false,
         agreement,
         found_maximum: agreement,
     }
@@ -261,4 +262,76 @@ fn a_coarse_level_out_of_f16_range_is_scored_again_in_f32() {
         assert!(c.probability.is_finite(), "{c:?}");
     }
     assert_eq!(f16.top[0].cell, f32.top[0].cell);
+}
+
+/// A search that rescores its finest level scores that level's rows in the coarse precision and
+/// then its best cells in f32: the answer's cells carry f32's scores (their log-densities differ
+/// from the f32 search's by the normaliser alone, the same shift for every cell), and the
+/// calibration counts the level's rows at the coarse rate plus the rescored ones in f32.
+#[test]
+fn rescoring_the_finest_level_gives_the_answer_f32s_scores() {
+    use alignist::engine::calibrate::rows_per_level;
+    use alignist::engine::{PredictOptions, RESCORED_CELLS, SearchParams};
+    let model = model();
+    let bundle = alignist::bundle::model::ModelBundle::load(shipped()).unwrap();
+    let crops: Vec<Vec<u8>> = alignist::train::data::BundleRenders::of(&bundle, 1)
+        .eval_images(bundle.manifest.network.image_size, 1, 11)
+        .into_iter()
+        .map(|im| im.rgb)
+        .collect();
+    let options = PredictOptions {
+        top_k: 10,
+        level: Some(4),
+        mode_angle_deg: None,
+        ..Default::default()
+    };
+    let exact = SearchParams {
+        start_level: 2,
+        keep: 128,
+        keep_mass: None,
+        keep_taper: 1.0,
+        coarse_precision: Precision::I8,
+        rescore_finest: false,
+    };
+    let rescored = SearchParams {
+        rescore_finest: true,
+        ..exact
+    };
+    let mut worst_shift_spread = 0f64;
+    for crop in &crops {
+        let features = model.features(&[crop]).unwrap();
+        let run = |search: &SearchParams| {
+            model
+                .predict_searching(&features, &options, search, &[None])
+                .unwrap()
+                .swap_remove(0)
+        };
+        let (a, b) = (run(&exact), run(&rescored));
+        assert_eq!(a.top[0].cell, b.top[0].cell);
+        let shifts: Vec<f64> = b
+            .top
+            .iter()
+            .filter_map(|c| {
+                let same = a.top.iter().find(|d| d.cell == c.cell)?;
+                Some(c.log_density - same.log_density)
+            })
+            .collect();
+        assert!(shifts.len() >= 5, "{} of the top-10 shared", shifts.len());
+        let (lo, hi) = shifts
+            .iter()
+            .fold((f64::MAX, f64::MIN), |(lo, hi), &s| (lo.min(s), hi.max(s)));
+        worst_shift_spread = worst_shift_spread.max(hi - lo);
+        // The normaliser moves by the i8 rounding of the other cells only: a few %.
+        assert!(lo.abs() < 0.1, "{shifts:?}");
+    }
+    // i8's own scores are a few % off (0.01–0.1 in log-density); f32's agree to rounding.
+    assert!(worst_shift_spread < 1e-3, "{worst_shift_spread}");
+    // The calibration's account of the rows.
+    let rows = rows_per_level(&model, &rescored, 4);
+    let last = rows.len() - 1;
+    assert_eq!(rows[last], (4, RESCORED_CELLS, Precision::F32));
+    assert_eq!(rows[last - 1], (4, 8 * 128, Precision::I8));
+    let plain = rows_per_level(&model, &exact, 4);
+    assert_eq!(plain.len(), rows.len() - 1);
+    assert_eq!(plain[plain.len() - 1], (4, 8 * 128, Precision::F32));
 }

@@ -9,7 +9,7 @@ use std::time::Instant;
 
 use crate::bundle::study::{SearchStudy, StudiedSearch};
 use crate::client::load::quantile;
-use crate::engine::{EngineError, Model, PredictOptions, SearchParams};
+use crate::engine::{EngineError, Model, PredictOptions, RESCORED_CELLS, SearchParams};
 use crate::net::Precision;
 use crate::so3::{covering_radius, geodesic_angle};
 
@@ -39,7 +39,8 @@ pub struct SearchFigures {
 /// The searches the study compares: start level 1 or 2, keep 32–512, keeps chosen by mass, and
 /// keeps that halve (wide where a wrong region is chosen, narrow inside the chosen ones) or
 /// double at each finer level, all in f32; then the wider ones with the coarse levels in
-/// bfloat16, in f16 and in 8-bit integers.
+/// bfloat16, in f16 and in 8-bit integers, and some of those with the finest level in the coarse
+/// precision as well, rescored ([`SearchParams::rescore_finest`]).
 pub fn candidates() -> Vec<SearchParams> {
     let flat = |start_level, keep, keep_mass| SearchParams {
         start_level,
@@ -47,6 +48,7 @@ pub fn candidates() -> Vec<SearchParams> {
         keep_mass,
         keep_taper: 1.0,
         coarse_precision: Precision::F32,
+        rescore_finest: false,
     };
     let mut out = Vec::new();
     for start_level in [1u8, 2] {
@@ -114,6 +116,19 @@ pub fn candidates() -> Vec<SearchParams> {
     for keep in [512, 768, 1024, 1536] {
         out.push(i8(tapered(2, keep, 0.5)));
     }
+    // The finest level in the coarse precision too, its best cells rescored in f32: the finest
+    // level's rows (as many as all coarser ones together) at the reduced rate.
+    let rescored = |search: SearchParams| SearchParams {
+        rescore_finest: true,
+        ..search
+    };
+    for precision in [i8, bf16, f16] {
+        for keep in [256, 512] {
+            out.push(rescored(precision(flat(2, keep, None))));
+        }
+        out.push(rescored(precision(tapered(2, 1024, 0.5))));
+    }
+    out.push(rescored(i8(tapered(2, 128, 2.0))));
     out
 }
 
@@ -207,6 +222,7 @@ pub fn record(figures: &[SearchFigures], level: u8, images: usize, command: Stri
                 keep_mass: f.params.keep_mass,
                 keep_taper: f.params.keep_taper,
                 coarse_precision: f.params.coarse_precision.name().into(),
+                rescore_finest: f.params.rescores(),
                 agreement: f.agreement,
                 found_maximum: f.found_maximum,
             })
@@ -219,12 +235,19 @@ pub fn record(figures: &[SearchFigures], level: u8, images: usize, command: Stri
 pub fn print(figures: &[SearchFigures], default: &SearchParams, objects: &[String]) {
     println!("search to level 5, top-10, against the exhaustive level-5 argmax:");
     println!(
-        "  start  keep             coarse  agreement  found max  mean gap  covered mass  p50 (encoder incl.)"
+        "  start  keep             coarse  finest              agreement  found max  mean gap  covered mass  p50 (encoder incl.)"
     );
     for f in figures {
         let keep = f.params.keep_description();
+        let finest = match f.params.rescores() {
+            true => format!(
+                "{}, {RESCORED_CELLS} in f32",
+                f.params.coarse_precision.name()
+            ),
+            false => "f32".to_string(),
+        };
         println!(
-            "  {:>5}  {keep:<16} {:<6} {:>8.1} % {:>8.1} % {:>9.3} {:>12.4}  {:>8.1} ms",
+            "  {:>5}  {keep:<16} {:<6}  {finest:<18} {:>8.1} % {:>8.1} % {:>9.3} {:>12.4}  {:>8.1} ms",
             f.params.start_level,
             f.params.coarse_precision.name(),
             100.0 * f.agreement,

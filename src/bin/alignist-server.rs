@@ -86,6 +86,11 @@ struct Cli {
     /// calibrated, else bf16.
     #[arg(long, env = "ALIGNIST_SEARCH_COARSE_PRECISION")]
     search_coarse_precision: Option<Precision>,
+    /// Score a Predict search's finest level in the coarse precision too, then its best 64 cells
+    /// (or the top-k, where more) again in f32: the finest level's rows at the coarse rate. No
+    /// effect with `--search-coarse-precision f32`. Default: calibrated, else off.
+    #[arg(long, env = "ALIGNIST_SEARCH_RESCORE_FINEST")]
+    search_rescore_finest: Option<bool>,
     /// Head worker threads per model, each running one call's head work at a time: a Predict or
     /// PredictFrame search, a PredictDistribution grid (default: one per core).
     #[arg(long, env = "ALIGNIST_HEAD_WORKERS")]
@@ -247,7 +252,8 @@ fn engine_config(cli: &Cli) -> Result<EngineConfig> {
     let search_set = cli.search_start_level.is_some()
         || cli.search_keep.is_some()
         || cli.search_keep_taper.is_some()
-        || cli.search_coarse_precision.is_some();
+        || cli.search_coarse_precision.is_some()
+        || cli.search_rescore_finest.is_some();
     anyhow::ensure!(
         cli.search_budget_ms.is_finite() && cli.search_budget_ms >= 0.0,
         "--search-budget-ms {} must be a number of milliseconds ≥ 0",
@@ -270,6 +276,9 @@ fn engine_config(cli: &Cli) -> Result<EngineConfig> {
             coarse_precision: cli
                 .search_coarse_precision
                 .unwrap_or(defaults.search.coarse_precision),
+            rescore_finest: cli
+                .search_rescore_finest
+                .unwrap_or(defaults.search.rescore_finest),
             ..defaults.search
         },
         search_budget_ms: (!search_set && cli.search_budget_ms > 0.0)

@@ -29,8 +29,12 @@ pub struct StudiedSearch {
     pub keep_mass: Option<f64>,
     /// Each finer level keeps this many times as many cells.
     pub keep_taper: f64,
-    /// Arithmetic of the levels before the finest (`f32`, `bf16`).
+    /// Arithmetic of the levels before the finest (`f32`, `bf16`, `f16`, `i8`).
     pub coarse_precision: String,
+    /// Whether the finest level was scored in the coarse precision too, its best cells then
+    /// rescored in f32 (absent in studies written before the option: `false`).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub rescore_finest: bool,
     /// Fraction of images whose top-1 is the exhaustive argmax's cell or a neighbour.
     pub agreement: f64,
     /// Fraction of images whose top-1 scores within 0.01 of the exhaustive maximum.

@@ -462,7 +462,7 @@ pub fn models_table(list: &ListModelsResponse) -> String {
             };
             let _ = writeln!(
                 s,
-                "  search: start {}, keep {}{}{}, coarse {}{calibrated}; kernels {}",
+                "  search: start {}, keep {}{}{}, coarse {}{}{calibrated}; kernels {}",
                 q.start_level,
                 q.keep,
                 if q.keep_taper == 1.0 {
@@ -476,6 +476,11 @@ pub fn models_table(list: &ListModelsResponse) -> String {
                     String::new()
                 },
                 q.coarse_precision,
+                if q.rescore_finest {
+                    format!(", finest {} rescored in f32", q.coarse_precision)
+                } else {
+                    String::new()
+                },
                 q.kernels
             );
         }

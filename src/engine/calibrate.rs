@@ -22,7 +22,7 @@ use std::collections::BTreeMap;
 use std::time::Instant;
 
 use super::search::Keep;
-use super::{EngineError, Model, PredictOptions, SearchParams};
+use super::{EngineError, Model, PredictOptions, RESCORED_CELLS, SearchParams};
 use crate::bundle::study::SearchStudy;
 use crate::net::Precision;
 
@@ -170,7 +170,8 @@ impl Rates {
 }
 
 /// The levels `search` scores to `level` with a top-[`TOP_K`], each with the rows it scores (at
-/// most: a keep by mass may keep fewer) and its precision.
+/// most: a keep by mass may keep fewer) and its precision; a search that rescores the finest
+/// level lists it twice, the second time with the rows rescored in f32.
 pub fn rows_per_level(
     model: &Model,
     search: &SearchParams,
@@ -178,7 +179,7 @@ pub fn rows_per_level(
 ) -> Vec<(u8, usize, Precision)> {
     let start = search.start_level.min(level);
     let precision = |l: u8| {
-        if l == level {
+        if l == level && (l == start || !search.rescores()) {
             Precision::F32
         } else {
             search.coarse_precision
@@ -198,6 +199,9 @@ pub fn rows_per_level(
         let kept = keep.max_at((l - start - 1) as usize).min(cells);
         cells = 8 * kept;
         out.push((l, cells, precision(l)));
+    }
+    if level > start && search.rescores() {
+        out.push((level, RESCORED_CELLS.max(TOP_K).min(cells), Precision::F32));
     }
     out
 }
@@ -243,6 +247,7 @@ fn candidates(
                         keep_mass: s.keep_mass,
                         keep_taper: s.keep_taper,
                         coarse_precision: s.precision().ok()?,
+                        rescore_finest: s.rescore_finest,
                     },
                     agreement: Some(s.agreement),
                 })
@@ -274,6 +279,7 @@ fn without_emulated_twins(
     let has_f32_twin = |c: &Candidate| {
         let twin = SearchParams {
             coarse_precision: Precision::F32,
+            rescore_finest: false,
             ..c.params
         };
         candidates.iter().any(|other| other.params == twin)
@@ -636,6 +642,7 @@ mod tests {
                 keep_mass: None,
                 keep_taper: 0.5,
                 coarse_precision,
+                rescore_finest: false,
             },
             agreement: Some(1.0),
         }

@@ -30,7 +30,7 @@ pub use self::image::{
     CropBox, FrameCrop, ImageLimits, ImageRequest, Intrinsics, prepare_frame, prepare_image,
 };
 pub use cancel::{Cancel, CancelOnDrop};
-pub use config::{EngineConfig, KEEP_TAPER, MAX_TOP_K, SearchParams};
+pub use config::{EngineConfig, KEEP_TAPER, MAX_TOP_K, RESCORED_CELLS, SearchParams};
 pub use depth::{BackProjected, DepthMap, DepthRequest, back_project, decode_depth, decode_mask};
 pub use depth_search::{DepthInput, SeenPoints};
 pub use frame::{CropDepth, Detection, DetectionDepth, FramePlan, FrameQuery, MAX_DETECTIONS};

@@ -11,8 +11,8 @@ use super::depth_search::{DepthInput, DepthSearch, MIN_REFITS, cell_means, predi
 use super::search::{CellProbability, Mode};
 use super::{
     Cancel, CropBox, DepthFusion, EngineConfig, EngineError, FrameCrop, ImageRequest, Intrinsics,
-    KEEP_TAPER, MAX_TOP_K, SearchParams, calibrate, coarse_to_fine_many, invalid, prepare_frame,
-    prepare_image, quoted_name, search,
+    KEEP_TAPER, MAX_TOP_K, RESCORED_CELLS, SearchParams, calibrate, coarse_to_fine_many, invalid,
+    prepare_frame, prepare_image, quoted_name, search,
 };
 use crate::bundle::model::ModelBundle;
 use crate::net::network::feature_rows;
@@ -647,7 +647,10 @@ impl Model {
         };
         let mut fusion = DepthSearch::new(depth, level, options.top_k.max(MIN_REFITS));
         let results = coarse_to_fine_many(&grids, keep, b, |grid, cells| {
-            let precision = if grid.level() == level {
+            let finest = grid.level() == level;
+            // The start level is scored from its projections, which carry no rotations to rescore.
+            let rescore = finest && level > start && search.rescores();
+            let precision = if finest && !rescore {
                 Precision::F32
             } else {
                 search.coarse_precision
@@ -655,7 +658,13 @@ impl Model {
             // A level boundary: a call whose caller went away stops here.
             options.cancel.check()?;
             let (mut logits, mats) = self.search_logits(features, grid, cells, start, precision);
+            let network = rescore.then(|| logits.clone());
             fusion.add_terms(grid, cells, &mats, &mut logits, &options.cancel)?;
+            if let Some(network) = network {
+                options.cancel.check()?;
+                let rescored = options.top_k.max(RESCORED_CELLS);
+                self.rescore(features, &mats, &network, &mut logits, rescored);
+            }
             Ok::<_, EngineError>(logits)
         })?;
         let grid = &self.grids[level as usize];
@@ -667,6 +676,39 @@ impl Model {
                 prediction_of(grid, result, options.top_k, angle, depth.as_ref(), fitted)
             })
             .collect())
+    }
+
+    /// Replaces the network's part of the `count` best of each search's `logits` (the network's
+    /// scores `network` in a reduced precision plus any depth terms) by its f32 scores: only the
+    /// answer's cells pay for f32 ([`SearchParams::rescore_finest`]).
+    fn rescore(
+        &self,
+        features: &[Vec<f32>],
+        mats: &[Vec<[f32; 9]>],
+        network: &[Vec<f32>],
+        logits: &mut [Vec<f32>],
+        count: usize,
+    ) {
+        let best: Vec<Vec<usize>> = logits
+            .iter()
+            .map(|l| {
+                let l: Vec<f64> = l.iter().map(|&v| v as f64).collect();
+                search::top_indices(&l, count)
+            })
+            .collect();
+        let rotations: Vec<Vec<[f32; 9]>> = best
+            .iter()
+            .zip(mats)
+            .map(|(best, mats)| best.iter().map(|&j| mats[j]).collect())
+            .collect();
+        let exact = self.score_rotations_many(features, &rotations, Precision::F32);
+        for (((logits, network), best), exact) in
+            logits.iter_mut().zip(network).zip(&best).zip(exact)
+        {
+            for (&j, e) in best.iter().zip(exact) {
+                logits[j] += e - network[j];
+            }
+        }
     }
 
     /// `s_θ + s_φ` of each search's `cells` of `grid` in `precision`: read from the precomputed

@@ -898,6 +898,7 @@ fn search_info(model: &Model) -> SearchInfo {
         keep_taper: search.keep_taper,
         keep_mass: search.keep_mass.unwrap_or(0.0),
         coarse_precision: search.coarse_precision.name().into(),
+        rescore_finest: search.rescores(),
         chosen_by: if c.is_some() {
             "calibration"
         } else {
