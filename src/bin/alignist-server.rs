@@ -77,7 +77,8 @@ struct Cli {
     /// calibrated, else 0.5.
     #[arg(long, env = "ALIGNIST_SEARCH_KEEP_TAPER")]
     search_keep_taper: Option<f64>,
-    /// Arithmetic of a Predict search's levels before the finest, which is always f32: `bf16`
+    /// Arithmetic of a Predict search's levels before the finest (which is f32, or rescored in
+    /// f32: `--search-rescore-finest`): `bf16`
     /// ranks the cells to refine at about 2.6 times the f32 rate where the core has fast AVX-512
     /// BF16 (AMD Zen 4), `f16` at about 1.8–1.9 times it where the core has AVX-512 FP16 (Intel since
     /// Sapphire Rapids), `i8` (8-bit integers, scores a few % from f32's) at about 3 times it where

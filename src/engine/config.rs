@@ -55,7 +55,8 @@ pub struct SearchParams {
     /// Each finer level keeps `keep_taper` times as many cells as the one before (1: `keep` at
     /// every level).
     pub keep_taper: f64,
-    /// The arithmetic of every level but the finest, which is scored in f32: bfloat16 ranks
+    /// The arithmetic of every level but the finest, which is scored in f32 (or rescored in it,
+    /// `rescore_finest`): bfloat16 ranks
     /// the cells to refine at about 2.6 times the f32 rate on AMD Zen 4, f16 at 1.8–1.9 times
     /// and 8-bit integers at about 3 times on an Intel Xeon with AVX-512 FP16 and VNNI.
     pub coarse_precision: Precision,
