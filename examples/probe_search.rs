@@ -93,11 +93,7 @@ fn time_parts(model: &Model, search: &SearchParams, crop: &[u8], runs: usize) ->
         model.features(&[crop]).expect("crops of the input side");
     });
     println!("  encoder: {encoder:.1} ms");
-    let start_precision = if search.start_level == FINEST {
-        Precision::F32
-    } else {
-        search.coarse_precision
-    };
+    let start_precision = search.precision_at(search.start_level, search.start_level, FINEST);
     let start = timed(&mut || {
         model
             .logits_in(start_precision, &features[0], search.start_level)
@@ -115,11 +111,7 @@ fn time_parts(model: &Model, search: &SearchParams, crop: &[u8], runs: usize) ->
         let rotations: Vec<[f32; 9]> = (0..8 * keep as u64)
             .map(|c| to_row_major_f32(&grid.rotation(c * 97 % grid.len() as u64)))
             .collect();
-        let precision = if level == FINEST {
-            search.finest_precision()
-        } else {
-            search.coarse_precision
-        };
+        let precision = search.precision_at(level, search.start_level, FINEST);
         let t = timed(&mut || {
             model.score_rotations_many(&features, std::slice::from_ref(&rotations), precision);
         });
@@ -129,7 +121,7 @@ fn time_parts(model: &Model, search: &SearchParams, crop: &[u8], runs: usize) ->
         );
         parts += t;
     }
-    if search.rescores() {
+    if search.rescores_to(search.start_level, FINEST) {
         let grid = model.grid(FINEST).expect("grid");
         let rotations: Vec<[f32; 9]> = (0..RESCORED_CELLS.max(10) as u64)
             .map(|c| to_row_major_f32(&grid.rotation(c * 97 % grid.len() as u64)))

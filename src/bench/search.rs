@@ -259,10 +259,7 @@ pub fn print(figures: &[SearchFigures], default: &SearchParams, objects: &[Strin
     }
     if let Some(f) = figures.iter().find(|f| f.params == *default) {
         println!(
-            "default search (start {}, keep {}, coarse levels {}): agreement: {:.1} %, found max {:.1} %, mean gap {:.3}, covered mass {:.4}",
-            default.start_level,
-            default.keep_description(),
-            default.coarse_precision,
+            "default search ({default}): agreement: {:.1} %, found max {:.1} %, mean gap {:.3}, covered mass {:.4}",
             100.0 * f.agreement,
             100.0 * f.found_maximum,
             f.mean_gap,

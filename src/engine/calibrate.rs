@@ -178,13 +178,7 @@ pub fn rows_per_level(
     level: u8,
 ) -> Vec<(u8, usize, Precision)> {
     let start = search.start_level.min(level);
-    let precision = |l: u8| {
-        if l == level && (l == start || !search.rescores()) {
-            Precision::F32
-        } else {
-            search.coarse_precision
-        }
-    };
+    let precision = |l: u8| search.precision_at(l, start, level);
     let min = TOP_K.div_ceil(8);
     let keep = Keep {
         max: search.keep.max(min),
@@ -200,7 +194,7 @@ pub fn rows_per_level(
         cells = 8 * kept;
         out.push((l, cells, precision(l)));
     }
-    if level > start && search.rescores() {
+    if search.rescores_to(start, level) {
         out.push((level, RESCORED_CELLS.max(TOP_K).min(cells), Precision::F32));
     }
     out

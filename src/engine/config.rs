@@ -74,13 +74,20 @@ pub struct SearchParams {
 pub const RESCORED_CELLS: usize = 64;
 
 impl SearchParams {
-    /// The arithmetic of the finest level's rows (before any rescoring), when it is not the
-    /// start level.
-    pub fn finest_precision(&self) -> Precision {
-        if self.rescores() {
-            self.coarse_precision
-        } else {
+    /// Whether a search from `start` to `finest` rescores its finest level: asked for, in a
+    /// reduced precision, and the finest level is not the start level (scored from its
+    /// projections, which carry no rotations to rescore).
+    pub fn rescores_to(&self, start: u8, finest: u8) -> bool {
+        finest > start && self.rescores()
+    }
+
+    /// The arithmetic of level `l`'s rows in a search from `start` to `finest` (before any
+    /// rescoring): f32 at the finest level unless it is rescored, the coarse precision above it.
+    pub fn precision_at(&self, l: u8, start: u8, finest: u8) -> Precision {
+        if l == finest && !self.rescores_to(start, finest) {
             Precision::F32
+        } else {
+            self.coarse_precision
         }
     }
 

@@ -647,14 +647,8 @@ impl Model {
         };
         let mut fusion = DepthSearch::new(depth, level, options.top_k.max(MIN_REFITS));
         let results = coarse_to_fine_many(&grids, keep, b, |grid, cells| {
-            let finest = grid.level() == level;
-            // The start level is scored from its projections, which carry no rotations to rescore.
-            let rescore = finest && level > start && search.rescores();
-            let precision = if finest && !rescore {
-                Precision::F32
-            } else {
-                search.coarse_precision
-            };
+            let rescore = grid.level() == level && search.rescores_to(start, level);
+            let precision = search.precision_at(grid.level(), start, level);
             // A level boundary: a call whose caller went away stops here.
             options.cancel.check()?;
             let (mut logits, mats) = self.search_logits(features, grid, cells, start, precision);
