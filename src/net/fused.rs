@@ -259,6 +259,7 @@ impl FusedHead {
         by_tiles(
             projected,
             w,
+            TILE_ROWS,
             || Scratch {
                 x: vec![0.0; TILE_ROWS * w],
                 a: vec![0.0; TILE_ROWS * w],

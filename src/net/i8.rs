@@ -29,7 +29,7 @@ use super::dense::Dense;
 use super::kernels::Kernels;
 use super::native::{Epilogue, Packed};
 use super::tiles::{
-    ENCODING_SCALE, Rows, TILE_ROWS, by_tiles, columns_to_i8, encoding_to_u8, row_to_u8,
+    ENCODING_SCALE, Rows, blocked_tile_rows, by_tiles, columns_to_i8, encoding_to_u8, row_to_u8,
 };
 use super::weights::HeadWeights;
 
@@ -269,11 +269,12 @@ impl I8Head {
             *b += i;
         }
         let mr = self.tiles.mr();
-        let blocked = TILE_ROWS.div_ceil(mr) * mr;
+        let blocked = blocked_tile_rows(mr);
         let e_stride = GROUP * self.rotation.packed.groups;
         by_tiles(
             given,
             per_row,
+            blocked,
             || Scratch {
                 row: vec![0.0; self.width],
                 e: vec![0; blocked * e_stride],

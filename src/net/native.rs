@@ -8,7 +8,12 @@
 //!   6×64, 12×32, 14×32, 8×48 with `examples/probe_kernels.rs`). Each row's inputs are
 //!   broadcast from the row itself: copying a block's rows into one stream first (as GEMM
 //!   libraries pack) made the head 18 % slower on the Intel Xeon (72 % of the FMA peak against
-//!   88 %, level 4).
+//!   88 %, level 4). The padded widths 128, 256 and 512 run with the row stride a constant,
+//!   so a row's broadcast is one load at a fixed displacement: with the stride in a register,
+//!   10 of the loop's 50 instructions were address arithmetic, taking FMA ports' slots (the f32
+//!   head 65–71 % of the FMA peak on the Intel Xeon at level 3 before, 72–75 % after, in one
+//!   window with `examples/probe_full_grid.rs`). Tiles are whole register blocks
+//!   ([`super::tiles::blocked_tile_rows`]: 264 rows, not 256 rows computed as 264).
 //! - [`F32Avx2`]: f32 on 256-bit FMAs (AVX2 + FMA), blocks of 6 rows × 16 columns.
 //! - [`Bf16Kernel`](super::bf16): `VDPBF16PS` on AVX-512 BF16 cores.
 //! - [`F16Kernel`](super::f16): `VFMADD231PH` on AVX-512 FP16 cores.
@@ -23,7 +28,7 @@
 use std::marker::PhantomData;
 
 use super::dense::Dense;
-use super::tiles::{Rows, TILE_ROWS, by_tiles};
+use super::tiles::{Rows, blocked_tile_rows, by_tiles};
 use super::weights::HeadWeights;
 
 /// A GEMM kernel of the driver: its element type and its block shape.
@@ -211,10 +216,11 @@ impl<K: Kernel> NativeHead<K> {
         for (b, i) in first_bias.iter_mut().zip(image_term) {
             *b += i;
         }
-        let blocked = TILE_ROWS.div_ceil(K::MR) * K::MR;
+        let blocked = blocked_tile_rows(K::MR);
         by_tiles(
             given,
             per_row,
+            blocked,
             || Scratch {
                 row: vec![0.0; self.width],
                 e: vec![K::Elem::default(); blocked * K::GROUP * self.rotation.groups],
@@ -255,14 +261,17 @@ impl<K: Kernel> NativeHead<K> {
         } = scratch;
         match given {
             Rows::Projected(projected) => {
-                x[..blocked * stride].fill(K::Elem::default());
+                // Every value of the `blocked` rows is written: the rows' own, then zeros past
+                // the width and in the padding rows (no pass that clears them all first).
                 let w = self.width;
                 for (xr, pr) in x.chunks_exact_mut(stride).zip(projected.chunks_exact(w)) {
                     for ((r, &p), &i) in row.iter_mut().zip(pr).zip(image_term) {
                         *r = (p + i).max(0.0);
                     }
-                    K::convert_row(row, xr);
+                    K::convert_row(row, &mut xr[..w]);
+                    xr[w..].fill(K::Elem::default());
                 }
+                x[rows * stride..blocked * stride].fill(K::Elem::default());
             }
             Rows::Encoded(encodings) => {
                 let e_stride = K::GROUP * self.rotation.groups;
@@ -384,6 +393,10 @@ macro_rules! f32_gemm {
      $add:ident, $max:ident, $hsum:path) => {
         $(#[$doc])*
         ///
+        /// The common input strides (the padded widths 128, 256 and 512) run an instance with
+        /// the stride a constant, so each row's broadcast is one load at a fixed displacement
+        /// from the block: no address arithmetic in the loop to take the FMA ports' slots.
+        ///
         /// # Safety
         /// As [`Kernel::gemm`], with the target features named.
         #[cfg(target_arch = "x86_64")]
@@ -396,63 +409,91 @@ macro_rules! f32_gemm {
             rows: usize,
             epilogue: Epilogue<'_, f32>,
         ) {
-            use std::arch::x86_64::*;
-            const MR: usize = $mr;
-            const NV: usize = $nv;
-            let nr = $lanes * NV;
-            debug_assert!(
-                rows.is_multiple_of(MR)
-                    && input.len() >= rows * stride
-                    && stride >= layer.groups
-                    && bias.len() >= layer.panels * nr
-            );
-            let k = layer.groups;
-            let mut epilogue = epilogue;
-            for panel in 0..layer.panels {
-                for r0 in (0..rows).step_by(MR) {
-                    // SAFETY (all pointer reads and writes below): within the bounds above.
-                    unsafe {
-                        let weights = layer.weight.as_ptr().add(panel * k * nr);
-                        let bias: [$v; NV] = std::array::from_fn(|c| {
-                            $load(bias.as_ptr().add(panel * nr + $lanes * c))
-                        });
-                        let mut acc = [[$zero(); NV]; MR];
-                        let block = input.as_ptr().add(r0 * stride);
-                        for i in 0..k {
-                            let w = weights.add(i * nr);
-                            let a = block.add(i);
-                            let b: [$v; NV] =
-                                std::array::from_fn(|c| $load(w.add($lanes * c)));
-                            for (r, acc) in acc.iter_mut().enumerate() {
-                                let x = $set1(*a.add(r * stride));
-                                for c in 0..NV {
-                                    acc[c] = $fmadd(x, b[c], acc[c]);
+            #[target_feature(enable = $feature)]
+            unsafe fn by_stride<const STRIDE: usize>(
+                layer: &Packed<f32>,
+                bias: &[f32],
+                input: &[f32],
+                stride: usize,
+                rows: usize,
+                epilogue: Epilogue<'_, f32>,
+            ) {
+                use std::arch::x86_64::*;
+                const MR: usize = $mr;
+                const NV: usize = $nv;
+                let stride = if STRIDE == 0 { stride } else { STRIDE };
+                let nr = $lanes * NV;
+                debug_assert!(
+                    rows.is_multiple_of(MR)
+                        && input.len() >= rows * stride
+                        && stride >= layer.groups
+                        && bias.len() >= layer.panels * nr
+                );
+                let k = layer.groups;
+                let mut epilogue = epilogue;
+                for panel in 0..layer.panels {
+                    for r0 in (0..rows).step_by(MR) {
+                        // SAFETY (all pointer reads and writes below): within the bounds above.
+                        unsafe {
+                            let weights = layer.weight.as_ptr().add(panel * k * nr);
+                            let bias: [$v; NV] = std::array::from_fn(|c| {
+                                $load(bias.as_ptr().add(panel * nr + $lanes * c))
+                            });
+                            let mut acc = [[$zero(); NV]; MR];
+                            let block = input.as_ptr().add(r0 * stride);
+                            // Four inputs a trip (the loop's own instructions would take FMA
+                            // ports' slots), then the rest one by one.
+                            let unrolled = k - k % 4;
+                            let mut i = 0;
+                            while i < k {
+                                let trip = if i < unrolled { 4 } else { 1 };
+                                for u in 0..trip {
+                                    let w = weights.add((i + u) * nr);
+                                    let a = block.add(i + u);
+                                    let b: [$v; NV] =
+                                        std::array::from_fn(|c| $load(w.add($lanes * c)));
+                                    for (r, acc) in acc.iter_mut().enumerate() {
+                                        let x = $set1(*a.add(r * stride));
+                                        for c in 0..NV {
+                                            acc[c] = $fmadd(x, b[c], acc[c]);
+                                        }
+                                    }
                                 }
+                                i += trip;
                             }
-                        }
-                        let zero = $zero();
-                        for (r, acc) in acc.iter().enumerate() {
-                            let row = r0 + r;
-                            let h: [$v; NV] =
-                                std::array::from_fn(|c| $max($add(acc[c], bias[c]), zero));
-                            match &mut epilogue {
-                                Epilogue::Store { out, stride } => {
-                                    let o = out.as_mut_ptr().add(row * *stride + panel * nr);
-                                    for (c, h) in h.iter().enumerate() {
-                                        $store(o.add($lanes * c), *h);
+                            let zero = $zero();
+                            for (r, acc) in acc.iter().enumerate() {
+                                let row = r0 + r;
+                                let h: [$v; NV] =
+                                    std::array::from_fn(|c| $max($add(acc[c], bias[c]), zero));
+                                match &mut epilogue {
+                                    Epilogue::Store { out, stride } => {
+                                        let o = out.as_mut_ptr().add(row * *stride + panel * nr);
+                                        for (c, h) in h.iter().enumerate() {
+                                            $store(o.add($lanes * c), *h);
+                                        }
                                     }
-                                }
-                                Epilogue::Dot { weights, dots } => {
-                                    let w = weights.as_ptr().add(panel * nr);
-                                    let mut sum = $zero();
-                                    for (c, h) in h.iter().enumerate() {
-                                        sum = $fmadd(*h, $load(w.add($lanes * c)), sum);
+                                    Epilogue::Dot { weights, dots } => {
+                                        let w = weights.as_ptr().add(panel * nr);
+                                        let mut sum = $zero();
+                                        for (c, h) in h.iter().enumerate() {
+                                            sum = $fmadd(*h, $load(w.add($lanes * c)), sum);
+                                        }
+                                        dots[row] += $hsum(sum);
                                     }
-                                    dots[row] += $hsum(sum);
                                 }
                             }
                         }
                     }
+                }
+            }
+            // SAFETY: the caller's contract; each instance reads `stride` as given.
+            unsafe {
+                match stride {
+                    256 => by_stride::<256>(layer, bias, input, stride, rows, epilogue),
+                    128 => by_stride::<128>(layer, bias, input, stride, rows, epilogue),
+                    512 => by_stride::<512>(layer, bias, input, stride, rows, epilogue),
+                    _ => by_stride::<0>(layer, bias, input, stride, rows, epilogue),
                 }
             }
         }

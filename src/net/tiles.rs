@@ -9,6 +9,12 @@ use rayon::prelude::*;
 /// activations (2 × 256 rows × 256 × 4 B = 512 KiB) stay in a core's L2.
 pub const TILE_ROWS: usize = 256;
 
+/// [`TILE_ROWS`] rounded up to a multiple of a kernel's `mr` rows: the rows of its tiles, so
+/// that a full tile is whole register blocks (12-row blocks in 256 rows would compute 264).
+pub(super) fn blocked_tile_rows(mr: usize) -> usize {
+    TILE_ROWS.div_ceil(mr) * mr
+}
+
 /// The arithmetic a head is scored in.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
 pub enum Precision {
@@ -74,20 +80,23 @@ pub enum Rows<'a> {
 }
 
 /// Both branches' scores of the `given.len() / per_row` rows of `given`, one tile of
-/// [`TILE_ROWS`] rows per task over the cores, each task with its scratch from `init`:
-/// `tile(scratch, rows of the tile, [shape, feature] outputs of the tile)`.
+/// `tile_rows` rows per task over the cores, each task with its scratch from `init`:
+/// `tile(scratch, rows of the tile, [shape, feature] outputs of the tile)`. A kernel's heads
+/// pass [`TILE_ROWS`] rounded up to their register block ([`blocked_tile_rows`]), so that only
+/// the last tile computes padding rows.
 pub(super) fn by_tiles<S>(
     given: &[f32],
     per_row: usize,
+    tile_rows: usize,
     init: impl Fn() -> S + Send + Sync,
     tile: impl Fn(&mut S, &[f32], [&mut [f32]; 2]) + Send + Sync,
 ) -> (Vec<f32>, Vec<f32>) {
     let n = given.len() / per_row;
     let (mut shape, mut feature) = (vec![0.0; n], vec![0.0; n]);
     shape
-        .par_chunks_mut(TILE_ROWS)
-        .zip(feature.par_chunks_mut(TILE_ROWS))
-        .zip(given.par_chunks(TILE_ROWS * per_row))
+        .par_chunks_mut(tile_rows)
+        .zip(feature.par_chunks_mut(tile_rows))
+        .zip(given.par_chunks(tile_rows * per_row))
         .for_each_init(init, |scratch, ((shape, feature), given)| {
             tile(scratch, given, [shape, feature])
         });
