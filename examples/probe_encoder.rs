@@ -1,5 +1,5 @@
 //! The tiny encoder's training forward and backward on the conv backend at the training bench's
-//! shape (batch 16, 32 px; `--side N` for N px crops) on burn and by hand (`net::encoder_grad`), with `--convs` each of
+//! shape (batch 16, 32 px; `--side N` for N px crops; `--deep` for `tiny_deep`) on burn and by hand (`net::encoder_grad`), with `--convs` each of
 //! burn's convolutions alone first, with `--hand` the hand-written path alone: ms per pass, median of 20 after
 //! 5 warm-up passes. For profiling (`perf record`) the encoder alone. `cargo run --release --example probe_encoder`
 use std::time::Instant;
@@ -28,7 +28,12 @@ fn main() {
     }
     let device = alignist::backend::device_for(alignist::backend::Workload::Conv).autodiff();
     device.seed(1);
-    let encoder = EncoderConfig::new(ResNetLayout::Tiny).init(&device);
+    let layout = if std::env::args().any(|a| a == "--deep") {
+        ResNetLayout::TinyDeep
+    } else {
+        ResNetLayout::Tiny
+    };
+    let encoder = EncoderConfig::new(layout).init(&device);
     let (mut forward, mut backward) = (Vec::new(), Vec::new());
     let burn_too = !std::env::args().any(|a| a == "--hand");
     for i in 0..if burn_too { 25 } else { 0 } {
@@ -50,7 +55,7 @@ fn main() {
     }
     if burn_too {
         println!(
-            "tiny encoder, batch 16, {side} px, burn ({}): forward {:.1} ms, backward {:.1} ms (medians of 20)",
+            "{layout:?} encoder, batch 16, {side} px, burn ({}): forward {:.1} ms, backward {:.1} ms (medians of 20)",
             alignist::backend::backend_for(alignist::backend::Workload::Conv),
             median(forward),
             median(backward)
@@ -65,7 +70,7 @@ fn main() {
         })
         .collect();
     let crops: Vec<&[u8]> = crops.iter().map(|c| c.as_slice()).collect();
-    let d = vec![0.01f32; 16 * ResNetLayout::Tiny.feature_dim()];
+    let d = vec![0.01f32; 16 * layout.feature_dim()];
     for i in 0..25 {
         let t = Instant::now();
         let model = TrainingEncoder::of(&encoder, alignist::net::Kernels::default())
@@ -83,7 +88,7 @@ fn main() {
         }
     }
     println!(
-        "tiny encoder, batch 16, {side} px, by hand (net::encoder_grad): forward {:.1} ms, backward {:.1} ms (medians of 20)",
+        "{layout:?} encoder, batch 16, {side} px, by hand (net::encoder_grad): forward {:.1} ms, backward {:.1} ms (medians of 20)",
         median(forward),
         median(backward)
     );
