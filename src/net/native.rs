@@ -10,10 +10,12 @@
 //!   libraries pack) made the head 18 % slower on the Intel Xeon (72 % of the FMA peak against
 //!   88 %, level 4). The padded widths 128, 256 and 512 run with the row stride a constant,
 //!   so a row's broadcast is one load at a fixed displacement: with the stride in a register,
-//!   10 of the loop's 50 instructions were address arithmetic, taking FMA ports' slots (the f32
-//!   head 65–71 % of the FMA peak on the Intel Xeon at level 3 before, 72–75 % after, in one
-//!   window with `examples/probe_full_grid.rs`). Tiles are whole register blocks
-//!   ([`super::tiles::blocked_tile_rows`]: 264 rows, not 256 rows computed as 264).
+//!   about 10 of the loop's 50 instructions were address arithmetic, taking FMA ports' slots.
+//!   Tiles are whole register blocks ([`super::tiles::blocked_tile_rows`]: 264 rows, not 256
+//!   rows computed as 264). With both, the four-input trip and no `memset` of the first layer,
+//!   the f32 head read 72–75 % of the FMA peak on the Intel Xeon at level 3 against 65–71 %
+//!   before, in one window with `examples/probe_full_grid.rs` (BENCHMARKS, "The f32 kernels
+//!   with the row stride a constant").
 //! - [`F32Avx2`]: f32 on 256-bit FMAs (AVX2 + FMA), blocks of 6 rows × 16 columns.
 //! - [`Bf16Kernel`](super::bf16): `VDPBF16PS` on AVX-512 BF16 cores.
 //! - [`F16Kernel`](super::f16): `VFMADD231PH` on AVX-512 FP16 cores.

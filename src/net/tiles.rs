@@ -6,7 +6,8 @@
 use rayon::prelude::*;
 
 /// Rows of one tile: measured fastest among 64–512 (`examples/probe_gemm.rs`), and a tile's
-/// activations (2 × 256 rows × 256 × 4 B = 512 KiB) stay in a core's L2.
+/// activations (2 × 256 rows × 256 × 4 B = 512 KiB) stay in a core's L2. A kernel's tiles
+/// round it up to its register block ([`blocked_tile_rows`]).
 pub const TILE_ROWS: usize = 256;
 
 /// [`TILE_ROWS`] rounded up to a multiple of a kernel's `mr` rows: the rows of its tiles, so
