@@ -4,7 +4,8 @@
 //! detector boxes that stay in the frame.
 
 use alignist::cad::{
-    Camera, CornerNormals, Light, Lighting, Material, Pose, SceneObject, Shape, render_scene,
+    Camera, CornerNormals, Light, Lighting, Material, Pose, SceneObject, SceneRaster, Shape,
+    render_scene,
 };
 use alignist::data::realism::{
     Realism, SceneAssets, Split, background, jitter_box, random_lighting, random_material,
@@ -164,6 +165,17 @@ fn an_occluder_hides_part_of_the_subject_and_the_visible_fraction_says_how_much(
         .filter(|p| !p[0].is_nan())
         .count();
     assert_eq!(nocs_pixels, hidden.subject.mask_area());
+    // Drawn on a copy of the subject's raster (how a crop tries an occluder at a few places):
+    // the same fraction and the same render, and the copy drawn from is untouched.
+    let base = SceneRaster::of(&[subject], &camera);
+    let mut with = base.clone();
+    with.draw(occluder, &camera);
+    assert_eq!(with.visible_fraction(), f);
+    assert_eq!(base.visible_fraction(), 1.0);
+    let shaded = with.shade(&camera, &one_light());
+    assert_eq!(shaded.linear, hidden.linear);
+    assert_eq!(shaded.subject.mask, hidden.subject.mask);
+    assert_eq!(shaded.subject.depth, hidden.subject.depth);
     // Behind the subject, it hides nothing.
     let behind = SceneObject {
         pose: at(12.0, 0.5),

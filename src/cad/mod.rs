@@ -11,7 +11,9 @@ pub use mesh::{
     load_part, write_ply,
 };
 pub use render::{Camera, Pose, Render, RenderOptions, render};
-pub use scene::{CornerNormals, Light, Lighting, Material, SceneObject, SceneRender, render_scene};
+pub use scene::{
+    CornerNormals, Light, Lighting, Material, SceneObject, SceneRaster, SceneRender, render_scene,
+};
 pub use sdf::SignedDistance;
 pub use shapes::Shape;
 

@@ -169,6 +169,7 @@ pub fn render(mesh: &Mesh, camera: &Camera, pose: &Pose, options: &RenderOptions
 
 /// The z-buffer of a render: per pixel the nearest depth, its object, its face, the
 /// perspective-correct barycentric weights of the point seen and its object coordinates.
+#[derive(Clone)]
 pub(crate) struct Raster {
     pub(crate) width: usize,
     pub(crate) height: usize,
@@ -239,15 +240,15 @@ impl Raster {
         if area.abs() < 1e-12 {
             return;
         }
-        let min_y = p0.1.min(p1.1).min(p2.1).floor().max(0.0) as usize;
-        let max_y = (p0.1.max(p1.1).max(p2.1).ceil() as i64).clamp(0, h as i64) as usize;
+        let min_y = floor_at_zero(p0.1.min(p1.1).min(p2.1));
+        let max_y = ceil_within(p0.1.max(p1.1).max(p2.1), h);
         let (o0, o1, o2) = (
             mesh.vertices[i0].cast::<f64>(),
             mesh.vertices[i1].cast::<f64>(),
             mesh.vertices[i2].cast::<f64>(),
         );
-        let box_x0 = p0.0.min(p1.0).min(p2.0).floor().max(0.0) as usize;
-        let box_x1 = (p0.0.max(p1.0).max(p2.0).ceil() as i64).clamp(0, w as i64) as usize;
+        let box_x0 = floor_at_zero(p0.0.min(p1.0).min(p2.0));
+        let box_x1 = ceil_within(p0.0.max(p1.0).max(p2.0), w);
         for y in min_y..max_y {
             // Wide triangles (long, thin fans) scan only their span on this row, widened by a
             // pixel; the edge tests below decide coverage either way.
@@ -256,8 +257,8 @@ impl Raster {
                     continue;
                 };
                 (
-                    ((x0 - 1.0).floor().max(0.0) as usize).max(box_x0),
-                    (((x1 + 1.0).ceil() as i64).clamp(0, w as i64) as usize).min(box_x1),
+                    floor_at_zero(x0 - 1.0).max(box_x0),
+                    ceil_within(x1 + 1.0, w).min(box_x1),
                 )
             } else {
                 (box_x0, box_x1)
@@ -287,6 +288,22 @@ impl Raster {
             }
         }
     }
+}
+
+/// `⌊x⌋`, 0 below 0 (and for NaN): the cast truncates towards zero and saturates, so no call
+/// to libm's `floor` (which the baseline x86-64 target makes for `f64::floor`, once per
+/// triangle corner in the hot loop).
+#[inline]
+fn floor_at_zero(x: f64) -> usize {
+    x as usize
+}
+
+/// `⌈x⌉` clamped to `0..=hi` (0 for NaN), without libm's `ceil`.
+#[inline]
+fn ceil_within(x: f64, hi: usize) -> usize {
+    let t = x as i64;
+    t.saturating_add(i64::from(x > t as f64))
+        .clamp(0, hi as i64) as usize
 }
 
 /// Where the horizontal line at `y` crosses the triangle: `(x_min, x_max)`, or `None`.
@@ -331,4 +348,31 @@ fn shade(
     let intensity = options.ambient + (1.0 - options.ambient) * lambert;
     mesh.face_color(f, options.default_color)
         .map(|c| (c as f64 * intensity).round().clamp(0.0, 255.0) as u8)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{ceil_within, floor_at_zero};
+
+    #[test]
+    fn the_casts_round_as_floor_and_ceil_clamped() {
+        let mut values = vec![
+            f64::NAN,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            -0.0,
+            1e300,
+            -1e300,
+        ];
+        for i in -4000..4000 {
+            let x = i as f64 / 64.0;
+            values.extend([x, x + 1e-9, x - 1e-9]);
+        }
+        for x in values {
+            let floor = x.floor().max(0.0) as usize;
+            let ceil = (x.ceil() as i64).clamp(0, 40) as usize;
+            assert_eq!(floor_at_zero(x), floor, "floor of {x}");
+            assert_eq!(ceil_within(x, 40), ceil, "ceil of {x}");
+        }
+    }
 }

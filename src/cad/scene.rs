@@ -198,76 +198,127 @@ pub fn render_scene(
     camera: &Camera,
     lighting: &Lighting,
 ) -> SceneRender {
-    let (w, h) = (camera.width as usize, camera.height as usize);
-    let mut raster = Raster::new(w, h);
-    let mut unoccluded_pixels = 0;
-    let rotations: Vec<Matrix3<f64>> = objects.iter().map(|o| *o.pose.rotation.matrix()).collect();
-    for (i, o) in objects.iter().enumerate() {
+    SceneRaster::of(objects, camera).shade(camera, lighting)
+}
+
+/// A scene's geometry drawn into the z-buffer, not yet shaded: objects can be added on top (an
+/// occluder tried at a few places) before the one shading pass. Its shading gives what
+/// [`render_scene`] of the same objects in the same order gives.
+#[derive(Clone)]
+pub struct SceneRaster<'a> {
+    raster: Raster,
+    /// The objects drawn, in order.
+    objects: Vec<SceneObject<'a>>,
+    /// Pixels object 0 covered before any other object was drawn.
+    unoccluded_pixels: usize,
+}
+
+impl<'a> SceneRaster<'a> {
+    /// `objects` drawn, in order.
+    pub fn of(objects: &[SceneObject<'a>], camera: &Camera) -> SceneRaster<'a> {
+        let mut scene = SceneRaster {
+            raster: Raster::new(camera.width as usize, camera.height as usize),
+            objects: Vec::with_capacity(objects.len() + 1),
+            unoccluded_pixels: 0,
+        };
+        for o in objects {
+            scene.draw(*o, camera);
+        }
+        scene
+    }
+
+    /// Draws `o` as the next object.
+    pub fn draw(&mut self, o: SceneObject<'a>, camera: &Camera) {
+        let index = self.objects.len();
+        let rotation = *o.pose.rotation.matrix();
         let cam: Vec<Vector3<f64>> = o
             .mesh
             .vertices
             .iter()
-            .map(|v| rotations[i] * v.cast::<f64>() + o.pose.translation)
+            .map(|v| rotation * v.cast::<f64>() + o.pose.translation)
             .collect();
         let screen: Vec<(f64, f64)> = cam.iter().map(|p| camera.project(p)).collect();
         // A closed mesh wholly in front of the camera is seen from outside: its back faces
         // are hidden behind its front faces, so they are not drawn.
         let cull = o.normals.closed_outward() && cam.iter().all(|p| p.z > NEAR);
-        raster.draw_mesh(o.mesh, i as u16, &cam, &screen, cull);
-        if i == 0 {
-            unoccluded_pixels = raster.object_at.iter().filter(|&&o| o == 0).count();
+        self.raster
+            .draw_mesh(o.mesh, index as u16, &cam, &screen, cull);
+        if index == 0 {
+            self.unoccluded_pixels = self.raster.object_at.iter().filter(|&&o| o == 0).count();
         }
+        self.objects.push(o);
     }
-    let mut linear = Vec::with_capacity(w * h);
-    let mut mask = Vec::with_capacity(w * h);
-    let mut depth = Vec::with_capacity(w * h);
-    let mut nocs = Vec::with_capacity(w * h);
-    for idx in 0..w * h {
-        let object = raster.object_at[idx];
-        if object == u16::MAX {
-            linear.push(None);
-        } else {
-            let o = &objects[object as usize];
-            let (x, y) = ((idx % w) as f64 + 0.5, (idx / w) as f64 + 0.5);
-            let z = raster.zbuf[idx];
-            let point = Vector3::new(
-                (x - camera.cx) / camera.fx * z,
-                (y - camera.cy) / camera.fy * z,
-                z,
-            );
-            linear.push(Some(shade_pixel(
-                o,
-                &rotations[object as usize],
-                raster.face_at[idx] as usize,
-                raster.bary[idx],
-                &point,
-                lighting,
-            )));
+
+    /// [`SceneRender::visible_fraction`] of the objects drawn so far.
+    pub fn visible_fraction(&self) -> f64 {
+        if self.unoccluded_pixels == 0 {
+            return 0.0;
         }
-        let subject = object == 0;
-        mask.push(subject);
-        depth.push(if subject {
-            raster.zbuf[idx] as f32
-        } else {
-            0.0
-        });
-        nocs.push(if subject {
-            raster.nocs[idx]
-        } else {
-            [f32::NAN; 3]
-        });
+        let seen = self.raster.object_at.iter().filter(|&&o| o == 0).count();
+        seen as f64 / self.unoccluded_pixels as f64
     }
-    SceneRender {
-        linear,
-        subject: Render {
-            width: camera.width,
-            height: camera.height,
-            rgb: vec![0; w * h * 3],
-            mask,
-            depth,
-            nocs,
-        },
-        unoccluded_pixels,
+
+    /// The shaded render of the objects drawn.
+    pub fn shade(self, camera: &Camera, lighting: &Lighting) -> SceneRender {
+        let SceneRaster {
+            raster,
+            objects,
+            unoccluded_pixels,
+        } = self;
+        let (w, h) = (camera.width as usize, camera.height as usize);
+        let rotations: Vec<Matrix3<f64>> =
+            objects.iter().map(|o| *o.pose.rotation.matrix()).collect();
+        let mut linear = Vec::with_capacity(w * h);
+        let mut mask = Vec::with_capacity(w * h);
+        let mut depth = Vec::with_capacity(w * h);
+        let mut nocs = Vec::with_capacity(w * h);
+        for idx in 0..w * h {
+            let object = raster.object_at[idx];
+            if object == u16::MAX {
+                linear.push(None);
+            } else {
+                let o = &objects[object as usize];
+                let (x, y) = ((idx % w) as f64 + 0.5, (idx / w) as f64 + 0.5);
+                let z = raster.zbuf[idx];
+                let point = Vector3::new(
+                    (x - camera.cx) / camera.fx * z,
+                    (y - camera.cy) / camera.fy * z,
+                    z,
+                );
+                linear.push(Some(shade_pixel(
+                    o,
+                    &rotations[object as usize],
+                    raster.face_at[idx] as usize,
+                    raster.bary[idx],
+                    &point,
+                    lighting,
+                )));
+            }
+            let subject = object == 0;
+            mask.push(subject);
+            depth.push(if subject {
+                raster.zbuf[idx] as f32
+            } else {
+                0.0
+            });
+            nocs.push(if subject {
+                raster.nocs[idx]
+            } else {
+                [f32::NAN; 3]
+            });
+        }
+        SceneRender {
+            linear,
+            subject: Render {
+                width: camera.width,
+                height: camera.height,
+                rgb: vec![0; w * h * 3],
+                mask,
+                depth,
+                nocs,
+            },
+            unoccluded_pixels,
+        }
     }
 }
 

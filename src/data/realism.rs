@@ -17,8 +17,8 @@ use nalgebra::{Rotation3, Vector3};
 use rand::{Rng, RngExt};
 
 use crate::cad::{
-    Camera, CornerNormals, Light, Lighting, Material, Mesh, Pose, Render, SceneObject, Shape,
-    render_scene,
+    Camera, CornerNormals, Light, Lighting, Material, Mesh, Pose, Render, SceneObject, SceneRaster,
+    Shape,
 };
 use crate::data::virtual_crop::{
     FRAME_DISTANCE, VirtualCamera, frame_camera, object_box, placement_at_depth,
@@ -718,20 +718,22 @@ pub fn realistic_crop<R: Rng + ?Sized>(
         let occluder = (cluttered && rng.random::<f64>() < 0.5)
             .then(|| occluder_candidate(rng, assets, &subject, split))
             .flatten();
-        let mut scene = render_scene(&objects, &big.camera, &lighting);
+        // The scene is drawn once; each place the occluder is tried draws only the occluder on
+        // a copy, and the scene kept is shaded once.
+        let mut raster = SceneRaster::of(&objects, &big.camera);
         if let Some((mut occluder, placement)) = occluder {
             // Pushed outwards until at most about half of the subject is hidden.
             for step in 0..4 {
                 occluder.pose.translation = placement.position(&subject, 1.0 + 0.3 * step as f64);
-                let mut with = objects.clone();
-                with.push(occluder);
-                let candidate = render_scene(&with, &big.camera, &lighting);
+                let mut candidate = raster.clone();
+                candidate.draw(occluder, &big.camera);
                 if candidate.visible_fraction() >= 0.5 {
-                    scene = candidate;
+                    raster = candidate;
                     break;
                 }
             }
         }
+        let mut scene = raster.shade(&big.camera, &lighting);
         let unoccluded = scene.unoccluded_pixels;
         // Pixels whose ray leaves the real frame are black, as a server's crop of a frame is.
         let h = big.homography(&k);
