@@ -199,6 +199,14 @@ fn a_killed_job_resumes_to_the_same_model() {
         .unwrap();
     assert!(!refused.status.success());
     assert!(String::from_utf8_lossy(&refused.stderr).contains("--resume"));
+    // Nor is it resumed with another recipe than it was started with.
+    let other = [&resumed[..], &["--image-size", "48"]].concat();
+    let refused = Command::new(env!("CARGO_BIN_EXE_alignist-train"))
+        .args(&other)
+        .output()
+        .unwrap();
+    assert!(!refused.status.success());
+    assert!(String::from_utf8_lossy(&refused.stderr).contains("recipe"));
     train(&resumed);
     let first = tensors(&out.join("network.safetensors"));
     let m = manifest(&out);
@@ -255,6 +263,26 @@ fn a_warm_start_is_checked_before_any_work_and_recorded() {
         tiny["files"]["network.safetensors"]["sha256"]
     );
     assert_eq!(m["provenance"]["report"]["steps_run"], 20);
+    // An experiment's crop size and deeper layout from the same 32 px `tiny` warm start.
+    let out48 = s(&root.path().join("models/blocks48"));
+    train(&new_args(
+        &part_s,
+        &out48,
+        "20m",
+        &[
+            "--init",
+            &init,
+            "--max-steps",
+            "2",
+            "--image-size",
+            "48",
+            "--layout",
+            "tiny-deep",
+        ],
+    ));
+    let m = manifest(Path::new(&out48));
+    assert_eq!(m["network"]["image_size"], 48);
+    assert_eq!(m["network"]["layout"], "tiny_deep");
 }
 
 #[test]

@@ -43,8 +43,10 @@ use super::trainer::{ExpertBranches, MeasureLoss, Method};
 
 /// The recipe of one schedule, folded from the stages of the shipped SYMSOL model
 /// (docs/RESULTS.md): what `new` trains with unless an experiment says otherwise.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Recipe {
+    /// The image encoder's layout.
+    pub layout: ResNetLayout,
     /// Crop side (px).
     pub image_size: u32,
     /// Images per step.
@@ -64,6 +66,7 @@ pub struct Recipe {
 /// The recipe: batch 16 × K 256 at 32 px, peak lr 1e-3, the focused share 3/4 → 1/20 (the
 /// warm start, [`NewModel::init`], is the binary's default: `training/warm-starts`).
 pub const RECIPE: Recipe = Recipe {
+    layout: ResNetLayout::Tiny,
     image_size: 32,
     batch: 16,
     k: 256,
@@ -165,9 +168,12 @@ pub struct NewModel {
     pub max_expert_steps: Option<usize>,
     /// Seed of the experts and the training data.
     pub seed: u64,
-    /// A bundle whose network starts the fit (a warm start; it must have the recipe's network:
-    /// layout, encoding, crop size), recorded with its checksum in the manifest.
+    /// A bundle whose network starts the fit (a warm start; it must have the recipe's encoding
+    /// and head, and its layout or one that deepens it), recorded with its checksum in the
+    /// manifest.
     pub init: Option<PathBuf>,
+    /// The schedule: [`RECIPE`] unless an experiment changes it.
+    pub recipe: Recipe,
     /// The command line, for the manifests.
     pub command: String,
 }
@@ -187,6 +193,13 @@ pub struct JobState {
     pub plan: Option<BudgetPlan>,
     /// `(stage, seconds)` of the stages finished.
     pub stages: Vec<(String, f64)>,
+    /// The schedule the job trains by (jobs from before it was recorded: [`RECIPE`]).
+    #[serde(default = "recipe_default")]
+    pub recipe: Recipe,
+}
+
+fn recipe_default() -> Recipe {
+    RECIPE
 }
 
 /// The job's folder for the bundle `out`.
@@ -287,6 +300,14 @@ fn open_job(model: &NewModel, resume: bool) -> Result<Job, NewModelError> {
                 state.meshes
             )));
         }
+        if state.recipe != model.recipe {
+            return Err(NewModelError::Invalid(format!(
+                "{}: the job was started with another recipe ({}); give the same --layout and \
+                 --image-size",
+                state_file.display(),
+                serde_json::to_string(&state.recipe).unwrap_or_default()
+            )));
+        }
         state
     } else {
         std::fs::create_dir_all(&dir).map_err(|e| io(&dir, e))?;
@@ -297,6 +318,7 @@ fn open_job(model: &NewModel, resume: bool) -> Result<Job, NewModelError> {
             spent_seconds: 0.0,
             plan: None,
             stages: Vec::new(),
+            recipe: model.recipe,
         }
     };
     let clock = Clock {
@@ -510,29 +532,31 @@ fn train_experts(
     Ok(dirs)
 }
 
-/// The network and training configuration of the recipe for `steps`.
-pub fn recipe_config(steps: usize, seed: u64) -> TrainConfig {
-    let network = NetworkConfig::new(ResNetLayout::Tiny, RotationEncoding::Cube)
-        .with_image_size(RECIPE.image_size);
-    TrainConfig {
-        network,
-        method: Method::Alignist {
-            loss: MeasureLoss::Gkl,
-            sampling: SamplingStrategy::annealed_share(
-                RECIPE.k,
-                RECIPE.focused_start,
-                RECIPE.focused_end,
-            ),
-            experts: ExpertBranches::Both,
-        },
-        steps,
-        batch: RECIPE.batch,
-        k: RECIPE.k,
-        lr: RECIPE.lr,
-        warmup: super::config::warmup_steps(steps),
-        seed,
-        checkpoint_every: 50,
-        init: None,
+impl Recipe {
+    /// The network and training configuration of this recipe for `steps`.
+    pub fn config(&self, steps: usize, seed: u64) -> TrainConfig {
+        let network = NetworkConfig::new(self.layout, RotationEncoding::Cube)
+            .with_image_size(self.image_size);
+        TrainConfig {
+            network,
+            method: Method::Alignist {
+                loss: MeasureLoss::Gkl,
+                sampling: SamplingStrategy::annealed_share(
+                    self.k,
+                    self.focused_start,
+                    self.focused_end,
+                ),
+                experts: ExpertBranches::Both,
+            },
+            steps,
+            batch: self.batch,
+            k: self.k,
+            lr: self.lr,
+            warmup: super::config::warmup_steps(steps),
+            seed,
+            checkpoint_every: 50,
+            init: None,
+        }
     }
 }
 
@@ -552,7 +576,10 @@ pub fn new_model(
     let parts = load_parts(model)?;
     // A warm start that does not fit the recipe is refused before any work.
     let init = match &model.init {
-        Some(dir) => Some(super::fit::init_weights(dir, &recipe_config(1, 0).network)?),
+        Some(dir) => Some(super::fit::init_weights(
+            dir,
+            &model.recipe.config(1, 0).network,
+        )?),
         None => None,
     };
     let mut job = open_job(model, resume)?;
@@ -599,14 +626,14 @@ fn fit_and_write(
         experts: dirs.to_vec(),
         source: FitSource::Fresh {
             realistic: true,
-            supersample: RECIPE.supersample,
+            supersample: model.recipe.supersample,
             eval_seed: model.seed ^ (7 << 40),
         },
-        image_size: RECIPE.image_size,
+        image_size: model.recipe.image_size,
         fraction: 1.0,
         eval_images: 0,
     };
-    let mut data = FitData::load(&inputs, 1, RECIPE.batch)?;
+    let mut data = FitData::load(&inputs, 1, model.recipe.batch)?;
     let names: Vec<String> = data
         .sets
         .iter()
@@ -620,7 +647,7 @@ fn fit_and_write(
         .realistic_eval_images(
             &names,
             &symmetries,
-            RECIPE.image_size,
+            model.recipe.image_size,
             model.eval_images,
             model.seed.wrapping_add(1 << 40),
             Realism::HELD_OUT,
@@ -635,18 +662,18 @@ fn fit_and_write(
     }
     let config = TrainConfig {
         init,
-        ..recipe_config(plan.fit_steps, model.seed)
+        ..model.recipe.config(plan.fit_steps, model.seed)
     };
     job.say(
         progress,
         &format!(
             "fit: {} steps of batch {} × K {} ({:.3} s per step in the probe), focused share {} → {}{}",
             plan.fit_steps,
-            RECIPE.batch,
-            RECIPE.k,
+            model.recipe.batch,
+            model.recipe.k,
             plan.probe_fit_step,
-            RECIPE.focused_start,
-            RECIPE.focused_end,
+            model.recipe.focused_start,
+            model.recipe.focused_end,
             config
                 .init
                 .as_ref()
@@ -769,7 +796,7 @@ fn size_fit(
 ) -> Result<BudgetPlan, NewModelError> {
     const PROBE_STEPS: usize = 8;
     const MIN_STEPS: usize = 20;
-    let probe = recipe_config(PROBE_STEPS, model.seed ^ 0x9b0b);
+    let probe = model.recipe.config(PROBE_STEPS, model.seed ^ 0x9b0b);
     // The steady rate from the third step on (the first ones start threads and the prefetch),
     // and the start-up cost before it.
     let t = Instant::now();

@@ -6,7 +6,8 @@ use anyhow::{Context, Result, bail};
 
 use crate::eval::print_eval;
 use crate::object::parse_units;
-use alignist::train::new_model::{NewModel, new_model};
+use alignist::net::ResNetLayout;
+use alignist::train::new_model::{NewModel, RECIPE, Recipe, new_model};
 
 #[derive(clap::Args)]
 pub(crate) struct NewArgs {
@@ -42,12 +43,21 @@ pub(crate) struct NewArgs {
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// Start the network from this bundle's weights (a warm start; it must have the recipe's
-    /// network: tiny layout, cube encoding, 32 px crops), or `none` to start from random weights.
+    /// encoding and head, and the layout asked for or one it deepens; the crop size may differ),
+    /// or `none` to start from random weights.
     /// The default, the SYMSOL network trained on realistic renders that ships in the repository
     /// (read from the working directory: run from the repository's root), was measured to learn a
     /// part in 45 minutes where a random start stays at chance (docs/RESULTS.md).
     #[arg(long, default_value = DEFAULT_INIT, value_parser = parse_init)]
     init: InitArg,
+    /// The image encoder's layout (for experiments; the recipe's is `tiny`). A warm start must
+    /// have this layout or one this layout deepens (`tiny` for `tiny-deep`).
+    #[arg(long, value_enum, default_value_t = RECIPE.layout)]
+    layout: ResNetLayout,
+    /// Crop side in pixels (for experiments; the recipe's is 32). A warm start may have been
+    /// trained at another size.
+    #[arg(long, default_value_t = RECIPE.image_size, value_parser = clap::value_parser!(u32).range(16..=256))]
+    image_size: u32,
 }
 
 /// The recipe's warm start (`--init`'s default), relative to the repository's root.
@@ -107,6 +117,11 @@ pub(crate) fn new_cmd(args: &NewArgs) -> Result<()> {
         max_expert_steps: args.max_expert_steps,
         seed: args.seed,
         init: args.init.0.clone(),
+        recipe: Recipe {
+            layout: args.layout,
+            image_size: args.image_size,
+            ..RECIPE
+        },
         command: std::env::args().collect::<Vec<_>>().join(" "),
     };
     let manifest = new_model(&model, args.resume, &|line| eprintln!("{line}")).with_context(|| {
