@@ -79,6 +79,13 @@ pub const RECIPE: Recipe = Recipe {
 /// Share of the budget the experts of all objects get at most (the rest trains the network).
 pub const EXPERTS_SHARE: f64 = 0.2;
 
+/// Share of the budget the fit's probe times steps for, within [`PROBE_MIN_S`] and
+/// [`PROBE_MAX_S`] seconds (after its first two steps), and at least [`PROBE_MIN_STEPS`] steps.
+const PROBE_SHARE: f64 = 0.005;
+const PROBE_MIN_S: f64 = 1.0;
+const PROBE_MAX_S: f64 = 30.0;
+const PROBE_MIN_STEPS: usize = 8;
+
 /// Evaluation level of the held-out set.
 pub const EVAL_LEVEL: u8 = 3;
 
@@ -794,22 +801,30 @@ fn size_fit(
     training: &super::TrainingSet,
     tests: &[super::eval::EvalImage],
 ) -> Result<BudgetPlan, NewModelError> {
-    const PROBE_STEPS: usize = 8;
+    // The probe runs steps until its window has passed after the second (the first ones start
+    // threads and the prefetch; at 64 px the next few were measured still slower: 8 steps
+    // predicted 0.242 s a step where the fit then ran at 0.16), up to `PROBE_MAX_STEPS`.
+    const PROBE_MAX_STEPS: usize = 400;
     const MIN_STEPS: usize = 20;
-    let probe = model.recipe.config(PROBE_STEPS, model.seed ^ 0x9b0b);
-    // The steady rate from the third step on (the first ones start threads and the prefetch),
-    // and the start-up cost before it.
+    let window = (PROBE_SHARE * job.clock.budget).clamp(PROBE_MIN_S, PROBE_MAX_S);
+    let probe = model.recipe.config(PROBE_MAX_STEPS, model.seed ^ 0x9b0b);
     let t = Instant::now();
     let mut after_two = None;
+    let mut last = (0, 0.0);
     let (network, _) = super::train(&probe, training, None, false, |step, _, _| {
-        if step == 2 {
-            after_two = Some(t.elapsed().as_secs_f64());
+        let now = t.elapsed().as_secs_f64();
+        last = (step, now);
+        match after_two {
+            None if step >= 2 => after_two = Some(now),
+            Some(two) if now - two >= window && step >= PROBE_MIN_STEPS => {
+                return std::ops::ControlFlow::Break(());
+            }
+            _ => {}
         }
         std::ops::ControlFlow::Continue(())
     })?;
-    let total = t.elapsed().as_secs_f64();
     let start_up = after_two.unwrap_or(0.0);
-    plan.probe_fit_step = (total - start_up) / (PROBE_STEPS - 2) as f64;
+    plan.probe_fit_step = (last.1 - start_up) / last.0.saturating_sub(2).max(1) as f64;
     let start_up = (start_up - 2.0 * plan.probe_fit_step).max(0.0);
     let few = &tests[..tests.len().min(4)];
     let t = Instant::now();
