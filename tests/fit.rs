@@ -283,6 +283,41 @@ fn fresh_renders_fit_with_their_loss_and_sampling(p: &Pipeline) {
     let json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
     assert_eq!(json["overall"]["images"], 3);
+    // With --realistic: clean renders, the held-out split's crops with exact and detector boxes,
+    // and the training split's with exact boxes, one report each.
+    run(&[
+        "eval",
+        "--model",
+        s(&fresh),
+        "--fresh",
+        "--realistic",
+        "--images",
+        "2",
+        "--level",
+        "1",
+        "--out",
+        s(&report),
+    ]);
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    let sets: Vec<&str> = json
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["set"].as_str().unwrap())
+        .collect();
+    assert_eq!(
+        sets,
+        [
+            "clean renders",
+            "realistic (held-out split), exact boxes",
+            "realistic, detector boxes",
+            "realistic (training split), exact boxes"
+        ]
+    );
+    for r in json.as_array().unwrap() {
+        assert_eq!(r["report"]["overall"]["images"], 2, "{}", r["set"]);
+    }
 }
 
 /// `--init` from the 32 px bundle into a 48 px run: the encoder pools globally, so its weights

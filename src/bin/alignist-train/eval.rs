@@ -89,7 +89,8 @@ pub(crate) struct EvalArgs {
     /// split of src/data/realism.rs: other background families, the other bands of every colour,
     /// light, material and camera range, seed --seed + 1), around the exact boxes and around
     /// boxes with a detector's error (σ --box-sigma of the side per edge), printed beside the
-    /// clean renders' figures.
+    /// clean renders' figures and those of fresh realistic crops of the training split (exact
+    /// boxes): the last against the held-out row is what the split's other looks cost.
     #[arg(long, requires = "fresh", conflicts_with_all = ["depth", "frames"])]
     realistic: bool,
     /// With --realistic: σ of each box edge's error, as a fraction of the box's side.
@@ -238,14 +239,16 @@ fn frames_report(
 }
 
 /// `eval --fresh --realistic`: clean renders, realistic held-out crops with exact boxes and with
-/// a detector's boxes, each evaluated and printed, the three reports written together.
+/// a detector's boxes, and realistic crops of the training split with exact boxes (fresh seeds:
+/// how much of the held-out gap is the split's other materials, light and backgrounds), each
+/// evaluated and printed, the four reports written together.
 fn realistic_report(
     args: &EvalArgs,
     bundle: &alignist::bundle::model::ModelBundle,
     renders: &alignist::train::data::BundleRenders,
     clean: Vec<alignist::train::eval::EvalImage>,
 ) -> Result<()> {
-    use alignist::data::realism::Realism;
+    use alignist::data::realism::{Realism, Split};
     if !(args.box_sigma.is_finite() && (0.0..=0.5).contains(&args.box_sigma)) {
         bail!("--box-sigma must be in [0, 0.5], got {}", args.box_sigma);
     }
@@ -269,6 +272,13 @@ fn realistic_report(
         (
             "realistic, detector boxes",
             realistic(Realism::held_out_boxes(args.box_sigma)),
+        ),
+        (
+            "realistic (training split), exact boxes",
+            realistic(Realism {
+                split: Split::Train,
+                ..Realism::HELD_OUT
+            }),
         ),
     ];
     let mut reports = Vec::new();
