@@ -268,38 +268,21 @@ fn fresh_renders_fit_with_their_loss_and_sampling(p: &Pipeline) {
     );
     assert!(table.contains("fresh renders"), "{table}");
     // eval --fresh renders its own test crops of every object of the bundle.
-    run(&[
-        "eval",
-        "--model",
-        s(&fresh),
-        "--fresh",
-        "--images",
-        "3",
-        "--level",
-        "1",
-        "--out",
-        s(&report),
-    ]);
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    let eval_fresh = |images: &str, extra: &[&str]| -> serde_json::Value {
+        let args = [
+            &["eval", "--model", s(&fresh), "--fresh", "--images", images][..],
+            extra,
+            &["--level", "1", "--out", s(&report)],
+        ]
+        .concat();
+        run(&args);
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap()
+    };
+    let json = eval_fresh("3", &[]);
     assert_eq!(json["overall"]["images"], 3);
     // With --realistic: clean renders, the held-out split's crops with exact and detector boxes,
     // and the training split's with exact boxes, one report each.
-    run(&[
-        "eval",
-        "--model",
-        s(&fresh),
-        "--fresh",
-        "--realistic",
-        "--images",
-        "2",
-        "--level",
-        "1",
-        "--out",
-        s(&report),
-    ]);
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    let json = eval_fresh("2", &["--realistic"]);
     let sets: Vec<&str> = json
         .as_array()
         .unwrap()
