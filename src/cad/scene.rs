@@ -244,7 +244,7 @@ impl<'a> SceneRaster<'a> {
         self.raster
             .draw_mesh(o.mesh, index as u16, &cam, &screen, cull);
         if index == 0 {
-            self.unoccluded_pixels = self.raster.object_at.iter().filter(|&&o| o == 0).count();
+            self.unoccluded_pixels = self.subject_pixels();
         }
         self.objects.push(o);
     }
@@ -254,8 +254,12 @@ impl<'a> SceneRaster<'a> {
         if self.unoccluded_pixels == 0 {
             return 0.0;
         }
-        let seen = self.raster.object_at.iter().filter(|&&o| o == 0).count();
-        seen as f64 / self.unoccluded_pixels as f64
+        self.subject_pixels() as f64 / self.unoccluded_pixels as f64
+    }
+
+    /// Pixels where object 0 is the nearest.
+    fn subject_pixels(&self) -> usize {
+        self.raster.object_at.iter().filter(|&&o| o == 0).count()
     }
 
     /// The shaded render of the objects drawn.
