@@ -18,7 +18,7 @@ use alignist::so3::{GridLevel, haar_rotations};
 use alignist::train::data::FreshRenders;
 use alignist::train::{
     MeasureLoss, Method, Network, NetworkConfig, SamplingStrategy, TrainConfig, TrainingImage,
-    TrainingSet, train,
+    TrainingSet, train, train_replanned,
 };
 use common::tensors;
 use rand::SeedableRng;
@@ -526,4 +526,69 @@ fn a_pool_of_fresh_renders_repeats_the_same_images_in_every_run() {
         ..pooled
     };
     assert_eq!(seeds(0, 1, &unpooled).len(), 200);
+}
+
+/// A schedule re-planned as it runs (what `new` does when the machine's pace changes) ends at its
+/// new length, and a run killed after the re-plan resumes, from the config with the new length,
+/// to exactly the weights of the uninterrupted one.
+#[test]
+fn a_replanned_schedule_ends_at_its_new_length_and_resumes_exactly() {
+    let set = tiny_set();
+    let cfg = config(Method::Alignist {
+        loss: MeasureLoss::Gkl,
+        // Annealed: the focused share, like the learning rate, follows the schedule's length.
+        sampling: SamplingStrategy::annealed_share(64, 0.75, 0.05),
+        experts: Default::default(),
+    });
+    // 6 steps planned, re-planned at the checkpoint of step 3 to 8.
+    let replan = |step: usize| ControlFlow::Continue((step == 3).then_some(8));
+    let mut seen = Vec::new();
+    let (a, report) = train_replanned(&cfg, &set, None, false, |step, steps, _| {
+        seen.push((step, steps));
+        replan(step)
+    })
+    .unwrap();
+    assert_eq!(report.steps_run, 8);
+    assert_eq!(
+        seen,
+        [
+            (1, 6),
+            (2, 6),
+            (3, 6),
+            (4, 8),
+            (5, 8),
+            (6, 8),
+            (7, 8),
+            (8, 8)
+        ]
+    );
+    // Not the run planned for 6 or for 8 from the start.
+    let planned_8 = TrainConfig {
+        steps: 8,
+        ..cfg.clone()
+    };
+    let (b, _) = train(&planned_8, &set, None, false, |_, _, _| {
+        ControlFlow::Continue(())
+    })
+    .unwrap();
+    assert_ne!(fingerprint(&a, &set), fingerprint(&b, &set));
+
+    // Killed after step 4 (last checkpoint: step 3, where it re-planned), resumed with the
+    // re-planned length: step 4's batch, drawn ahead for 6 steps, must be drawn again for 8.
+    let dir = tempfile::tempdir().unwrap();
+    let (_, first) = train_replanned(&cfg, &set, Some(dir.path()), true, |step, _, _| {
+        if step == 4 {
+            ControlFlow::Break(())
+        } else {
+            replan(step)
+        }
+    })
+    .unwrap();
+    assert_eq!(first.steps_run, 4);
+    let (resumed, second) = train(&planned_8, &set, Some(dir.path()), true, |_, _, _| {
+        ControlFlow::Continue(())
+    })
+    .unwrap();
+    assert_eq!((second.resumed_from, second.steps_run), (3, 5));
+    assert_eq!(fingerprint(&a, &set), fingerprint(&resumed, &set));
 }

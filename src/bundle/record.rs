@@ -133,8 +133,16 @@ pub struct BudgetPlan {
     pub probe_sdf_step: f64,
     /// Seconds per feature expert step in the probe.
     pub probe_feature_step: f64,
-    /// Steps of the network's one schedule (0 until the experts are trained and the fit probed).
+    /// Steps of the network's one schedule (0 until the experts are trained and the fit probed);
+    /// as the fit re-plans it to the pace it measures, the schedule it ended with.
     pub fit_steps: usize,
+    /// The steps the probe first planned, and the schedule's warm-up from them (kept through
+    /// re-plans; 0 in a job written before re-planning).
+    #[serde(default)]
+    pub first_fit_steps: usize,
+    /// Times the fit re-planned its schedule to its measured pace.
+    #[serde(default)]
+    pub replans: usize,
     /// Seconds per training step in the probe.
     pub probe_fit_step: f64,
     /// Seconds per evaluation image in the probe.

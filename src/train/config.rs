@@ -5,12 +5,13 @@ pub use crate::bundle::record::{
     ExpertBranches, InitWeights, MeasureLoss, Method, TrainConfig, warmup_steps,
 };
 
-/// Learning rate at `step`: linear warm-up, then cosine decay to 1 % of the peak.
-pub fn learning_rate(config: &TrainConfig, step: usize) -> f64 {
+/// Learning rate at `step` of a schedule of `steps` (`config.steps`, or what a re-plan made of
+/// it): linear warm-up over `config.warmup`, then cosine decay to 1 % of the peak.
+pub fn learning_rate(config: &TrainConfig, steps: usize, step: usize) -> f64 {
     crate::schedule::CosineSchedule {
         peak: config.lr,
         warmup: config.warmup,
-        steps: config.steps,
+        steps,
         floor: 0.01,
     }
     .at(step)

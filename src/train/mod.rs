@@ -19,7 +19,7 @@ pub use crate::net::{Network, NetworkConfig};
 pub use sampling::{ModeSampler, SamplingStrategy, sample_rotations};
 pub use trainer::{
     ExpertBranches, MeasureLoss, Method, TrainConfig, TrainReport, TrainingImage, TrainingSet,
-    train,
+    train, train_replanned,
 };
 
 /// Errors of training.

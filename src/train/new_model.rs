@@ -464,6 +464,8 @@ fn plan_experts(
         probe_sdf_step: sdf_step,
         probe_feature_step: feature_step,
         fit_steps: 0,
+        first_fit_steps: 0,
+        replans: 0,
         probe_fit_step: 0.0,
         probe_eval_image: 0.0,
         eval_images: 0,
@@ -667,10 +669,13 @@ fn fit_and_write(
         job.state.plan = Some(plan.clone());
         job.save()?;
     }
-    let config = TrainConfig {
+    let mut config = TrainConfig {
         init,
         ..model.recipe.config(plan.fit_steps, model.seed)
     };
+    if plan.first_fit_steps > 0 {
+        config.warmup = super::config::warmup_steps(plan.first_fit_steps);
+    }
     job.say(
         progress,
         &format!(
@@ -688,7 +693,18 @@ fn fit_and_write(
         ),
     );
     let reserve = plan.probe_eval_image * tests.len() as f64 * 1.2 + WRITE_RESERVE_S;
-    let (network, report) = run_fit(job, &config, &training, reserve, resume, progress)?;
+    let (network, report) = run_fit(
+        job,
+        &config,
+        &training,
+        (reserve, model.max_steps),
+        resume,
+        progress,
+    )?;
+    // The schedule the fit ended with (re-planned to its pace).
+    if let Some(plan) = &job.state.plan {
+        config.steps = plan.fit_steps;
+    }
     let evaluation = evaluate_stage(job, &network, &config, &tests, progress)?;
     let name = model
         .out
@@ -746,14 +762,61 @@ fn evaluate_stage(
     })
 }
 
+/// How far back the fit's pace is measured for a re-plan, seconds.
+const PACE_WINDOW_S: f64 = 300.0;
+/// The least time a pace is measured over before the schedule is re-planned from it, seconds.
+const PACE_MIN_S: f64 = 30.0;
+
+/// The fit's recent pace: (step, seconds) marks of the last [`PACE_WINDOW_S`].
+#[derive(Debug, Default)]
+struct Pace {
+    marks: std::collections::VecDeque<(usize, f64)>,
+}
+
+impl Pace {
+    /// Marks `step` done at `now` seconds; the seconds a step took over the window, once it spans
+    /// [`PACE_MIN_S`].
+    fn mark(&mut self, step: usize, now: f64) -> Option<f64> {
+        self.marks.push_back((step, now));
+        while self.marks.len() > 2 && self.marks[1].1 <= now - PACE_WINDOW_S {
+            self.marks.pop_front();
+        }
+        let (first_step, first) = *self.marks.front()?;
+        (now - first >= PACE_MIN_S && step > first_step)
+            .then(|| (now - first) / (step - first_step) as f64)
+    }
+}
+
+/// The fit's schedule re-sized to the time it has: `step` of `steps` done, a step taking
+/// `per_step` seconds lately, `available` seconds left before the evaluation's reserve, at most
+/// `max_steps`. `None` while the schedule ends within 1 % of its steps of that.
+///
+/// The probe's pace does not hold for a whole job: the machine's other load changes it (the
+/// 60-minute drill run slowed from 0.091 to 0.109 s a step in its last quarter and was stopped
+/// at 89 % of its schedule, its learning rate and focused share short of their ends).
+fn replanned_steps(
+    step: usize,
+    steps: usize,
+    per_step: f64,
+    available: f64,
+    max_steps: Option<usize>,
+) -> Option<usize> {
+    if !(per_step > 0.0 && available.is_finite()) {
+        return None;
+    }
+    let fits = step + (available.max(0.0) / per_step).floor() as usize;
+    let target = max_steps.map_or(fits, |m| fits.min(m)).max(step + 1);
+    (target.abs_diff(steps) > (steps / 100).max(1)).then_some(target)
+}
+
 /// The fit stage: `config`'s schedule with checkpoints in the job's folder, progress every 30 s,
-/// stopped early when less than `reserve` seconds of the budget are left (the probe's estimate
-/// was too low).
+/// re-planned at checkpoints to the pace measured (at most `max_steps`), and stopped early when
+/// less than `reserve` seconds of the budget are left.
 fn run_fit(
     job: &mut Job,
     config: &TrainConfig,
     training: &super::TrainingSet,
-    reserve: f64,
+    (reserve, max_steps): (f64, Option<usize>),
     resume: bool,
     progress: &(dyn Fn(&str) + Sync),
 ) -> Result<(crate::net::Network, TrainReport), NewModelError> {
@@ -764,7 +827,9 @@ fn run_fit(
     })?;
     job.stage("fit", |job| {
         let mut last = Instant::now();
-        let out = super::train(
+        let started = Instant::now();
+        let mut pace = Pace::default();
+        let out = super::train_replanned(
             config,
             training,
             Some(&checkpoints),
@@ -783,10 +848,35 @@ fn run_fit(
                         progress,
                         &format!("fit: stopped at step {step} to keep the budget"),
                     );
-                    std::ops::ControlFlow::Break(())
-                } else {
-                    std::ops::ControlFlow::Continue(())
+                    return std::ops::ControlFlow::Break(());
                 }
+                // Re-planned only where a checkpoint was just written, so that a resume from it
+                // continues the same schedule.
+                let per_step = pace.mark(step, started.elapsed().as_secs_f64());
+                if step % config.checkpoint_every.max(1) != 0 {
+                    return std::ops::ControlFlow::Continue(None);
+                }
+                let replanned = per_step.and_then(|per_step| {
+                    let available = job.clock.left() - reserve;
+                    replanned_steps(step, steps, per_step, available, max_steps)
+                        .map(|to| (to, per_step))
+                });
+                let Some((to, per_step)) = replanned else {
+                    return std::ops::ControlFlow::Continue(None);
+                };
+                if let Some(plan) = job.state.plan.as_mut() {
+                    plan.fit_steps = to;
+                    plan.replans += 1;
+                }
+                let _ = job.save();
+                job.say(
+                    progress,
+                    &format!(
+                        "fit: re-planned at step {step} from {steps} to {to} steps ({per_step:.3} s \
+                         a step lately)"
+                    ),
+                );
+                std::ops::ControlFlow::Continue(Some(to))
             },
         )?;
         Ok(out)
@@ -848,5 +938,67 @@ fn size_fit(
         });
     }
     plan.fit_steps = model.max_steps.map_or(steps, |m| steps.min(m));
+    plan.first_fit_steps = plan.fit_steps;
     Ok(plan)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{PACE_MIN_S, PACE_WINDOW_S, Pace, replanned_steps};
+
+    #[test]
+    fn a_slower_pace_shortens_the_schedule_and_a_faster_one_lengthens_it() {
+        // 1 000 of 10 000 steps done, 900 s left: at 0.1 s a step 9 000 more fit exactly.
+        assert_eq!(replanned_steps(1_000, 10_000, 0.1, 900.0, None), None);
+        // Within 1 % of the schedule: left alone.
+        assert_eq!(replanned_steps(1_000, 10_000, 0.1, 909.0, None), None);
+        // 10 % slower: the schedule ends where the time does.
+        assert_eq!(
+            replanned_steps(1_000, 10_000, 0.11, 900.0, None),
+            Some(9_181)
+        );
+        // Faster: longer, but never past --max-steps.
+        assert_eq!(
+            replanned_steps(1_000, 10_000, 0.05, 900.0, None),
+            Some(19_000)
+        );
+        assert_eq!(
+            replanned_steps(1_000, 10_000, 0.05, 900.0, Some(12_000)),
+            Some(12_000)
+        );
+        assert_eq!(
+            replanned_steps(1_000, 10_000, 0.05, 900.0, Some(10_000)),
+            None
+        );
+        // No time left: one more step (the budget's stop rule ends the run).
+        assert_eq!(replanned_steps(1_000, 10_000, 0.1, -5.0, None), Some(1_001));
+        // No pace measured: nothing to re-plan from.
+        assert_eq!(replanned_steps(1_000, 10_000, 0.0, 900.0, None), None);
+        assert_eq!(replanned_steps(1_000, 10_000, f64::NAN, 900.0, None), None);
+    }
+
+    #[test]
+    fn the_pace_is_measured_over_the_recent_window() {
+        let mut pace = Pace::default();
+        // Not before it spans PACE_MIN_S.
+        assert_eq!(pace.mark(1, 0.0), None);
+        assert_eq!(pace.mark(100, 0.5 * PACE_MIN_S), None);
+        // 0.1 s a step for the first window, then 0.2 s a step: the window forgets the first.
+        let mut pace = Pace::default();
+        let mut t = 0.0;
+        let mut step = 1;
+        while t < PACE_WINDOW_S {
+            t += 0.1;
+            step += 1;
+            pace.mark(step, t);
+        }
+        let first = pace.mark(step + 1, t + 0.1).unwrap();
+        assert!((first - 0.1).abs() < 1e-3, "{first}");
+        let (t0, s0) = (t + 0.1, step + 1);
+        let mut last = 0.0;
+        for i in 1..=(2.0 * PACE_WINDOW_S / 0.2) as usize {
+            last = pace.mark(s0 + i, t0 + 0.2 * i as f64).unwrap();
+        }
+        assert!((last - 0.2).abs() < 1e-3, "{last}");
+    }
 }

@@ -5,6 +5,7 @@
 
 use std::ops::ControlFlow;
 use std::path::Path;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
 use burn::module::Module;
@@ -93,7 +94,7 @@ fn sample_image(
     set: &TrainingSet,
     im: &TrainingImage,
     samplers: &[ModeSampler],
-    step: usize,
+    (step, steps): (usize, usize),
     rng: &mut ChaCha8Rng,
     profile: &mut StepProfile,
 ) -> (Vec<[f32; 9]>, Option<LogTargets>) {
@@ -101,7 +102,7 @@ fn sample_image(
     let started = Instant::now();
     let samples = match &config.method {
         Method::Alignist { sampling, .. } => sample_rotations(
-            &sampling.at_step(step, config.steps),
+            &sampling.at_step(step, steps),
             config.k,
             &im.rotation,
             samplers.get(im.object),
@@ -178,7 +179,10 @@ fn mean_log_targets(
         set,
         &mut rng,
     ) {
-        if let (_, Some(t)) = sample_image(config, set, &im, samplers, 0, &mut rng, &mut profile) {
+        let at_start = (0, config.steps);
+        if let (_, Some(t)) =
+            sample_image(config, set, &im, samplers, at_start, &mut rng, &mut profile)
+        {
             sdf += t.log_a_sdf.iter().map(|&l| (l as f64).exp()).sum::<f64>();
             se += t.log_a_se.iter().map(|&l| (l as f64).exp()).sum::<f64>();
             count += t.log_a_sdf.len();
@@ -369,6 +373,9 @@ fn check_finite(step: usize, loss: f64) -> Result<(), TrainError> {
 /// What every step of a run reads: its configuration, data, mode samplers and device.
 struct Run<'a> {
     config: &'a TrainConfig,
+    /// Steps of the schedule now: `config.steps` until a progress callback re-plans it
+    /// ([`train_replanned`]); the learning rate and the focused share follow it.
+    steps: AtomicUsize,
     set: &'a TrainingSet,
     samplers: &'a [ModeSampler],
     device: &'a Device,
@@ -400,6 +407,7 @@ impl Run<'_> {
             samplers,
             ..
         } = *self;
+        let steps = self.steps.load(Ordering::Relaxed);
         let seed = config
             .seed
             .wrapping_mul(1_000_003)
@@ -413,8 +421,15 @@ impl Run<'_> {
         let mut log_sdf = Vec::with_capacity(images.len() * config.k);
         let mut log_se = Vec::with_capacity(images.len() * config.k);
         for im in &images {
-            let (mats, targets) =
-                sample_image(config, set, im, samplers, step, &mut rng, &mut profile);
+            let (mats, targets) = sample_image(
+                config,
+                set,
+                im,
+                samplers,
+                (step, steps),
+                &mut rng,
+                &mut profile,
+            );
             if let Some(t) = targets {
                 log_sdf.extend(t.log_a_sdf);
                 log_se.extend(t.log_a_se);
@@ -465,7 +480,8 @@ impl Run<'_> {
             }
         };
         let started = Instant::now();
-        let network = optim.step(learning_rate(config, step), network, grads);
+        let steps = self.steps.load(Ordering::Relaxed);
+        let network = optim.step(learning_rate(config, steps, step), network, grads);
         profile.optimiser += started.elapsed().as_secs_f64();
         Ok((network, loss_value))
     }
@@ -589,6 +605,30 @@ pub fn train(
     resume: bool,
     mut progress: impl FnMut(usize, usize, f64) -> ControlFlow<()>,
 ) -> Result<(Network, TrainReport), TrainError> {
+    train_replanned(
+        config,
+        set,
+        checkpoints,
+        resume,
+        |step, steps, loss| match progress(step, steps, loss) {
+            ControlFlow::Break(()) => ControlFlow::Break(()),
+            ControlFlow::Continue(()) => ControlFlow::Continue(None),
+        },
+    )
+}
+
+/// [`train`] whose schedule can be re-planned as it runs: `progress` returning
+/// `ControlFlow::Continue(Some(n))` makes `n` the schedule's steps from the next step on (at least
+/// one more than done): the learning rate's cosine and the focused share's anneal stretch or
+/// shrink to end at `n`. A run resumed from a checkpoint with `config.steps = n` continues it
+/// exactly: the next step's batch, prepared ahead, is drawn again for the new schedule.
+pub fn train_replanned(
+    config: &TrainConfig,
+    set: &TrainingSet,
+    checkpoints: Option<&Path>,
+    resume: bool,
+    mut progress: impl FnMut(usize, usize, f64) -> ControlFlow<(), Option<usize>>,
+) -> Result<(Network, TrainReport), TrainError> {
     check_set(set)?;
     let started = Instant::now();
     let device = crate::backend::device_for(crate::backend::Workload::Conv).autodiff();
@@ -597,6 +637,7 @@ pub fn train(
         starting_point(config, set, checkpoints, resume, &samplers, &device)?;
     let run = Run {
         config,
+        steps: AtomicUsize::new(config.steps),
         set,
         samplers: &samplers,
         device: &device,
@@ -604,9 +645,8 @@ pub fn train(
         encoder: EncoderPath::from_env(),
         kernels: crate::net::Kernels::from_env(),
     };
-    let tail_from = config.steps - config.steps.div_ceil(10);
-    let (mut tail_sum, mut tail_n) = (0.0, 0usize);
-    let mut steps_run = 0;
+    // Every step's loss in this process, for the mean over the schedule's last tenth.
+    let mut losses = Vec::new();
     let mut profile = StepProfile::default();
     // The batch of the next step is prepared while this one computes, on a pool of its own: on
     // the step's pool its long tasks (a render, an image's targets) would hold up each of the
@@ -622,11 +662,13 @@ pub fn train(
         let mut network = network;
         let (run, batch_pool) = (&run, &batch_pool);
         let prepare = |step: usize| {
-            (step < config.steps)
+            (step < run.steps.load(Ordering::Relaxed))
                 .then(|| scope.spawn(move || batch_pool.install(|| run.batch(step))))
         };
         let mut pending = prepare(start);
-        for step in start..config.steps {
+        let mut step = start;
+        while step < run.steps.load(Ordering::Relaxed) {
+            let steps = run.steps.load(Ordering::Relaxed);
             let step_started = Instant::now();
             let batch = pending
                 .take()
@@ -640,37 +682,54 @@ pub fn train(
             pending = prepare(step + 1);
             let loss_value;
             (network, loss_value) = run.step(network, &mut optim, step, batch, &mut profile)?;
-            if step >= tail_from {
-                tail_sum += loss_value;
-                tail_n += 1;
-            }
+            losses.push(loss_value);
             let done = step + 1;
             if let Some(dir) = checkpoints
-                && (done % config.checkpoint_every.max(1) == 0 || done == config.steps)
+                && (done % config.checkpoint_every.max(1) == 0 || done == steps)
             {
                 network.encoder.sync_running_stats();
                 let state = CheckpointState {
                     step: done,
-                    config: config.clone(),
+                    config: TrainConfig {
+                        steps,
+                        ..config.clone()
+                    },
                 };
                 save_checkpoint(dir, &network, &optim, &state)?;
             }
-            steps_run += 1;
             profile.steps += 1;
             profile.total += step_started.elapsed().as_secs_f64();
-            if progress(done, config.steps, loss_value).is_break() {
-                break;
+            match progress(done, steps, loss_value) {
+                ControlFlow::Break(()) => break,
+                ControlFlow::Continue(Some(replanned)) if replanned.max(done + 1) != steps => {
+                    let replanned = replanned.max(done + 1);
+                    run.steps.store(replanned, Ordering::Relaxed);
+                    // The next step's batch was drawn for the old schedule: draw it again.
+                    if let Some(stale) = pending.take() {
+                        let _ = stale.join();
+                    }
+                    pending = prepare(done);
+                }
+                ControlFlow::Continue(_) => {}
             }
+            step = done;
         }
         Ok(network)
     })?;
     network.encoder.sync_running_stats();
+    // The schedule's last tenth (or, in a run stopped before it, the last tenth of its steps).
+    let steps = run.steps.load(Ordering::Relaxed);
+    let tail_from = (steps - steps.div_ceil(10)).saturating_sub(start);
+    let tail = match losses.get(tail_from..) {
+        Some(tail) if !tail.is_empty() => tail,
+        _ => &losses[losses.len() - losses.len().div_ceil(10)..],
+    };
     Ok((
         network.valid(),
         TrainReport {
-            steps_run,
+            steps_run: losses.len(),
             resumed_from: start,
-            final_loss: tail_sum / tail_n.max(1) as f64,
+            final_loss: tail.iter().sum::<f64>() / tail.len().max(1) as f64,
             seconds: started.elapsed().as_secs_f64(),
             profile: profile.mean_ms(),
         },
