@@ -81,7 +81,11 @@ async fn a_part_becomes_a_served_model_within_its_budget() {
         .map(|s| s[0].as_str().unwrap())
         .collect();
     assert_eq!(stages, ["probe", "experts", "fit", "evaluation"]);
-    assert!(m["budget"]["plan"]["fit_steps"].as_u64().unwrap() >= 20);
+    let plan = &m["budget"]["plan"];
+    assert!(plan["first_fit_steps"].as_u64().unwrap() >= 20);
+    // The schedule trained is the plan's last (re-planned to the pace measured, or the first).
+    assert_eq!(m["provenance"]["train"]["steps"], plan["fit_steps"]);
+    assert!(plan["replans"].is_u64());
     assert_eq!(m["objects"][0]["name"], "block");
     assert_eq!(m["evaluation"]["overall"]["images"], 4);
     // The recipe's annealed focused share is what was trained.

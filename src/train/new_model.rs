@@ -676,22 +676,7 @@ fn fit_and_write(
     if plan.first_fit_steps > 0 {
         config.warmup = super::config::warmup_steps(plan.first_fit_steps);
     }
-    job.say(
-        progress,
-        &format!(
-            "fit: {} steps of batch {} × K {} ({:.3} s per step in the probe), focused share {} → {}{}",
-            plan.fit_steps,
-            model.recipe.batch,
-            model.recipe.k,
-            plan.probe_fit_step,
-            model.recipe.focused_start,
-            model.recipe.focused_end,
-            config
-                .init
-                .as_ref()
-                .map_or(String::new(), |i| format!(", warm start from {}", i.path))
-        ),
-    );
+    job.say(progress, &fit_line(&plan, &model.recipe, &config));
     let reserve = plan.probe_eval_image * tests.len() as f64 * 1.2 + WRITE_RESERVE_S;
     let (network, report) = run_fit(
         job,
@@ -702,9 +687,8 @@ fn fit_and_write(
         progress,
     )?;
     // The schedule the fit ended with (re-planned to its pace).
-    if let Some(plan) = &job.state.plan {
-        config.steps = plan.fit_steps;
-    }
+    let plan = job.state.plan.clone().unwrap_or(plan);
+    config.steps = plan.fit_steps;
     let evaluation = evaluate_stage(job, &network, &config, &tests, progress)?;
     let name = model
         .out
@@ -734,6 +718,23 @@ fn fit_and_write(
         &format!("bundle written to {}", model.out.display()),
     );
     Ok(manifest)
+}
+
+/// The progress line that opens the fit: its schedule, its probe's pace and its warm start.
+fn fit_line(plan: &BudgetPlan, recipe: &Recipe, config: &TrainConfig) -> String {
+    format!(
+        "fit: {} steps of batch {} × K {} ({:.3} s per step in the probe), focused share {} → {}{}",
+        plan.fit_steps,
+        recipe.batch,
+        recipe.k,
+        plan.probe_fit_step,
+        recipe.focused_start,
+        recipe.focused_end,
+        config
+            .init
+            .as_ref()
+            .map_or(String::new(), |i| format!(", warm start from {}", i.path))
+    )
 }
 
 /// The evaluation stage: the network on the held-out realistic crops at [`EVAL_LEVEL`].

@@ -595,6 +595,30 @@ impl Run<'_> {
     }
 }
 
+/// The threads that prepare the next step's batch while this one computes. On the step's pool its
+/// long tasks (a render, an image's targets) would hold up each of the encoder's many short
+/// parallel ops until a worker is free; on its own threads the OS shares the cores between them.
+/// (At a lower priority they starved whenever anything else ran: the step then waited for its
+/// batch.)
+fn batch_pool() -> Result<rayon::ThreadPool, TrainError> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(rayon::current_num_threads())
+        .thread_name(|i| format!("alignist-batch-{i}"))
+        .build()
+        .map_err(|e| TrainError::Data(format!("starting the batch threads: {e}")))
+}
+
+/// The mean loss over the last tenth of a schedule of `steps` (or, in a run stopped before it,
+/// over the last tenth of the steps it ran): `losses` are this process's, from step `start`.
+fn tail_loss(losses: &[f64], start: usize, steps: usize) -> f64 {
+    let tail_from = (steps - steps.div_ceil(10)).saturating_sub(start);
+    let tail = match losses.get(tail_from..) {
+        Some(tail) if !tail.is_empty() => tail,
+        _ => &losses[losses.len() - losses.len().div_ceil(10)..],
+    };
+    tail.iter().sum::<f64>() / tail.len().max(1) as f64
+}
+
 /// Trains (or resumes, when `checkpoints` holds one and `resume` is set) and returns the network
 /// on the plain (non-autodiff) device. `progress(step, steps, loss)` runs after every step (and
 /// its checkpoint); returning `ControlFlow::Break` stops the run there, as an interruption would.
@@ -648,16 +672,7 @@ pub fn train_replanned(
     // Every step's loss in this process, for the mean over the schedule's last tenth.
     let mut losses = Vec::new();
     let mut profile = StepProfile::default();
-    // The batch of the next step is prepared while this one computes, on a pool of its own: on
-    // the step's pool its long tasks (a render, an image's targets) would hold up each of the
-    // encoder's many short parallel ops until a worker is free; on its own threads the OS shares
-    // the cores between them. (At a lower priority they starved whenever anything else ran:
-    // the step then waited for its batch.)
-    let batch_pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(rayon::current_num_threads())
-        .thread_name(|i| format!("alignist-batch-{i}"))
-        .build()
-        .map_err(|e| TrainError::Data(format!("starting the batch threads: {e}")))?;
+    let batch_pool = batch_pool()?;
     let network = std::thread::scope(|scope| -> Result<Network, TrainError> {
         let mut network = network;
         let (run, batch_pool) = (&run, &batch_pool);
@@ -688,13 +703,11 @@ pub fn train_replanned(
                 && (done % config.checkpoint_every.max(1) == 0 || done == steps)
             {
                 network.encoder.sync_running_stats();
-                let state = CheckpointState {
-                    step: done,
-                    config: TrainConfig {
-                        steps,
-                        ..config.clone()
-                    },
+                let config = TrainConfig {
+                    steps,
+                    ..config.clone()
                 };
+                let state = CheckpointState { step: done, config };
                 save_checkpoint(dir, &network, &optim, &state)?;
             }
             profile.steps += 1;
@@ -717,19 +730,12 @@ pub fn train_replanned(
         Ok(network)
     })?;
     network.encoder.sync_running_stats();
-    // The schedule's last tenth (or, in a run stopped before it, the last tenth of its steps).
-    let steps = run.steps.load(Ordering::Relaxed);
-    let tail_from = (steps - steps.div_ceil(10)).saturating_sub(start);
-    let tail = match losses.get(tail_from..) {
-        Some(tail) if !tail.is_empty() => tail,
-        _ => &losses[losses.len() - losses.len().div_ceil(10)..],
-    };
     Ok((
         network.valid(),
         TrainReport {
             steps_run: losses.len(),
             resumed_from: start,
-            final_loss: tail.iter().sum::<f64>() / tail.len().max(1) as f64,
+            final_loss: tail_loss(&losses, start, run.steps.load(Ordering::Relaxed)),
             seconds: started.elapsed().as_secs_f64(),
             profile: profile.mean_ms(),
         },
