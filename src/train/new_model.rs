@@ -768,7 +768,7 @@ const PACE_WINDOW_S: f64 = 300.0;
 /// The least time a pace is measured over before the schedule is re-planned from it, seconds.
 const PACE_MIN_S: f64 = 30.0;
 
-/// The fit's recent pace: (step, seconds) marks of the last [`PACE_WINDOW_S`].
+/// The fit's recent pace: (step, seconds) marks, one a checkpoint, of the last [`PACE_WINDOW_S`].
 #[derive(Debug, Default)]
 struct Pace {
     marks: std::collections::VecDeque<(usize, f64)>,
@@ -851,12 +851,12 @@ fn run_fit(
                     );
                     return std::ops::ControlFlow::Break(());
                 }
-                // Re-planned only where a checkpoint was just written, so that a resume from it
-                // continues the same schedule.
-                let per_step = pace.mark(step, started.elapsed().as_secs_f64());
+                // Paced and re-planned only where a checkpoint was just written, so that a resume
+                // from it continues the same schedule.
                 if step % config.checkpoint_every.max(1) != 0 {
                     return std::ops::ControlFlow::Continue(None);
                 }
+                let per_step = pace.mark(step, started.elapsed().as_secs_f64());
                 let replanned = per_step.and_then(|per_step| {
                     let available = job.clock.left() - reserve;
                     replanned_steps(step, steps, per_step, available, max_steps)

@@ -715,8 +715,7 @@ pub fn train_replanned(
             match progress(done, steps, loss_value) {
                 ControlFlow::Break(()) => break,
                 ControlFlow::Continue(Some(replanned)) if replanned.max(done + 1) != steps => {
-                    let replanned = replanned.max(done + 1);
-                    run.steps.store(replanned, Ordering::Relaxed);
+                    run.steps.store(replanned.max(done + 1), Ordering::Relaxed);
                     // The next step's batch was drawn for the old schedule: draw it again.
                     if let Some(stale) = pending.take() {
                         let _ = stale.join();
