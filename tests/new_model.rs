@@ -267,7 +267,7 @@ fn a_warm_start_is_checked_before_any_work_and_recorded() {
         tiny["files"]["network.safetensors"]["sha256"]
     );
     assert_eq!(m["provenance"]["report"]["steps_run"], 20);
-    // An experiment's crop size and deeper layout from the same 32 px `tiny` warm start.
+    // An experiment's crop size, deeper layout, batch and K from the same 32 px `tiny` warm start.
     let out48 = s(&root.path().join("models/blocks48"));
     train(&new_args(
         &part_s,
@@ -282,11 +282,17 @@ fn a_warm_start_is_checked_before_any_work_and_recorded() {
             "48",
             "--layout",
             "tiny-deep",
+            "--batch",
+            "3",
+            "--k",
+            "40",
         ],
     ));
     let m = manifest(Path::new(&out48));
     assert_eq!(m["network"]["image_size"], 48);
     assert_eq!(m["network"]["layout"], "tiny_deep");
+    assert_eq!(m["provenance"]["train"]["batch"], 3);
+    assert_eq!(m["provenance"]["train"]["k"], 40);
 }
 
 #[test]

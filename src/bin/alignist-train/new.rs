@@ -58,6 +58,12 @@ pub(crate) struct NewArgs {
     /// trained at another size.
     #[arg(long, default_value_t = RECIPE.image_size, value_parser = clap::value_parser!(u32).range(16..=256))]
     image_size: u32,
+    /// Images per training step (for experiments; the recipe's is 16).
+    #[arg(long, default_value_t = RECIPE.batch as u32, value_parser = clap::value_parser!(u32).range(1..=1024))]
+    batch: u32,
+    /// Rotations per image in a training step (for experiments; the recipe's is 256).
+    #[arg(long, default_value_t = RECIPE.k as u32, value_parser = clap::value_parser!(u32).range(8..=8192))]
+    k: u32,
 }
 
 /// The recipe's warm start (`--init`'s default), relative to the repository's root.
@@ -120,6 +126,8 @@ pub(crate) fn new_cmd(args: &NewArgs) -> Result<()> {
         recipe: Recipe {
             layout: args.layout,
             image_size: args.image_size,
+            batch: args.batch as usize,
+            k: args.k as usize,
             ..RECIPE
         },
         command: std::env::args().collect::<Vec<_>>().join(" "),
