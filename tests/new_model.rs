@@ -267,7 +267,7 @@ fn a_warm_start_is_checked_before_any_work_and_recorded() {
         tiny["files"]["network.safetensors"]["sha256"]
     );
     assert_eq!(m["provenance"]["report"]["steps_run"], 20);
-    // An experiment's crop size, deeper layout, batch and K from the same 32 px `tiny` warm start.
+    // An experiment's crop size, deeper layout, batch, K and learning rate from the same 32 px `tiny` warm start.
     let out48 = s(&root.path().join("models/blocks48"));
     train(&new_args(
         &part_s,
@@ -286,6 +286,8 @@ fn a_warm_start_is_checked_before_any_work_and_recorded() {
             "3",
             "--k",
             "40",
+            "--lr",
+            "3e-4",
         ],
     ));
     let m = manifest(Path::new(&out48));
@@ -293,6 +295,7 @@ fn a_warm_start_is_checked_before_any_work_and_recorded() {
     assert_eq!(m["network"]["layout"], "tiny_deep");
     assert_eq!(m["provenance"]["train"]["batch"], 3);
     assert_eq!(m["provenance"]["train"]["k"], 40);
+    assert_eq!(m["provenance"]["train"]["lr"], 3e-4);
 }
 
 #[test]

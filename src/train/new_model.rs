@@ -310,7 +310,7 @@ fn open_job(model: &NewModel, resume: bool) -> Result<Job, NewModelError> {
         if state.recipe != model.recipe {
             return Err(NewModelError::Invalid(format!(
                 "{}: the job was started with another recipe ({}); give the same --layout, \
-                 --image-size, --batch and --k",
+                 --image-size, --batch, --k and --lr",
                 state_file.display(),
                 serde_json::to_string(&state.recipe).unwrap_or_default()
             )));

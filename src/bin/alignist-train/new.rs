@@ -64,6 +64,17 @@ pub(crate) struct NewArgs {
     /// Rotations per image in a training step (for experiments; the recipe's is 256).
     #[arg(long, default_value_t = RECIPE.k as u32, value_parser = clap::value_parser!(u32).range(8..=8192))]
     k: u32,
+    /// Peak learning rate (for experiments; the recipe's is 1e-3).
+    #[arg(long, default_value_t = RECIPE.lr, value_parser = parse_lr)]
+    lr: f64,
+}
+
+/// A positive, finite learning rate.
+fn parse_lr(s: &str) -> Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(lr) if lr.is_finite() && lr > 0.0 => Ok(lr),
+        _ => Err(format!("'{s}' is not a positive learning rate (e.g. 1e-3)")),
+    }
 }
 
 /// The recipe's warm start (`--init`'s default), relative to the repository's root.
@@ -128,6 +139,7 @@ pub(crate) fn new_cmd(args: &NewArgs) -> Result<()> {
             image_size: args.image_size,
             batch: args.batch as usize,
             k: args.k as usize,
+            lr: args.lr,
             ..RECIPE
         },
         command: std::env::args().collect::<Vec<_>>().join(" "),
