@@ -267,7 +267,8 @@ fn a_warm_start_is_checked_before_any_work_and_recorded() {
         tiny["files"]["network.safetensors"]["sha256"]
     );
     assert_eq!(m["provenance"]["report"]["steps_run"], 20);
-    // An experiment's crop size, deeper layout, batch, K and learning rate from the same 32 px `tiny` warm start.
+    // An experiment's crop size, deeper layout, batch, K and learning rate from the same 32 px
+    // `tiny` warm start.
     let out48 = s(&root.path().join("models/blocks48"));
     train(&new_args(
         &part_s,
