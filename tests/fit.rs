@@ -385,7 +385,8 @@ fn the_bundle_read_back_scores_as_fit_held_it(
     assert!((again.log_likelihood - eval.overall.log_likelihood).abs() < 1e-12);
 }
 
-/// `eval` of an object the bundle lacks and `fit` with a share above 1 are refused, naming them.
+/// `eval` of an object the bundle lacks, `fit` with a share above 1 and `fit` with a negative
+/// learning rate are refused, naming them.
 fn bad_arguments_are_refused_naming_them(p: &Pipeline) {
     let (bundle, data, experts, dir) = (&p.bundle, &p.data, &p.experts, &p.dir);
     let report = dir.path().join("report.json");
@@ -419,6 +420,18 @@ fn bad_arguments_are_refused_naming_them(p: &Pipeline) {
         "{}",
         String::from_utf8_lossy(&bad.stderr)
     );
+    let bad = Command::new(env!("CARGO_BIN_EXE_alignist-train"))
+        .args(["fit", "--fresh", "--experts", s(experts)])
+        .args(["--out", s(&dir.path().join("never")), "--lr=-1e-3"])
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    let stderr = String::from_utf8_lossy(&bad.stderr);
+    assert!(
+        stderr.contains("--lr") && stderr.contains("'-1e-3' is not a positive learning rate"),
+        "{stderr}"
+    );
+    assert!(!dir.path().join("never").exists());
 }
 
 /// A corrupt network file is refused, naming it.

@@ -239,6 +239,20 @@ fn summary_gives_accuracy_and_median() {
     assert_eq!(s.accuracy_at, vec![(30.0, 0.5), (15.0, 0.5)]);
     assert!((s.median_error_deg - 25.0).abs() < 1e-12);
     assert!((s.spread_deg - 38.75).abs() < 1e-12);
+    assert_eq!(s.half_turn_wrong, 0.0);
+}
+
+#[test]
+fn summary_counts_the_half_turn_twins() {
+    // 150° and beyond is a twin; 149.9° is not.
+    let per = [5.0, 149.9, 150.0, 179.0, 30.0].map(|e| ImageMetrics {
+        log_likelihood: if e > 100.0 { -1.0 } else { 1.0 },
+        spread_deg: e,
+        argmax_error_deg: e,
+    });
+    let s = summarize(&per, &[30.0]);
+    assert!((s.half_turn_wrong - 0.4).abs() < 1e-12);
+    assert!((s.confidently_wrong - 0.6).abs() < 1e-12);
 }
 
 #[test]

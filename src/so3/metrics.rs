@@ -142,7 +142,17 @@ pub struct MetricsSummary {
     /// distribution is sharp somewhere else, *confidently wrong*.
     #[serde(default)]
     pub confidently_wrong: f64,
+    /// Fraction of images whose argmax is at least [`HALF_TURN_DEG`] from every ground truth:
+    /// the answer is the pose turned about half a turn, the twin of a near-symmetry the model
+    /// did not tell apart (a wrong answer that more detail in the crop can fix), not a scattered
+    /// one.
+    #[serde(default)]
+    pub half_turn_wrong: f64,
 }
+
+/// The error in degrees from which an argmax counts as the pose's half-turn twin
+/// ([`MetricsSummary::half_turn_wrong`]).
+pub const HALF_TURN_DEG: f64 = 150.0;
 
 /// Averages per-image metrics; `thresholds_deg` are the `θ` of `AR@θ` (e.g. `[30.0]`).
 pub fn summarize(per_image: &[ImageMetrics], thresholds_deg: &[f64]) -> MetricsSummary {
@@ -164,6 +174,7 @@ pub fn summarize(per_image: &[ImageMetrics], thresholds_deg: &[f64]) -> MetricsS
             .collect(),
         median_error_deg: median,
         confidently_wrong: per_image.iter().filter(|m| m.log_likelihood < 0.0).count() as f64 / n,
+        half_turn_wrong: errors.iter().filter(|&&e| e >= HALF_TURN_DEG).count() as f64 / n,
     }
 }
 

@@ -27,13 +27,14 @@ pub(crate) fn print_eval(e: &alignist::train::eval::EvalReport) {
         };
         eprintln!(
             "  {name:8} LL {:6.2}  spread {:6.1}°  AR@30 {:.3} (chance {:.3})  median {:6.1}°  \
-             wrong & sure {:5.1} %  ({} images)",
+             wrong & sure {:5.1} %  half-turn twin {:5.1} %  ({} images)",
             m.log_likelihood,
             m.spread_deg,
             m.accuracy_at.first().map_or(f64::NAN, |a| a.1),
             chance,
             m.median_error_deg,
             100.0 * m.confidently_wrong,
+            100.0 * m.half_turn_wrong,
             m.images
         );
     }

@@ -74,8 +74,8 @@ pub(crate) struct FitArgs {
     /// Rotations per image (the paper: 4096).
     #[arg(long, default_value_t = TrainConfig::default().k)]
     k: usize,
-    /// Peak learning rate.
-    #[arg(long, default_value_t = TrainConfig::default().lr)]
+    /// Peak learning rate (positive).
+    #[arg(long, default_value_t = TrainConfig::default().lr, value_parser = crate::new::parse_lr)]
     lr: f64,
     /// Fraction of each training split used (the paper's low-data regime: 0.1). With --fresh: a
     /// fixed pool of fraction × steps × batch images (the same for every run) instead of a new

@@ -69,8 +69,8 @@ pub(crate) struct NewArgs {
     lr: f64,
 }
 
-/// A positive, finite learning rate.
-fn parse_lr(s: &str) -> Result<f64, String> {
+/// A positive, finite learning rate (`new --lr` and `fit --lr`).
+pub(crate) fn parse_lr(s: &str) -> Result<f64, String> {
     match s.trim().parse::<f64>() {
         Ok(lr) if lr.is_finite() && lr > 0.0 => Ok(lr),
         _ => Err(format!("'{s}' is not a positive learning rate (e.g. 1e-3)")),
