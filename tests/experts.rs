@@ -17,7 +17,7 @@ use alignist::so3::{
     GridLevel, SymmetryGroup, equivalents, geodesic_angle, haar_rotation, to_row_major_f32,
 };
 use alignist::train::experts::{ExpertsJob, train_expert_set};
-use nalgebra::Rotation3;
+use nalgebra::{Rotation3, Vector3};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
@@ -463,6 +463,7 @@ fn cube_mode_table_holds_every_symmetry_and_sampling_reaches_every_equivalent() 
             focused: 2000,
             temperature: 0.0,
             focused_end: None,
+            twin_share: 0.0,
         },
         2001,
         &r_gt,
@@ -481,6 +482,73 @@ fn cube_mode_table_holds_every_symmetry_and_sampling_reaches_every_equivalent() 
             "{hits} of 2000 samples within 8° of an equivalent"
         );
     }
+}
+
+#[test]
+fn twin_sampling_draws_its_share_around_the_twins_and_none_without() {
+    use alignist::train::{ModeSampler, SamplingStrategy, sample_rotations};
+    let set = load(&CUBE);
+    let table = set.modes.clone().expect("a format-2 set has its table");
+    // A turn as far from every symmetry of the cube as a rotation gets: 62.8°.
+    let axis = nalgebra::Unit::new_normalize(Vector3::new(1.0, 1.0, 0.0));
+    let twin = Rotation3::from_axis_angle(&axis, 90f64.to_radians());
+    let group = SymmetryGroup::Octahedral.rotations();
+    let mut rng = ChaCha8Rng::seed_from_u64(405);
+    let r_gt = haar_rotation(&mut rng);
+    // The angle from `r` to the nearest of `centre·g`, g in the cube's group.
+    let nearest = |r: &Rotation3<f64>, centre: &Rotation3<f64>| {
+        group
+            .iter()
+            .map(|g| geodesic_angle(r, &(centre * g)))
+            .fold(f64::INFINITY, f64::min)
+    };
+    let strategy = |share| SamplingStrategy::mode_focused_share(2001, 1.0).with_twin_share(share);
+    // The share of focused samples nearer the twins than the truth's equivalents.
+    let mut at_twins = |sampler: &ModeSampler, share| {
+        let samples = sample_rotations(&strategy(share), 2001, &r_gt, Some(sampler), &mut rng);
+        samples[1..]
+            .iter()
+            .filter(|r| nearest(r, &(r_gt * twin)) < nearest(r, &r_gt))
+            .count() as f64
+            / 2000.0
+    };
+    let sampler = ModeSampler::new(&table, 0.0)
+        .unwrap()
+        .with_twins(vec![twin]);
+    let none = at_twins(&sampler, 0.0);
+    let half = at_twins(&sampler, 0.5);
+    let all = at_twins(&sampler, 1.0);
+    assert!(none < 0.05 && all > 0.95, "{none} {all}");
+    assert!((half - 0.5).abs() < 0.07, "{half}");
+    // A sampler without twins ignores the share.
+    let plain = ModeSampler::new(&table, 0.0).unwrap();
+    let ignored = at_twins(&plain, 1.0);
+    assert!(ignored < 0.05, "{ignored}");
+}
+
+#[test]
+fn a_near_symmetry_names_its_twins() {
+    use alignist::experts::symmetry::NearSymmetry;
+    let near = |label: &str| NearSymmetry {
+        label: label.into(),
+        axes: vec![[0.0, 1.0, 0.0]],
+        residual: 0.03,
+    };
+    let c2 = near("C2").twins();
+    assert_eq!(c2.len(), 1);
+    let half_turn_about_y = Rotation3::from_axis_angle(&Vector3::y_axis(), std::f64::consts::PI);
+    assert!(geodesic_angle(&c2[0], &half_turn_about_y) < 1e-9);
+    assert_eq!(near("D3").twins().len(), 2);
+    let cone = near("cone").twins();
+    assert_eq!(cone.len(), 35);
+    assert!(
+        cone.iter()
+            .all(|r| (r.axis().unwrap().y.abs() - 1.0).abs() < 1e-9)
+    );
+    assert!(near("T").twins().is_empty() && near("none").twins().is_empty());
+    let mut no_axis = near("C4");
+    no_axis.axes.clear();
+    assert!(no_axis.twins().is_empty());
 }
 
 #[test]

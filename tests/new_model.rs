@@ -267,7 +267,7 @@ fn a_warm_start_is_checked_before_any_work_and_recorded() {
         tiny["files"]["network.safetensors"]["sha256"]
     );
     assert_eq!(m["provenance"]["report"]["steps_run"], 20);
-    // An experiment's crop size, deeper layout, batch, K and learning rate from the same 32 px
+    // An experiment's crop size, deeper layout, batch, K, learning rate and twin share from the same 32 px
     // `tiny` warm start.
     let out48 = s(&root.path().join("models/blocks48"));
     train(&new_args(
@@ -289,6 +289,8 @@ fn a_warm_start_is_checked_before_any_work_and_recorded() {
             "40",
             "--lr",
             "3e-4",
+            "--twin-share",
+            "0.5",
         ],
     ));
     let m = manifest(Path::new(&out48));
@@ -297,6 +299,10 @@ fn a_warm_start_is_checked_before_any_work_and_recorded() {
     assert_eq!(m["provenance"]["train"]["batch"], 3);
     assert_eq!(m["provenance"]["train"]["k"], 40);
     assert_eq!(m["provenance"]["train"]["lr"], 3e-4);
+    assert_eq!(
+        m["provenance"]["train"]["method"]["sampling"]["twin_share"],
+        0.5
+    );
 }
 
 #[test]

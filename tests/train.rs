@@ -73,6 +73,7 @@ fn tiny_set() -> TrainingSet {
     TrainingSet {
         objects: vec![baked],
         modes: vec![modes],
+        twins: Vec::new(),
         images,
         fresh: None,
     }
@@ -115,6 +116,7 @@ fn alignist_method() -> Method {
             focused: 40,
             temperature: 0.0,
             focused_end: None,
+            twin_share: 0.0,
         },
         experts: Default::default(),
     }
@@ -287,6 +289,7 @@ fn cube_with_small_experts() -> (TrainingSet, FreshRenders) {
     let set = TrainingSet {
         objects: vec![baked],
         modes: vec![experts.modes.clone().unwrap()],
+        twins: Vec::new(),
         images: Vec::new(),
         fresh: Some(fresh.clone()),
     };
@@ -465,6 +468,7 @@ fn single_expert_runs_silence_the_other_branch() {
                 focused: 40,
                 temperature: 0.0,
                 focused_end: None,
+                twin_share: 0.0,
             },
             experts,
         });

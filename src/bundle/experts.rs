@@ -246,6 +246,19 @@ impl ExpertSet {
         })
     }
 
+    /// The twins of the part's near-symmetry ([`NearSymmetry::twins`]; none when the set
+    /// records no near-symmetry).
+    ///
+    /// [`NearSymmetry::twins`]: crate::experts::symmetry::NearSymmetry::twins
+    pub fn near_twins(&self) -> Vec<Rotation3<f64>> {
+        self.manifest
+            .symmetry
+            .as_ref()
+            .and_then(|s| s.near.as_ref())
+            .map(|n| n.twins())
+            .unwrap_or_default()
+    }
+
     /// The mode table: the stored one, or (format 1 sets) one built now from `baked`.
     pub fn mode_table(&self, baked: &BakedExperts) -> Result<ModeTable, crate::so3::So3Error> {
         match &self.modes {

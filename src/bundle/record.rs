@@ -322,9 +322,18 @@ pub enum SamplingStrategy {
         /// this at the last (the recipe of `alignist-train new`: 3/4 of K down to 1/20).
         #[serde(default, skip_serializing_if = "Option::is_none")]
         focused_end: Option<usize>,
+        /// Share of the focused rotations drawn around a twin of the pose instead (`R_gt·S·Q`,
+        /// `S` a turn of the object's near-symmetry): rotations the image nearly cannot tell
+        /// from the truth, where the target is low; 0 (the paper's) draws none.
+        #[serde(default, skip_serializing_if = "is_zero")]
+        twin_share: f64,
     },
     /// The GT, then uniform rotations.
     Uniform,
+}
+
+fn is_zero(x: &f64) -> bool {
+    *x == 0.0
 }
 
 /// The paper's share of the K rotations drawn from the mode table.
@@ -343,6 +352,7 @@ impl SamplingStrategy {
             focused: (k as f64 * share).floor() as usize,
             temperature: 0.0,
             focused_end: None,
+            twin_share: 0.0,
         }
     }
 
@@ -353,6 +363,26 @@ impl SamplingStrategy {
             focused: (k as f64 * start).floor() as usize,
             temperature: 0.0,
             focused_end: Some((k as f64 * end).floor() as usize),
+            twin_share: 0.0,
+        }
+    }
+
+    /// This strategy with `share` of its focused rotations drawn around the pose's twins (a
+    /// mode-focused one; others are returned as they are).
+    pub fn with_twin_share(self, share: f64) -> Self {
+        match self {
+            SamplingStrategy::ModeFocused {
+                focused,
+                temperature,
+                focused_end,
+                ..
+            } => SamplingStrategy::ModeFocused {
+                focused,
+                temperature,
+                focused_end,
+                twin_share: share,
+            },
+            other => other,
         }
     }
 
@@ -364,6 +394,7 @@ impl SamplingStrategy {
                 focused,
                 temperature,
                 focused_end: Some(end),
+                twin_share,
             } => {
                 let t = step as f64 / steps.saturating_sub(1).max(1) as f64;
                 let now = focused as f64 + (end as f64 - focused as f64) * t.min(1.0);
@@ -371,6 +402,7 @@ impl SamplingStrategy {
                     focused: now.round() as usize,
                     temperature,
                     focused_end: None,
+                    twin_share,
                 }
             }
             other => other,

@@ -111,6 +111,42 @@ pub struct NearSymmetry {
     pub residual: f64,
 }
 
+impl NearSymmetry {
+    /// Rotations that nearly map the part onto itself, known from the label and the principal
+    /// axis (the *twins* of a pose, `R_gt·S`, that twin sampling draws around): for `C<n>` and
+    /// `D<n>` the `n − 1` turns about the axis, for `cone` and `cylinder` the turns about it
+    /// every 10°. A `D<n>`'s or a cylinder's flips, and the groups `T`, `O`, `I`, are not
+    /// recorded with their axes, so they give no twins. Some may be exact symmetries (a `C2`
+    /// part that is nearly `D2` records the `D2`'s axis): drawing around those draws around a
+    /// mode, which the mode table does anyway.
+    pub fn twins(&self) -> Vec<Rotation3<f64>> {
+        let Some(axis) = self.axes.first().map(|a| Vector3::from(*a)) else {
+            return Vec::new();
+        };
+        let Some(axis) = Unit::try_new(axis, 1e-9) else {
+            return Vec::new();
+        };
+        let label = self.label.as_str();
+        let turns = match label {
+            "cone" | "cylinder" => 36,
+            _ => match label
+                .strip_prefix('C')
+                .or_else(|| label.strip_prefix('D'))
+                .and_then(|n| n.parse::<usize>().ok())
+            {
+                Some(n) if n >= 2 => n,
+                _ => return Vec::new(),
+            },
+        };
+        (1..turns)
+            .map(|k| {
+                let angle = std::f64::consts::TAU * k as f64 / turns as f64;
+                Rotation3::from_axis_angle(&axis, angle)
+            })
+            .collect()
+    }
+}
+
 /// Mean `|sdf(Q·p)|` over `points`.
 fn residual(
     sdf: &(dyn Fn(&[Vector3<f32>]) -> Vec<f32> + Sync),

@@ -104,6 +104,7 @@ pub fn bench_training(config: &TrainingBenchConfig) -> Result<TrainingBench, Tra
     let set = TrainingSet {
         objects: vec![baked],
         modes: vec![modes],
+        twins: Vec::new(),
         images: Vec::new(),
         // Realistic renders at 2× supersampling, as the realistic training runs make them.
         fresh: Some(FreshRenders {

@@ -136,6 +136,7 @@ impl FitData {
         Ok(TrainingSet {
             objects: baked,
             modes,
+            twins: self.sets.iter().map(|s| s.near_twins()).collect(),
             images: std::mem::take(&mut self.images),
             fresh: self.fresh.take(),
         })

@@ -61,6 +61,10 @@ pub struct Recipe {
     pub focused_end: f64,
     /// Supersampling of the fresh renders.
     pub supersample: u32,
+    /// Share of the focused rotations drawn around the pose's near-symmetry twins (an
+    /// experiment; 0, the paper's sampling, in the recipe).
+    #[serde(default)]
+    pub twin_share: f64,
 }
 
 /// The recipe: batch 16 × K 256 at 32 px, peak lr 1e-3, the focused share 3/4 → 1/20 (the
@@ -74,6 +78,7 @@ pub const RECIPE: Recipe = Recipe {
     focused_start: 0.75,
     focused_end: 0.05,
     supersample: 2,
+    twin_share: 0.0,
 };
 
 /// Share of the budget the experts of all objects get at most (the rest trains the network).
@@ -310,7 +315,7 @@ fn open_job(model: &NewModel, resume: bool) -> Result<Job, NewModelError> {
         if state.recipe != model.recipe {
             return Err(NewModelError::Invalid(format!(
                 "{}: the job was started with another recipe ({}); give the same --layout, \
-                 --image-size, --batch, --k and --lr",
+                 --image-size, --batch, --k, --lr and --twin-share",
                 state_file.display(),
                 serde_json::to_string(&state.recipe).unwrap_or_default()
             )));
@@ -554,7 +559,8 @@ impl Recipe {
                     self.k,
                     self.focused_start,
                     self.focused_end,
-                ),
+                )
+                .with_twin_share(self.twin_share),
                 experts: ExpertBranches::Both,
             },
             steps,
@@ -723,13 +729,18 @@ fn fit_and_write(
 /// The progress line that opens the fit: its schedule, its probe's pace and its warm start.
 fn fit_line(plan: &BudgetPlan, recipe: &Recipe, config: &TrainConfig) -> String {
     format!(
-        "fit: {} steps of batch {} × K {} ({:.3} s per step in the probe), focused share {} → {}{}",
+        "fit: {} steps of batch {} × K {} ({:.3} s per step in the probe), focused share {} → {}{}{}",
         plan.fit_steps,
         recipe.batch,
         recipe.k,
         plan.probe_fit_step,
         recipe.focused_start,
         recipe.focused_end,
+        if recipe.twin_share > 0.0 {
+            format!(" ({} of it around near-symmetry twins)", recipe.twin_share)
+        } else {
+            String::new()
+        },
         config
             .init
             .as_ref()

@@ -6,6 +6,11 @@
 //! their weights), the rest Haar-uniform, the ground truth first. Uniform (IPDF's, and the
 //! "random sampling" ablation): the ground truth, then K − 1 Haar-uniform rotations.
 //!
+//! Twin sampling (ours, an experiment of `alignist-train new --twin-share`): a share of the
+//! focused rotations is drawn around `R_gt·S·Q` instead, `S` a turn of the part's
+//! near-symmetry: poses the image nearly cannot tell from the truth, where the target is low and
+//! the network was measured to grow a second mode (docs/RESULTS.md, the drill's half-turn twins).
+//!
 //! Why uniform over the table rather than ∝ the targets: the targets are bells a few degrees wide,
 //! and samples drawn ∝ a bell land on its peak and teach nothing about its shoulders.
 
@@ -25,6 +30,8 @@ pub struct ModeSampler {
     centres: Vec<Rotation3<f64>>,
     /// Cumulative weights (empty when uniform).
     cumulative: Vec<f64>,
+    /// The twins of the object's near-symmetry ([`ModeSampler::with_twins`]).
+    twins: Vec<Rotation3<f64>>,
 }
 
 impl ModeSampler {
@@ -53,7 +60,15 @@ impl ModeSampler {
             level_cells: grid.len(),
             centres: table.centres()?,
             cumulative,
+            twins: Vec::new(),
         })
+    }
+
+    /// The sampler with the twins of the object's near-symmetry (relative rotations `S`): a
+    /// strategy's twin share of the focused rotations is drawn around `R_gt·S` instead.
+    pub fn with_twins(mut self, twins: Vec<Rotation3<f64>>) -> Self {
+        self.twins = twins;
+        self
     }
 
     /// One relative rotation `Q`: a drawn cell's centre turned by a rotation drawn uniformly
@@ -107,11 +122,29 @@ pub fn sample_rotations<R: Rng + ?Sized>(
 ) -> Vec<Rotation3<f64>> {
     let mut out = Vec::with_capacity(k);
     out.push(*r_gt);
-    if let (SamplingStrategy::ModeFocused { focused, .. }, Some(modes)) = (strategy, modes)
+    if let (
+        SamplingStrategy::ModeFocused {
+            focused,
+            twin_share,
+            ..
+        },
+        Some(modes),
+    ) = (strategy, modes)
         && !modes.centres.is_empty()
     {
+        let twins = if *twin_share > 0.0 {
+            modes.twins.as_slice()
+        } else {
+            &[]
+        };
         for _ in 0..(*focused).min(k.saturating_sub(1)) {
-            out.push(r_gt * modes.draw(rng));
+            // No draw for the twin's coin without twins: a run without them keeps its stream.
+            let twin = (!twins.is_empty() && rng.random::<f64>() < *twin_share)
+                .then(|| twins[rng.random_range(0..twins.len())]);
+            out.push(match twin {
+                Some(s) => r_gt * s * modes.draw(rng),
+                None => r_gt * modes.draw(rng),
+            });
         }
     }
     while out.len() < k {

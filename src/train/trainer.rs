@@ -36,6 +36,10 @@ pub struct TrainingSet {
     pub objects: Vec<BakedExperts>,
     /// Mode table per object (needed by mode-focused sampling; may be empty otherwise).
     pub modes: Vec<ModeTable>,
+    /// Per object, the twins of its near-symmetry (relative rotations `S`: `R_gt·S` looks
+    /// nearly like `R_gt`) that mode-focused sampling with a twin share draws around; may be
+    /// empty, or shorter than `objects` (no twins for the rest).
+    pub twins: Vec<Vec<nalgebra::Rotation3<f64>>>,
     /// When set, every step renders new images instead of drawing from `images`.
     pub fresh: Option<FreshRenders>,
     /// The images.
@@ -210,7 +214,11 @@ fn mode_samplers(config: &TrainConfig, set: &TrainingSet) -> Result<Vec<ModeSamp
     }
     set.modes
         .iter()
-        .map(|t| ModeSampler::new(t, temperature).map_err(TrainError::from))
+        .enumerate()
+        .map(|(i, t)| {
+            let twins = set.twins.get(i).cloned().unwrap_or_default();
+            Ok(ModeSampler::new(t, temperature)?.with_twins(twins))
+        })
         .collect()
 }
 

@@ -67,6 +67,19 @@ pub(crate) struct NewArgs {
     /// Peak learning rate (for experiments; the recipe's is 1e-3).
     #[arg(long, default_value_t = RECIPE.lr, value_parser = parse_lr)]
     lr: f64,
+    /// Share of the focused rotations drawn around the pose's twins under the part's
+    /// near-symmetry (for experiments, in [0, 1]; the recipe's is 0). A part with no
+    /// near-symmetry has no twins.
+    #[arg(long, default_value_t = RECIPE.twin_share, value_parser = parse_share)]
+    twin_share: f64,
+}
+
+/// A share in [0, 1].
+fn parse_share(s: &str) -> Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(x) if (0.0..=1.0).contains(&x) => Ok(x),
+        _ => Err(format!("'{s}' is not a share in [0, 1] (e.g. 0.25)")),
+    }
 }
 
 /// A positive, finite learning rate (`new --lr` and `fit --lr`).
@@ -140,6 +153,7 @@ pub(crate) fn new_cmd(args: &NewArgs) -> Result<()> {
             batch: args.batch as usize,
             k: args.k as usize,
             lr: args.lr,
+            twin_share: args.twin_share,
             ..RECIPE
         },
         command: std::env::args().collect::<Vec<_>>().join(" "),
