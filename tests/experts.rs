@@ -520,10 +520,15 @@ fn twin_sampling_draws_its_share_around_the_twins_and_none_without() {
     let all = at_twins(&sampler, 1.0);
     assert!(none < 0.05 && all > 0.95, "{none} {all}");
     assert!((half - 0.5).abs() < 0.07, "{half}");
-    // A sampler without twins ignores the share.
+    // A sampler without twins ignores the share, and draws what it drew without one.
     let plain = ModeSampler::new(&table, 0.0).unwrap();
     let ignored = at_twins(&plain, 1.0);
     assert!(ignored < 0.05, "{ignored}");
+    let draw = |share| {
+        let mut rng = ChaCha8Rng::seed_from_u64(406);
+        sample_rotations(&strategy(share), 2001, &r_gt, Some(&plain), &mut rng)
+    };
+    assert_eq!(draw(1.0), draw(0.0));
 }
 
 #[test]
