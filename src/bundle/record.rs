@@ -369,21 +369,11 @@ impl SamplingStrategy {
 
     /// This strategy with `share` of its focused rotations drawn around the pose's twins (a
     /// mode-focused one; others are returned as they are).
-    pub fn with_twin_share(self, share: f64) -> Self {
-        match self {
-            SamplingStrategy::ModeFocused {
-                focused,
-                temperature,
-                focused_end,
-                ..
-            } => SamplingStrategy::ModeFocused {
-                focused,
-                temperature,
-                focused_end,
-                twin_share: share,
-            },
-            other => other,
+    pub fn with_twin_share(mut self, share: f64) -> Self {
+        if let SamplingStrategy::ModeFocused { twin_share, .. } = &mut self {
+            *twin_share = share;
         }
+        self
     }
 
     /// The strategy at `step` of a run of `steps`: an annealed focused count resolved to its

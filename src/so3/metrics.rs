@@ -143,9 +143,8 @@ pub struct MetricsSummary {
     #[serde(default)]
     pub confidently_wrong: f64,
     /// Fraction of images whose argmax is at least [`HALF_TURN_DEG`] from every ground truth:
-    /// the answer is the pose turned about half a turn, the twin of a near-symmetry the model
-    /// did not tell apart (a wrong answer that more detail in the crop can fix), not a scattered
-    /// one.
+    /// the answer is the pose turned about half a turn, a near-lookalike the model did not tell
+    /// apart, not a scattered error.
     #[serde(default)]
     pub half_turn_wrong: f64,
 }
