@@ -1,0 +1,178 @@
+//! Where a part's half-turn misses go. For every crop of a realistic set (the sets `alignist-train
+//! eval --fresh --realistic` scores: same seed 2⁴⁰ + 1, exact boxes) the network's argmax on a
+//! full grid level is compared with the nearest equivalent truth R_t. A half-turn miss (≥ 150°
+//! from every truth, `HALF_TURN_DEG`) is the turn D = R_t⁻¹·R_argmax in the object's frame, and
+//! R_argmax·R_t⁻¹ in the camera's. Per part this prints AR@30, the half-turn share, and for the
+//! misses the axis their turns share (the leading eigenvector of Σ a·aᵀ over their axes a, with
+//! the share of Σ|a|² it holds: 1 when every miss turns about one line, 1/3 when spread evenly)
+//! in each frame, the angle from that object-frame axis to the part's recorded near-symmetry
+//! twin (when its experts record one), and the share of crops right up to those twins (within
+//! 30° of some R_t·S). Twin sampling (`new --twin-share`) draws negatives at R_t·S, so it can only
+//! help when the misses sit there.
+//! `cargo run --release --example probe_twins BUNDLE [IMAGES_PER_PART] [LEVEL] [train|held-out]`
+use alignist::bundle::model::ModelBundle;
+use alignist::data::realism::{Realism, Split};
+use alignist::net::{ProjectedGrid, images_tensor};
+use alignist::so3::metrics::HALF_TURN_DEG;
+use alignist::train::data::BundleRenders;
+use nalgebra::{Matrix3, Rotation3, SymmetricEigen, Vector3};
+
+/// The truth nearest `guess` among `truths`, and the angle to it in degrees.
+fn nearest<'a>(guess: &Rotation3<f64>, truths: &'a [Rotation3<f64>]) -> (&'a Rotation3<f64>, f64) {
+    truths
+        .iter()
+        .map(|t| (t, (t.inverse() * guess).angle().to_degrees()))
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .expect("every crop has a truth")
+}
+
+/// The line the axes share: the leading eigenvector of Σ a·aᵀ and its share of the trace.
+fn shared_axis(axes: &[Vector3<f64>]) -> Option<(Vector3<f64>, f64)> {
+    if axes.is_empty() {
+        return None;
+    }
+    let scatter: Matrix3<f64> = axes.iter().map(|a| a * a.transpose()).sum();
+    let eigen = SymmetricEigen::new(scatter);
+    let (k, top) = eigen
+        .eigenvalues
+        .iter()
+        .enumerate()
+        .max_by(|a, b| a.1.total_cmp(b.1))?;
+    Some((
+        eigen.eigenvectors.column(k).into_owned(),
+        top / scatter.trace(),
+    ))
+}
+
+fn unit_axis(r: &Rotation3<f64>) -> Vector3<f64> {
+    r.axis().map_or(Vector3::z(), |a| a.into_inner())
+}
+
+/// How many of the misses `turns` (each R_t⁻¹·R_argmax) lie within 30° of `half_turn`.
+fn own_twin(turns: &[Rotation3<f64>], half_turn: &Rotation3<f64>) -> usize {
+    turns
+        .iter()
+        .filter(|d| (half_turn.inverse() * *d).angle().to_degrees() <= 30.0)
+        .count()
+}
+
+fn line_angle_deg(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
+    a.normalize()
+        .dot(&b.normalize())
+        .abs()
+        .min(1.0)
+        .acos()
+        .to_degrees()
+}
+
+fn main() -> anyhow::Result<()> {
+    let args: Vec<String> = std::env::args().collect();
+    let Some(path) = args.get(1).map(std::path::PathBuf::from) else {
+        anyhow::bail!("usage: probe_twins BUNDLE [IMAGES_PER_PART] [LEVEL] [train|held-out]");
+    };
+    let per_part: usize = args.get(2).map_or(Ok(50), |s| s.parse())?;
+    let level: u8 = args.get(3).map_or(Ok(3), |s| s.parse())?;
+    let split = match args.get(4).map_or("held-out", |s| s.as_str()) {
+        "train" => Split::Train,
+        "held-out" => Split::HeldOut,
+        other => anyhow::bail!("the split is train or held-out, not {other}"),
+    };
+    let bundle = ModelBundle::load(&path)?;
+    let config = &bundle.manifest.network;
+    let renders = BundleRenders::of(&bundle, 2);
+    let images = renders.fresh.realistic_eval_images(
+        &renders.names,
+        &renders.symmetries,
+        config.image_size,
+        per_part,
+        (1u64 << 40).wrapping_add(1),
+        Realism {
+            split,
+            ..Realism::HELD_OUT
+        },
+    );
+    let device = alignist::backend::device_for(alignist::backend::Workload::Conv);
+    let projected = ProjectedGrid::new(&bundle.network, config, level)?;
+    println!(
+        "{} {split:?} realistic crops per part, exact boxes, level {level}, argmax of {}",
+        per_part,
+        path.display()
+    );
+    for (part, name) in renders.names.iter().enumerate() {
+        let twins = bundle.experts[part].near_twins();
+        let crops: Vec<_> = images.iter().filter(|im| im.object == *name).collect();
+        let (mut right, mut right_up_to_twins) = (0usize, 0usize);
+        let (mut object_misses, mut camera_axes) = (Vec::new(), Vec::new());
+        for batch in crops.chunks(4) {
+            let rgb: Vec<&[u8]> = batch.iter().map(|i| i.rgb.as_slice()).collect();
+            let tensor = images_tensor(&rgb, config.image_size as usize, &device);
+            let features = bundle.network.encoder.forward(tensor);
+            for (im, (s, f)) in batch
+                .iter()
+                .zip(projected.branch_log_weights_of_features(features))
+            {
+                let argmax = s
+                    .iter()
+                    .zip(&f)
+                    .map(|(a, b)| a + b)
+                    .enumerate()
+                    .max_by(|a, b| a.1.total_cmp(&b.1))
+                    .map_or(0, |(i, _)| i as u64);
+                let guess = projected.grid.rotation(argmax);
+                let (truth, error) = nearest(&guess, &im.equivalents);
+                right += (error <= 30.0) as usize;
+                let twinned: Vec<Rotation3<f64>> = im
+                    .equivalents
+                    .iter()
+                    .flat_map(|t| twins.iter().map(move |s| t * s))
+                    .collect();
+                right_up_to_twins += (error <= 30.0
+                    || (!twinned.is_empty() && nearest(&guess, &twinned).1 <= 30.0))
+                    as usize;
+                if error >= HALF_TURN_DEG {
+                    object_misses.push(truth.inverse() * guess);
+                    camera_axes.push(unit_axis(&(guess * truth.inverse())));
+                }
+            }
+        }
+        let n = crops.len() as f64;
+        let object_axes: Vec<Vector3<f64>> = object_misses.iter().map(unit_axis).collect();
+        println!(
+            "{name}: AR@30 {:.2}, half-turn misses {:.2}, right up to the recorded twins {:.2} ({} twins)",
+            right as f64 / n,
+            object_axes.len() as f64 / n,
+            right_up_to_twins as f64 / n,
+            twins.len()
+        );
+        for (frame, axes) in [("object", &object_axes), ("camera", &camera_axes)] {
+            if let Some((axis, share)) = shared_axis(axes) {
+                println!(
+                    "  misses' shared axis, {frame} frame: ({:+.2}, {:+.2}, {:+.2}), share {share:.2}",
+                    axis.x, axis.y, axis.z
+                );
+                if frame == "object" {
+                    let farthest = twins.iter().max_by(|a, b| a.angle().total_cmp(&b.angle()));
+                    if let Some(s) = farthest.filter(|s| s.angle().to_degrees() > 150.0) {
+                        let a = unit_axis(s);
+                        println!(
+                            "    {:.0}° from the recorded twin's axis ({:+.2}, {:+.2}, {:+.2})",
+                            line_angle_deg(&axis, &a),
+                            a.x,
+                            a.y,
+                            a.z
+                        );
+                    }
+                    let half_turn = Rotation3::from_axis_angle(
+                        &nalgebra::Unit::new_normalize(axis),
+                        std::f64::consts::PI,
+                    );
+                    println!(
+                        "    misses within 30° of R_t·(half-turn about it): {:.2} of the crops",
+                        own_twin(&object_misses, &half_turn) as f64 / n
+                    );
+                }
+            }
+        }
+    }
+    Ok(())
+}
