@@ -464,6 +464,7 @@ fn cube_mode_table_holds_every_symmetry_and_sampling_reaches_every_equivalent() 
             temperature: 0.0,
             focused_end: None,
             twin_share: 0.0,
+            own_twins: None,
         },
         2001,
         &r_gt,

@@ -267,9 +267,17 @@ fn a_warm_start_is_checked_before_any_work_and_recorded() {
         tiny["files"]["network.safetensors"]["sha256"]
     );
     assert_eq!(m["provenance"]["report"]["steps_run"], 20);
-    // An experiment's crop size, deeper layout, batch, K, learning rate and twin share from the same 32 px
-    // `tiny` warm start.
+    // An experiment's crop size, deeper layout, batch, K, learning rate, twin share and own
+    // twins from the same 32 px `tiny` warm start; own twins without a twin share are refused.
     let out48 = s(&root.path().join("models/blocks48"));
+    let refused = Command::new(env!("CARGO_BIN_EXE_alignist-train"))
+        .args(new_args(&part_s, &out48, "20m", &["--own-twins", "4"]))
+        .output()
+        .unwrap();
+    assert!(!refused.status.success());
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(err.contains("--twin-share"), "{err}");
+    assert!(!Path::new(&format!("{out48}.job")).exists());
     train(&new_args(
         &part_s,
         &out48,
@@ -291,6 +299,8 @@ fn a_warm_start_is_checked_before_any_work_and_recorded() {
             "3e-4",
             "--twin-share",
             "0.5",
+            "--own-twins",
+            "4",
         ],
     ));
     let m = manifest(Path::new(&out48));
@@ -302,6 +312,10 @@ fn a_warm_start_is_checked_before_any_work_and_recorded() {
     assert_eq!(
         m["provenance"]["train"]["method"]["sampling"]["twin_share"],
         0.5
+    );
+    assert_eq!(
+        m["provenance"]["train"]["method"]["sampling"]["own_twins"],
+        serde_json::json!({ "crops": 4, "every": 250 })
     );
 }
 

@@ -17,8 +17,8 @@ use alignist::net::images_tensor;
 use alignist::so3::{GridLevel, haar_rotations};
 use alignist::train::data::FreshRenders;
 use alignist::train::{
-    MeasureLoss, Method, Network, NetworkConfig, SamplingStrategy, TrainConfig, TrainingImage,
-    TrainingSet, train, train_replanned,
+    MeasureLoss, Method, Network, NetworkConfig, OwnTwins, SamplingStrategy, TrainConfig,
+    TrainingImage, TrainingSet, train, train_replanned,
 };
 use common::tensors;
 use rand::SeedableRng;
@@ -74,6 +74,7 @@ fn tiny_set() -> TrainingSet {
         objects: vec![baked],
         modes: vec![modes],
         twins: Vec::new(),
+        symmetries: Vec::new(),
         images,
         fresh: None,
     }
@@ -117,6 +118,7 @@ fn alignist_method() -> Method {
             temperature: 0.0,
             focused_end: None,
             twin_share: 0.0,
+            own_twins: None,
         },
         experts: Default::default(),
     }
@@ -139,16 +141,87 @@ fn fingerprint(network: &Network, set: &TrainingSet) -> Vec<f32> {
 
 #[test]
 fn training_is_deterministic_and_resumes_exactly() {
-    deterministic_and_resumes_exactly(tiny_set());
+    deterministic_and_resumes_exactly(tiny_set(), alignist_method());
 }
 
 #[test]
 fn training_on_fresh_renders_is_deterministic_and_resumes_exactly() {
-    deterministic_and_resumes_exactly(tiny_fresh_set());
+    deterministic_and_resumes_exactly(tiny_fresh_set(), alignist_method());
 }
 
-fn deterministic_and_resumes_exactly(set: TrainingSet) {
-    let cfg = config(alignist_method());
+/// [`alignist_method`] with half its focused rotations around twins, and the network's own
+/// searched on 12 crops every 2 steps (the cube's set records no symmetry, so no near-symmetry
+/// twins either: every twin is the network's own).
+fn own_twins_method() -> Method {
+    let Method::Alignist {
+        loss,
+        sampling,
+        experts,
+    } = alignist_method()
+    else {
+        unreachable!("alignist_method is Alignist")
+    };
+    Method::Alignist {
+        loss,
+        sampling: sampling.with_twin_share(0.5).with_own_twins(Some(OwnTwins {
+            crops: 12,
+            every: 2,
+        })),
+        experts,
+    }
+}
+
+#[test]
+fn the_networks_own_twins_are_found_checkpointed_and_resume_exactly() {
+    // Searched at steps 0, 2 and 4; the checkpoint of step 3 holds step 2's, and the run killed
+    // after step 4 resumes from it to the same weights.
+    deterministic_and_resumes_exactly(tiny_fresh_set(), own_twins_method());
+    let set = tiny_fresh_set();
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = config(own_twins_method());
+    let (with_own, _) = train(&cfg, &set, Some(dir.path()), false, |_, _, _| {
+        ControlFlow::Continue(())
+    })
+    .unwrap();
+    let state: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(dir.path().join("step-00000003/state.json")).unwrap(),
+    )
+    .unwrap();
+    let twins = state["own_twins"][0]
+        .as_array()
+        .expect("the cube's own twins");
+    assert!(
+        !twins.is_empty(),
+        "an untrained network misses by a half-turn"
+    );
+    for m in twins {
+        let m: Vec<f64> = serde_json::from_value(m.clone()).unwrap();
+        let r = alignist::so3::from_row_major(m.try_into().unwrap()).unwrap();
+        assert!(
+            r.angle().to_degrees() >= 150.0,
+            "{}°",
+            r.angle().to_degrees()
+        );
+    }
+    // The same run without its own twins (a twin share, but no twins to draw around) trains
+    // other weights.
+    let without = config(Method::Alignist {
+        loss: MeasureLoss::Gkl,
+        sampling: match own_twins_method() {
+            Method::Alignist { sampling, .. } => sampling.with_own_twins(None),
+            Method::Ipdf => unreachable!(),
+        },
+        experts: Default::default(),
+    });
+    let (plain, _) = train(&without, &set, None, false, |_, _, _| {
+        ControlFlow::Continue(())
+    })
+    .unwrap();
+    assert_ne!(fingerprint(&with_own, &set), fingerprint(&plain, &set));
+}
+
+fn deterministic_and_resumes_exactly(set: TrainingSet, method: Method) {
+    let cfg = config(method);
     let mut losses = Vec::new();
     let (a, report) = train(&cfg, &set, None, false, |_, _, l| {
         losses.push(l);
@@ -290,6 +363,7 @@ fn cube_with_small_experts() -> (TrainingSet, FreshRenders) {
         objects: vec![baked],
         modes: vec![experts.modes.clone().unwrap()],
         twins: Vec::new(),
+        symmetries: Vec::new(),
         images: Vec::new(),
         fresh: Some(fresh.clone()),
     };
@@ -469,6 +543,7 @@ fn single_expert_runs_silence_the_other_branch() {
                 temperature: 0.0,
                 focused_end: None,
                 twin_share: 0.0,
+                own_twins: None,
             },
             experts,
         });

@@ -327,6 +327,10 @@ pub enum SamplingStrategy {
         /// from the truth, where the target is low; 0 (the paper's) draws none.
         #[serde(default, skip_serializing_if = "is_zero")]
         twin_share: f64,
+        /// When set, the twins also include the network's own half-turn misses, found as it
+        /// trains ([`OwnTwins`]); the twin share is drawn around those too.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        own_twins: Option<OwnTwins>,
     },
     /// The GT, then uniform rotations.
     Uniform,
@@ -334,6 +338,20 @@ pub enum SamplingStrategy {
 
 fn is_zero(x: &f64) -> bool {
     *x == 0.0
+}
+
+/// Twins found in the network's own answers (ours, an experiment of `alignist-train new
+/// --own-twins`): every `every` steps, and before the first, the network's argmax on `crops` fresh
+/// crops of each object (the training split's kind) is compared with the truth, and the turns
+/// `D = R_t⁻¹·R̂` of its half-turn misses (at least `HALF_TURN_DEG` from every equivalent truth)
+/// become that object's twins until the next time: the poses the network confuses with the truth
+/// now, whether or not the part's geometry records a near-symmetry there.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct OwnTwins {
+    /// Crops per object each time.
+    pub crops: usize,
+    /// Steps between two searches.
+    pub every: usize,
 }
 
 /// The paper's share of the K rotations drawn from the mode table.
@@ -353,6 +371,7 @@ impl SamplingStrategy {
             temperature: 0.0,
             focused_end: None,
             twin_share: 0.0,
+            own_twins: None,
         }
     }
 
@@ -364,6 +383,7 @@ impl SamplingStrategy {
             temperature: 0.0,
             focused_end: Some((k as f64 * end).floor() as usize),
             twin_share: 0.0,
+            own_twins: None,
         }
     }
 
@@ -376,6 +396,23 @@ impl SamplingStrategy {
         self
     }
 
+    /// This strategy with the network's own twins searched as `own` says (a mode-focused one;
+    /// others are returned as they are).
+    pub fn with_own_twins(mut self, own: Option<OwnTwins>) -> Self {
+        if let SamplingStrategy::ModeFocused { own_twins, .. } = &mut self {
+            *own_twins = own;
+        }
+        self
+    }
+
+    /// The network's own twins this strategy searches, if any.
+    pub fn own_twins(&self) -> Option<OwnTwins> {
+        match self {
+            SamplingStrategy::ModeFocused { own_twins, .. } => *own_twins,
+            SamplingStrategy::Uniform => None,
+        }
+    }
+
     /// The strategy at `step` of a run of `steps`: an annealed focused count resolved to its
     /// value there.
     pub fn at_step(&self, step: usize, steps: usize) -> SamplingStrategy {
@@ -385,6 +422,7 @@ impl SamplingStrategy {
                 temperature,
                 focused_end: Some(end),
                 twin_share,
+                own_twins,
             } => {
                 let t = step as f64 / steps.saturating_sub(1).max(1) as f64;
                 let now = focused as f64 + (end as f64 - focused as f64) * t.min(1.0);
@@ -393,6 +431,7 @@ impl SamplingStrategy {
                     temperature,
                     focused_end: None,
                     twin_share,
+                    own_twins,
                 }
             }
             other => other,

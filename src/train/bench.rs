@@ -105,6 +105,7 @@ pub fn bench_training(config: &TrainingBenchConfig) -> Result<TrainingBench, Tra
         objects: vec![baked],
         modes: vec![modes],
         twins: Vec::new(),
+        symmetries: Vec::new(),
         images: Vec::new(),
         // Realistic renders at 2× supersampling, as the realistic training runs make them.
         fresh: Some(FreshRenders {

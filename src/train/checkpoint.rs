@@ -19,6 +19,8 @@ use serde::{Deserialize, Serialize};
 use super::TrainError;
 use super::config::TrainConfig;
 use crate::net::Network;
+use crate::so3::{from_row_major, to_row_major};
+use nalgebra::Rotation3;
 
 /// What a checkpoint records besides the weights.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -27,6 +29,42 @@ pub struct CheckpointState {
     pub step: usize,
     /// The run's configuration.
     pub config: TrainConfig,
+    /// Per object, the network's own twins in effect from this step (row-major rotations;
+    /// [`crate::train::sampling::OwnTwins`]), so that a resumed run draws what the run it
+    /// continues drew.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub own_twins: Vec<Vec<[f64; 9]>>,
+}
+
+impl CheckpointState {
+    /// The state after `step` steps of `config`, with the network's own twins `own_twins`.
+    pub fn new(step: usize, config: TrainConfig, own_twins: &[Vec<Rotation3<f64>>]) -> Self {
+        CheckpointState {
+            step,
+            config,
+            own_twins: own_twins
+                .iter()
+                .map(|t| t.iter().map(to_row_major).collect())
+                .collect(),
+        }
+    }
+
+    /// The network's own twins recorded, as rotations.
+    pub fn own_twins(&self) -> Result<Vec<Vec<Rotation3<f64>>>, TrainError> {
+        self.own_twins
+            .iter()
+            .map(|t| {
+                t.iter()
+                    .map(|m| {
+                        from_row_major(*m).map_err(|e| TrainError::Checkpoint {
+                            path: format!("checkpoint of step {}", self.step),
+                            message: format!("own_twins: {e}"),
+                        })
+                    })
+                    .collect()
+            })
+            .collect()
+    }
 }
 
 fn err(path: &Path, message: impl std::fmt::Display) -> TrainError {

@@ -137,6 +137,7 @@ impl FitData {
             objects: baked,
             modes,
             twins: self.sets.iter().map(|s| s.near_twins()).collect(),
+            symmetries: self.sets.iter().map(|s| s.symmetries()).collect(),
             images: std::mem::take(&mut self.images),
             fresh: self.fresh.take(),
         })

@@ -11,12 +11,13 @@ pub mod eval;
 pub mod experts;
 pub mod fit;
 pub mod new_model;
+pub mod own_twins;
 pub mod results;
 pub mod sampling;
 pub mod trainer;
 
 pub use crate::net::{Network, NetworkConfig};
-pub use sampling::{ModeSampler, SamplingStrategy, sample_rotations};
+pub use sampling::{ModeSampler, OwnTwins, SamplingStrategy, sample_rotations};
 pub use trainer::{
     ExpertBranches, MeasureLoss, Method, TrainConfig, TrainReport, TrainingImage, TrainingSet,
     train, train_replanned,

@@ -65,7 +65,20 @@ pub struct Recipe {
     /// experiment; 0, the paper's sampling, in the recipe).
     #[serde(default)]
     pub twin_share: f64,
+    /// Crops per part on which the network's own half-turn misses are searched every
+    /// [`OWN_TWINS_EVERY`] steps, to become twins besides the near-symmetry's
+    /// ([`super::sampling::OwnTwins`]; an experiment, needs a twin share; 0, none, in the
+    /// recipe).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub own_twins: usize,
 }
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
+}
+
+/// Steps between two searches of the network's own twins ([`Recipe::own_twins`]).
+pub const OWN_TWINS_EVERY: usize = 250;
 
 /// The recipe: batch 16 × K 256 at 32 px, peak lr 1e-3, the focused share 3/4 → 1/20 (the
 /// warm start, [`NewModel::init`], is the binary's default: `training/warm-starts`).
@@ -79,6 +92,7 @@ pub const RECIPE: Recipe = Recipe {
     focused_end: 0.05,
     supersample: 2,
     twin_share: 0.0,
+    own_twins: 0,
 };
 
 /// Share of the budget the experts of all objects get at most (the rest trains the network).
@@ -315,7 +329,7 @@ fn open_job(model: &NewModel, resume: bool) -> Result<Job, NewModelError> {
         if state.recipe != model.recipe {
             return Err(NewModelError::Invalid(format!(
                 "{}: the job was started with another recipe ({}); give the same --layout, \
-                 --image-size, --batch, --k, --lr and --twin-share",
+                 --image-size, --batch, --k, --lr, --twin-share and --own-twins",
                 state_file.display(),
                 serde_json::to_string(&state.recipe).unwrap_or_default()
             )));
@@ -560,7 +574,11 @@ impl Recipe {
                     self.focused_start,
                     self.focused_end,
                 )
-                .with_twin_share(self.twin_share),
+                .with_twin_share(self.twin_share)
+                .with_own_twins((self.own_twins > 0).then_some(super::sampling::OwnTwins {
+                    crops: self.own_twins,
+                    every: OWN_TWINS_EVERY,
+                })),
                 experts: ExpertBranches::Both,
             },
             steps,
@@ -737,7 +755,18 @@ fn fit_line(plan: &BudgetPlan, recipe: &Recipe, config: &TrainConfig) -> String 
         recipe.focused_start,
         recipe.focused_end,
         if recipe.twin_share > 0.0 {
-            format!(" ({} of it around near-symmetry twins)", recipe.twin_share)
+            format!(
+                " ({} of it around {}twins)",
+                recipe.twin_share,
+                if recipe.own_twins > 0 {
+                    format!(
+                        "near-symmetry and own (searched on {} crops a part every {} steps) ",
+                        recipe.own_twins, OWN_TWINS_EVERY
+                    )
+                } else {
+                    "near-symmetry ".into()
+                }
+            )
         } else {
             String::new()
         },

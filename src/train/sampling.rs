@@ -17,7 +17,7 @@
 use nalgebra::Rotation3;
 use rand::{Rng, RngExt};
 
-pub use crate::bundle::record::{PAPER_FOCUSED_SHARE, SamplingStrategy};
+pub use crate::bundle::record::{OwnTwins, PAPER_FOCUSED_SHARE, SamplingStrategy};
 use crate::experts::modes::ModeTable;
 use crate::so3::{So3Error, haar_rotation, random_axis};
 
@@ -68,6 +68,12 @@ impl ModeSampler {
     /// strategy's twin share of the focused rotations is drawn around `R_gt·S` instead.
     pub fn with_twins(mut self, twins: Vec<Rotation3<f64>>) -> Self {
         self.twins = twins;
+        self
+    }
+
+    /// The sampler with `more` twins besides its own (the network's own, [`OwnTwins`]).
+    pub fn with_more_twins(mut self, more: &[Rotation3<f64>]) -> Self {
+        self.twins.extend_from_slice(more);
         self
     }
 

@@ -6,6 +6,7 @@
 use std::ops::ControlFlow;
 use std::path::Path;
 use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, RwLock};
 use std::time::Instant;
 
 use burn::module::Module;
@@ -18,7 +19,7 @@ use super::TrainError;
 use super::checkpoint::{CheckpointState, latest_checkpoint, load_checkpoint, save_checkpoint};
 pub use super::config::{ExpertBranches, MeasureLoss, Method, TrainConfig, learning_rate};
 pub use super::data::{FreshRenders, TrainingImage};
-use super::sampling::{ModeSampler, SamplingStrategy, sample_rotations};
+use super::sampling::{ModeSampler, OwnTwins, SamplingStrategy, sample_rotations};
 pub use crate::bundle::record::{StepProfile, TrainReport};
 use crate::experts::energy::{BakedExperts, LogTargets};
 use crate::experts::modes::ModeTable;
@@ -28,6 +29,7 @@ use crate::net::{
 };
 use crate::net::{Network, images_tensor};
 use crate::so3::to_row_major_f32;
+use nalgebra::Rotation3;
 use rayon::prelude::*;
 
 /// Images and the baked experts of their objects.
@@ -40,6 +42,9 @@ pub struct TrainingSet {
     /// nearly like `R_gt`) that mode-focused sampling with a twin share draws around; may be
     /// empty, or shorter than `objects` (no twins for the rest).
     pub twins: Vec<Vec<nalgebra::Rotation3<f64>>>,
+    /// Per object, its proper symmetries (for telling the network's own half-turn misses,
+    /// [`super::own_twins`]); may be empty, or shorter than `objects` (the identity alone).
+    pub symmetries: Vec<Vec<nalgebra::Rotation3<f64>>>,
     /// When set, every step renders new images instead of drawing from `images`.
     pub fresh: Option<FreshRenders>,
     /// The images.
@@ -222,6 +227,36 @@ fn mode_samplers(config: &TrainConfig, set: &TrainingSet) -> Result<Vec<ModeSamp
         .collect()
 }
 
+/// The samplers `recorded` (each with its part's recorded twins) with the network's own twins
+/// `own` added to each object's.
+fn with_own_twins(recorded: &[ModeSampler], own: &[Vec<Rotation3<f64>>]) -> Vec<ModeSampler> {
+    recorded
+        .iter()
+        .enumerate()
+        .map(|(i, sampler)| match own.get(i) {
+            Some(more) if !more.is_empty() => sampler.clone().with_more_twins(more),
+            _ => sampler.clone(),
+        })
+        .collect()
+}
+
+/// The network's own twins at `step` ([`super::own_twins::own_twins`], crops drawn from the run's
+/// seed and the step's), from its weights as they are.
+fn search_own_twins(
+    config: &TrainConfig,
+    set: &TrainingSet,
+    network: &Network,
+    own: OwnTwins,
+    step: usize,
+) -> Result<Vec<Vec<Rotation3<f64>>>, TrainError> {
+    network.encoder.sync_running_stats();
+    let seed = config
+        .seed
+        .wrapping_mul(0x7e1f_5eed)
+        .wrapping_add(step as u64);
+    super::own_twins::own_twins(&network.valid(), &config.network, set, own, seed)
+}
+
 /// Refuses a training set that cannot train: no images, or fresh renders without a mesh per
 /// object.
 fn check_set(set: &TrainingSet) -> Result<(), TrainError> {
@@ -249,7 +284,7 @@ fn starting_point(
     resume: bool,
     samplers: &[ModeSampler],
     device: &Device,
-) -> Result<(Network, ModuleOptimizer, usize), TrainError> {
+) -> Result<(Network, ModuleOptimizer, Option<CheckpointState>), TrainError> {
     let mut network =
         crate::backend::seeded_init(device, config.seed, || config.network.init(device));
     let optim = AdamConfig::new().init();
@@ -257,7 +292,7 @@ fn starting_point(
         && let Some(latest) = latest_checkpoint(dir)?
     {
         let (net, opt, state) = load_checkpoint(&latest, network, optim, device)?;
-        return Ok((net, opt, state.step));
+        return Ok((net, opt, Some(state)));
     }
     if let Some(init) = &config.init {
         let to = config.network.layout;
@@ -286,7 +321,7 @@ fn starting_point(
             .ok_or_else(|| fail(format!("a {from:?} encoder does not warm-start {to:?}")))?;
         }
         // As after a checkpoint: loading runs ops on the parameters, fork gives them a graph.
-        return Ok((loaded.valid().train().fork(device), optim, 0));
+        return Ok((loaded.valid().train().fork(device), optim, None));
     }
     if let Method::Alignist { experts, .. } = config.method {
         let (sdf, se) = mean_log_targets(config, set, config.batch, samplers);
@@ -297,7 +332,7 @@ fn starting_point(
             ExpertBranches::Both => {}
         }
     }
-    Ok((network, optim, 0))
+    Ok((network, optim, None))
 }
 
 /// The loss of one batch (scores of `rotations` for the encoder's `features`) for the method:
@@ -385,7 +420,9 @@ struct Run<'a> {
     /// ([`train_replanned`]); the learning rate and the focused share follow it.
     steps: AtomicUsize,
     set: &'a TrainingSet,
-    samplers: &'a [ModeSampler],
+    /// The mode samplers now: their twins change where the network's own are searched
+    /// ([`OwnTwins`]), between steps, never while a batch is drawn.
+    samplers: RwLock<Arc<Vec<ModeSampler>>>,
     device: &'a Device,
     head: HeadPath,
     encoder: EncoderPath,
@@ -409,12 +446,9 @@ struct Batch {
 impl Run<'_> {
     /// The batch of `step`: its images, rotations and targets from the step's seed.
     fn batch(&self, step: usize) -> Batch {
-        let Run {
-            config,
-            set,
-            samplers,
-            ..
-        } = *self;
+        let Run { config, set, .. } = *self;
+        let samplers = Arc::clone(&self.samplers.read().unwrap_or_else(|p| p.into_inner()));
+        let samplers = samplers.as_slice();
         let steps = self.steps.load(Ordering::Relaxed);
         let seed = config
             .seed
@@ -664,14 +698,25 @@ pub fn train_replanned(
     check_set(set)?;
     let started = Instant::now();
     let device = crate::backend::device_for(crate::backend::Workload::Conv).autodiff();
-    let samplers = mode_samplers(config, set)?;
-    let (network, mut optim, start) =
-        starting_point(config, set, checkpoints, resume, &samplers, &device)?;
+    let recorded = mode_samplers(config, set)?;
+    let (network, mut optim, resumed) =
+        starting_point(config, set, checkpoints, resume, &recorded, &device)?;
+    let start = resumed.as_ref().map_or(0, |s| s.step);
+    let own = match &config.method {
+        Method::Alignist { sampling, .. } => sampling.own_twins(),
+        Method::Ipdf => None,
+    };
+    // The network's own twins in effect from `start`: a checkpoint's, else searched now.
+    let mut own_now = match (own, resumed) {
+        (None, _) => Vec::new(),
+        (Some(_), Some(state)) => state.own_twins()?,
+        (Some(own), None) => search_own_twins(config, set, &network, own, start)?,
+    };
     let run = Run {
         config,
         steps: AtomicUsize::new(config.steps),
         set,
-        samplers: &samplers,
+        samplers: RwLock::new(Arc::new(with_own_twins(&recorded, &own_now))),
         device: &device,
         head: HeadPath::from_env(),
         encoder: EncoderPath::from_env(),
@@ -707,6 +752,16 @@ pub fn train_replanned(
             (network, loss_value) = run.step(network, &mut optim, step, batch, &mut profile)?;
             losses.push(loss_value);
             let done = step + 1;
+            if let Some(own) = own.filter(|o| done % o.every.max(1) == 0 && done < steps) {
+                own_now = search_own_twins(config, set, &network, own, done)?;
+                // The next step's batch was drawn with the old twins: draw it again.
+                if let Some(stale) = pending.take() {
+                    let _ = stale.join();
+                }
+                *run.samplers.write().unwrap_or_else(|p| p.into_inner()) =
+                    Arc::new(with_own_twins(&recorded, &own_now));
+                pending = prepare(done);
+            }
             if let Some(dir) = checkpoints
                 && (done % config.checkpoint_every.max(1) == 0 || done == steps)
             {
@@ -715,7 +770,7 @@ pub fn train_replanned(
                     steps,
                     ..config.clone()
                 };
-                let state = CheckpointState { step: done, config };
+                let state = CheckpointState::new(done, config, &own_now);
                 save_checkpoint(dir, &network, &optim, &state)?;
             }
             profile.steps += 1;

@@ -72,6 +72,11 @@ pub(crate) struct NewArgs {
     /// near-symmetry has no twins.
     #[arg(long, default_value_t = RECIPE.twin_share, value_parser = parse_share)]
     twin_share: f64,
+    /// Also draw the twin share around the network's own half-turn misses, searched on this many
+    /// fresh crops per part every 250 steps (for experiments; needs --twin-share above 0; the
+    /// recipe's is 0, none).
+    #[arg(long, default_value_t = RECIPE.own_twins as u32, value_parser = clap::value_parser!(u32).range(0..=4096))]
+    own_twins: u32,
 }
 
 /// A share in [0, 1].
@@ -137,6 +142,13 @@ pub(crate) fn new_cmd(args: &NewArgs) -> Result<()> {
     if args.eval_images == 0 {
         bail!("--eval-images must be at least 1: the model is judged on held-out crops");
     }
+    if args.own_twins > 0 && args.twin_share == 0.0 {
+        bail!(
+            "--own-twins {} needs a --twin-share above 0: the share of the focused rotations \
+             drawn around the twins it finds",
+            args.own_twins
+        );
+    }
     let model = NewModel {
         meshes: args.mesh.clone(),
         units: parse_units(&args.units)?,
@@ -154,6 +166,7 @@ pub(crate) fn new_cmd(args: &NewArgs) -> Result<()> {
             k: args.k as usize,
             lr: args.lr,
             twin_share: args.twin_share,
+            own_twins: args.own_twins as usize,
             ..RECIPE
         },
         command: std::env::args().collect::<Vec<_>>().join(" "),
