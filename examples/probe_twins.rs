@@ -5,7 +5,8 @@
 //! R_argmax·R_t⁻¹ in the camera's. Per part this prints AR@30, the half-turn share, and for the
 //! misses the axis their turns share (the leading eigenvector of Σ a·aᵀ over their axes a, with
 //! the share of Σ|a|² it holds: 1 when every miss turns about one line, 1/3 when spread evenly)
-//! in each frame, the angle from that object-frame axis to the part's recorded near-symmetry
+//! in each frame, the share of crops answered upside down (the truth turned half a turn about
+//! the camera's line of sight), the angle from that object-frame axis to the part's recorded near-symmetry
 //! twin (when its experts record one), and the share of crops right up to those twins (within
 //! 30° of some R_t·S). Twin sampling (`new --twin-share`) draws negatives at R_t·S, so it can only
 //! help when the misses sit there.
@@ -16,6 +17,7 @@ use alignist::net::{ProjectedGrid, images_tensor};
 use alignist::so3::metrics::HALF_TURN_DEG;
 use alignist::train::data::BundleRenders;
 use nalgebra::{Matrix3, Rotation3, SymmetricEigen, Vector3};
+use std::f64::consts::PI;
 
 /// The truth nearest `guess` among `truths`, and the angle to it in degrees.
 fn nearest<'a>(guess: &Rotation3<f64>, truths: &'a [Rotation3<f64>]) -> (&'a Rotation3<f64>, f64) {
@@ -103,6 +105,7 @@ fn main() -> anyhow::Result<()> {
         let crops: Vec<_> = images.iter().filter(|im| im.object == *name).collect();
         let (mut right, mut right_up_to_twins) = (0usize, 0usize);
         let (mut object_misses, mut camera_axes) = (Vec::new(), Vec::new());
+        let mut in_plane = 0usize;
         for batch in crops.chunks(4) {
             let rgb: Vec<&[u8]> = batch.iter().map(|i| i.rgb.as_slice()).collect();
             let tensor = images_tensor(&rgb, config.image_size as usize, &device);
@@ -132,6 +135,12 @@ fn main() -> anyhow::Result<()> {
                 if error >= HALF_TURN_DEG {
                     object_misses.push(truth.inverse() * guess);
                     camera_axes.push(unit_axis(&(guess * truth.inverse())));
+                    // Turned half a turn about the line of sight: the crop upside down.
+                    let upside_down = Rotation3::from_axis_angle(&Vector3::z_axis(), PI);
+                    in_plane += ((upside_down.inverse() * guess * truth.inverse())
+                        .angle()
+                        .to_degrees()
+                        <= 30.0) as usize;
                 }
             }
         }
@@ -143,6 +152,10 @@ fn main() -> anyhow::Result<()> {
             object_axes.len() as f64 / n,
             right_up_to_twins as f64 / n,
             twins.len()
+        );
+        println!(
+            "  misses within 30° of the truth turned half a turn about the line of sight: {:.2} of the crops",
+            in_plane as f64 / n
         );
         for (frame, axes) in [("object", &object_axes), ("camera", &camera_axes)] {
             if let Some((axis, share)) = shared_axis(axes) {

@@ -179,10 +179,16 @@ fn the_networks_own_twins_are_found_checkpointed_and_resume_exactly() {
     let set = tiny_fresh_set();
     let dir = tempfile::tempdir().unwrap();
     let cfg = config(own_twins_method());
-    let (with_own, _) = train(&cfg, &set, Some(dir.path()), false, |_, _, _| {
+    let (with_own, report) = train(&cfg, &set, Some(dir.path()), false, |_, _, _| {
         ControlFlow::Continue(())
     })
     .unwrap();
+    let searched: Vec<usize> = report.own_twins.iter().map(|f| f.step).collect();
+    assert_eq!(
+        searched,
+        [0, 2, 4],
+        "searched before the first step and every 2"
+    );
     let state: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(dir.path().join("step-00000003/state.json")).unwrap(),
     )
@@ -194,6 +200,7 @@ fn the_networks_own_twins_are_found_checkpointed_and_resume_exactly() {
         !twins.is_empty(),
         "an untrained network misses by a half-turn"
     );
+    assert_eq!(twins.len(), report.own_twins[1].misses[0], "step 2's twins");
     for m in twins {
         let m: Vec<f64> = serde_json::from_value(m.clone()).unwrap();
         let r = alignist::so3::from_row_major(m.try_into().unwrap()).unwrap();

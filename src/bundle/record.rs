@@ -453,6 +453,21 @@ pub struct TrainReport {
     /// Mean milliseconds per step in each stage.
     #[serde(default)]
     pub profile: StepProfile,
+    /// Every search of the network's own twins this call ran ([`OwnTwins`]; none without).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub own_twins: Vec<OwnTwinsFound>,
+}
+
+/// One search of the network's own twins ([`OwnTwins`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct OwnTwinsFound {
+    /// The step it ran before.
+    pub step: usize,
+    /// Per object, how many of its crops the network missed by a half-turn: its twins until the
+    /// next search.
+    pub misses: Vec<usize>,
+    /// Seconds the search took.
+    pub seconds: f64,
 }
 
 /// Time per training step in each stage (seconds summed while training; milliseconds per step

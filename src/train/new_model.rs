@@ -710,6 +710,7 @@ fn fit_and_write(
         resume,
         progress,
     )?;
+    say_own_twins(job, &report, progress);
     // The schedule the fit ended with (re-planned to its pace).
     let plan = job.state.plan.clone().unwrap_or(plan);
     config.steps = plan.fit_steps;
@@ -848,6 +849,27 @@ fn replanned_steps(
     let fits = step + (available.max(0.0) / per_step).floor() as usize;
     let target = max_steps.map_or(fits, |m| fits.min(m)).max(step + 1);
     (target.abs_diff(steps) > (steps / 100).max(1)).then_some(target)
+}
+
+/// The line after a fit that searched the network's own twins: how often, how long, and the
+/// half-turn misses per part at its first and last search.
+fn say_own_twins(job: &Job, report: &TrainReport, progress: &(dyn Fn(&str) + Sync)) {
+    if let (Some(first), Some(last)) = (report.own_twins.first(), report.own_twins.last()) {
+        let seconds: f64 = report.own_twins.iter().map(|f| f.seconds).sum();
+        job.say(
+            progress,
+            &format!(
+                "fit: own twins searched {} times ({:.1} s in all); half-turn misses per part at \
+                 step {}: {:?}, at step {}: {:?}",
+                report.own_twins.len(),
+                seconds,
+                first.step,
+                first.misses,
+                last.step,
+                last.misses
+            ),
+        );
+    }
 }
 
 /// The fit stage: `config`'s schedule with checkpoints in the job's folder, progress every 30 s,

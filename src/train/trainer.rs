@@ -20,7 +20,7 @@ use super::checkpoint::{CheckpointState, latest_checkpoint, load_checkpoint, sav
 pub use super::config::{ExpertBranches, MeasureLoss, Method, TrainConfig, learning_rate};
 pub use super::data::{FreshRenders, TrainingImage};
 use super::sampling::{ModeSampler, OwnTwins, SamplingStrategy, sample_rotations};
-pub use crate::bundle::record::{StepProfile, TrainReport};
+pub use crate::bundle::record::{OwnTwinsFound, StepProfile, TrainReport};
 use crate::experts::energy::{BakedExperts, LogTargets};
 use crate::experts::modes::ModeTable;
 use crate::net::{
@@ -241,20 +241,28 @@ fn with_own_twins(recorded: &[ModeSampler], own: &[Vec<Rotation3<f64>>]) -> Vec<
 }
 
 /// The network's own twins at `step` ([`super::own_twins::own_twins`], crops drawn from the run's
-/// seed and the step's), from its weights as they are.
+/// seed and the step's), from its weights as they are; the search is added to `found`.
 fn search_own_twins(
     config: &TrainConfig,
     set: &TrainingSet,
     network: &Network,
     own: OwnTwins,
     step: usize,
+    found: &mut Vec<OwnTwinsFound>,
 ) -> Result<Vec<Vec<Rotation3<f64>>>, TrainError> {
+    let started = Instant::now();
     network.encoder.sync_running_stats();
     let seed = config
         .seed
         .wrapping_mul(0x7e1f_5eed)
         .wrapping_add(step as u64);
-    super::own_twins::own_twins(&network.valid(), &config.network, set, own, seed)
+    let twins = super::own_twins::own_twins(&network.valid(), &config.network, set, own, seed)?;
+    found.push(OwnTwinsFound {
+        step,
+        misses: twins.iter().map(Vec::len).collect(),
+        seconds: started.elapsed().as_secs_f64(),
+    });
+    Ok(twins)
 }
 
 /// Refuses a training set that cannot train: no images, or fresh renders without a mesh per
@@ -707,10 +715,11 @@ pub fn train_replanned(
         Method::Ipdf => None,
     };
     // The network's own twins in effect from `start`: a checkpoint's, else searched now.
+    let mut own_found = Vec::new();
     let mut own_now = match (own, resumed) {
         (None, _) => Vec::new(),
         (Some(_), Some(state)) => state.own_twins()?,
-        (Some(own), None) => search_own_twins(config, set, &network, own, start)?,
+        (Some(own), None) => search_own_twins(config, set, &network, own, start, &mut own_found)?,
     };
     let run = Run {
         config,
@@ -753,7 +762,7 @@ pub fn train_replanned(
             losses.push(loss_value);
             let done = step + 1;
             if let Some(own) = own.filter(|o| done % o.every.max(1) == 0 && done < steps) {
-                own_now = search_own_twins(config, set, &network, own, done)?;
+                own_now = search_own_twins(config, set, &network, own, done, &mut own_found)?;
                 // The next step's batch was drawn with the old twins: draw it again.
                 if let Some(stale) = pending.take() {
                     let _ = stale.join();
@@ -800,6 +809,7 @@ pub fn train_replanned(
             final_loss: tail_loss(&losses, start, run.steps.load(Ordering::Relaxed)),
             seconds: started.elapsed().as_secs_f64(),
             profile: profile.mean_ms(),
+            own_twins: own_found,
         },
     ))
 }
