@@ -82,9 +82,7 @@ fn main() -> anyhow::Result<()> {
     let bundle = ModelBundle::load(&path)?;
     let config = &bundle.manifest.network;
     let renders = BundleRenders::of(&bundle, 2);
-    let images = renders.fresh.realistic_eval_images(
-        &renders.names,
-        &renders.symmetries,
+    let images = renders.realistic_eval_images(
         config.image_size,
         per_part,
         (1u64 << 40).wrapping_add(1),
@@ -110,18 +108,7 @@ fn main() -> anyhow::Result<()> {
             let rgb: Vec<&[u8]> = batch.iter().map(|i| i.rgb.as_slice()).collect();
             let tensor = images_tensor(&rgb, config.image_size as usize, &device);
             let features = bundle.network.encoder.forward(tensor);
-            for (im, (s, f)) in batch
-                .iter()
-                .zip(projected.branch_log_weights_of_features(features))
-            {
-                let argmax = s
-                    .iter()
-                    .zip(&f)
-                    .map(|(a, b)| a + b)
-                    .enumerate()
-                    .max_by(|a, b| a.1.total_cmp(&b.1))
-                    .map_or(0, |(i, _)| i as u64);
-                let guess = projected.grid.rotation(argmax);
+            for (im, guess) in batch.iter().zip(projected.argmax_rotations(features)) {
                 let (truth, error) = nearest(&guess, &im.equivalents);
                 right += (error <= 30.0) as usize;
                 let twinned: Vec<Rotation3<f64>> = im

@@ -239,6 +239,22 @@ impl ProjectedGrid {
         )
     }
 
+    /// The rotation of the cell with the highest combined log-weight, per image, from image
+    /// features `[B, D]` (the point estimate AR@30 scores).
+    pub fn argmax_rotations(&self, features: Tensor<2>) -> Vec<nalgebra::Rotation3<f64>> {
+        self.log_weights_of_features(features)
+            .iter()
+            .map(|w| {
+                let best = w
+                    .iter()
+                    .enumerate()
+                    .max_by(|a, b| a.1.total_cmp(b.1))
+                    .map_or(0, |(i, _)| i as u64);
+                self.grid.rotation(best)
+            })
+            .collect()
+    }
+
     /// Each branch's log-weights `(s_θ, s_φ)` of every cell, per image, from image features.
     pub fn branch_log_weights_of_features(&self, features: Tensor<2>) -> Vec<(Vec<f32>, Vec<f32>)> {
         feature_rows(features)

@@ -317,4 +317,23 @@ impl BundleRenders {
         self.fresh
             .eval_images(&self.names, &self.symmetries, size, per_object, seed)
     }
+
+    /// `per_object` realistic evaluation crops of `size` of every object from `seed`, made as
+    /// `realism` says ([`FreshRenders::realistic_eval_images`]).
+    pub fn realistic_eval_images(
+        &self,
+        size: u32,
+        per_object: usize,
+        seed: u64,
+        realism: Realism,
+    ) -> Vec<EvalImage> {
+        self.fresh.realistic_eval_images(
+            &self.names,
+            &self.symmetries,
+            size,
+            per_object,
+            seed,
+            realism,
+        )
+    }
 }

@@ -57,16 +57,7 @@ pub fn own_twins(
         let features = network
             .encoder
             .forward(images_tensor(&rgb, size as usize, &device));
-        for ((object, _, r_gt), scores) in batch
-            .iter()
-            .zip(projected.log_weights_of_features(features))
-        {
-            let argmax = scores
-                .iter()
-                .enumerate()
-                .max_by(|a, b| a.1.total_cmp(b.1))
-                .map_or(0, |(i, _)| i as u64);
-            let guess = projected.grid.rotation(argmax);
+        for ((object, _, r_gt), guess) in batch.iter().zip(projected.argmax_rotations(features)) {
             let group = set
                 .symmetries
                 .get(*object)

@@ -67,14 +67,7 @@ pub(crate) fn calibrate_cmd(args: &CalibrateArgs) -> Result<()> {
     }
     let size = bundle.manifest.network.image_size;
     let renders = BundleRenders::of(&bundle, args.supersample);
-    let crops = renders.fresh.realistic_eval_images(
-        &renders.names,
-        &renders.symmetries,
-        size,
-        args.images,
-        args.seed,
-        Realism::TRAIN,
-    );
+    let crops = renders.realistic_eval_images(size, args.images, args.seed, Realism::TRAIN);
     eprintln!(
         "{} calibration crops (realistic, training split, seed {})",
         crops.len(),

@@ -255,14 +255,7 @@ fn realistic_report(
     }
     let size = bundle.manifest.network.image_size;
     let realistic = |realism| {
-        renders.fresh.realistic_eval_images(
-            &renders.names,
-            &renders.symmetries,
-            size,
-            args.images,
-            args.seed.wrapping_add(1),
-            realism,
-        )
+        renders.realistic_eval_images(size, args.images, args.seed.wrapping_add(1), realism)
     };
     let sets = [
         ("clean renders", clean),
