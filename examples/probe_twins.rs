@@ -67,6 +67,89 @@ fn line_angle_deg(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
         .to_degrees()
 }
 
+/// One part's argmax answers, counted.
+#[derive(Default)]
+struct Tally {
+    right: usize,
+    right_up_to_twins: usize,
+    /// `R_t⁻¹·R̂` of each half-turn miss.
+    object_misses: Vec<Rotation3<f64>>,
+    /// The axis of `R̂·R_t⁻¹` of each half-turn miss.
+    camera_axes: Vec<Vector3<f64>>,
+    /// Misses within 30° of the truth turned half a turn about the line of sight.
+    upside_down: usize,
+}
+
+impl Tally {
+    fn add(
+        &mut self,
+        guess: &Rotation3<f64>,
+        equivalents: &[Rotation3<f64>],
+        twins: &[Rotation3<f64>],
+    ) {
+        let (truth, error) = nearest(guess, equivalents);
+        self.right += (error <= 30.0) as usize;
+        let twinned: Vec<Rotation3<f64>> = equivalents
+            .iter()
+            .flat_map(|t| twins.iter().map(move |s| t * s))
+            .collect();
+        self.right_up_to_twins +=
+            (error <= 30.0 || (!twinned.is_empty() && nearest(guess, &twinned).1 <= 30.0)) as usize;
+        if error >= HALF_TURN_DEG {
+            self.object_misses.push(truth.inverse() * guess);
+            self.camera_axes.push(unit_axis(&(guess * truth.inverse())));
+            let upside_down = Rotation3::from_axis_angle(&Vector3::z_axis(), PI);
+            self.upside_down += ((upside_down.inverse() * guess * truth.inverse())
+                .angle()
+                .to_degrees()
+                <= 30.0) as usize;
+        }
+    }
+
+    fn print(&self, name: &str, twins: &[Rotation3<f64>], n: f64) {
+        let object_axes: Vec<Vector3<f64>> = self.object_misses.iter().map(unit_axis).collect();
+        println!(
+            "{name}: AR@30 {:.2}, half-turn misses {:.2}, right up to the recorded twins {:.2} ({} twins)",
+            self.right as f64 / n,
+            object_axes.len() as f64 / n,
+            self.right_up_to_twins as f64 / n,
+            twins.len()
+        );
+        println!(
+            "  misses within 30° of the truth turned half a turn about the line of sight: {:.2} of the crops",
+            self.upside_down as f64 / n
+        );
+        for (frame, axes) in [("object", &object_axes), ("camera", &self.camera_axes)] {
+            let Some((axis, share)) = shared_axis(axes) else {
+                continue;
+            };
+            println!(
+                "  misses' shared axis, {frame} frame: ({:+.2}, {:+.2}, {:+.2}), share {share:.2}",
+                axis.x, axis.y, axis.z
+            );
+            if frame != "object" {
+                continue;
+            }
+            let farthest = twins.iter().max_by(|a, b| a.angle().total_cmp(&b.angle()));
+            if let Some(s) = farthest.filter(|s| s.angle().to_degrees() > 150.0) {
+                let a = unit_axis(s);
+                println!(
+                    "    {:.0}° from the recorded twin's axis ({:+.2}, {:+.2}, {:+.2})",
+                    line_angle_deg(&axis, &a),
+                    a.x,
+                    a.y,
+                    a.z
+                );
+            }
+            let half_turn = Rotation3::from_axis_angle(&nalgebra::Unit::new_normalize(axis), PI);
+            println!(
+                "    misses within 30° of R_t·(half-turn about it): {:.2} of the crops",
+                own_twin(&self.object_misses, &half_turn) as f64 / n
+            );
+        }
+    }
+}
+
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().collect();
     let Some(path) = args.get(1).map(std::path::PathBuf::from) else {
@@ -101,78 +184,16 @@ fn main() -> anyhow::Result<()> {
     for (part, name) in renders.names.iter().enumerate() {
         let twins = bundle.experts[part].near_twins();
         let crops: Vec<_> = images.iter().filter(|im| im.object == *name).collect();
-        let (mut right, mut right_up_to_twins) = (0usize, 0usize);
-        let (mut object_misses, mut camera_axes) = (Vec::new(), Vec::new());
-        let mut in_plane = 0usize;
+        let mut tally = Tally::default();
         for batch in crops.chunks(4) {
             let rgb: Vec<&[u8]> = batch.iter().map(|i| i.rgb.as_slice()).collect();
             let tensor = images_tensor(&rgb, config.image_size as usize, &device);
             let features = bundle.network.encoder.forward(tensor);
             for (im, guess) in batch.iter().zip(projected.argmax_rotations(features)) {
-                let (truth, error) = nearest(&guess, &im.equivalents);
-                right += (error <= 30.0) as usize;
-                let twinned: Vec<Rotation3<f64>> = im
-                    .equivalents
-                    .iter()
-                    .flat_map(|t| twins.iter().map(move |s| t * s))
-                    .collect();
-                right_up_to_twins += (error <= 30.0
-                    || (!twinned.is_empty() && nearest(&guess, &twinned).1 <= 30.0))
-                    as usize;
-                if error >= HALF_TURN_DEG {
-                    object_misses.push(truth.inverse() * guess);
-                    camera_axes.push(unit_axis(&(guess * truth.inverse())));
-                    // Turned half a turn about the line of sight: the crop upside down.
-                    let upside_down = Rotation3::from_axis_angle(&Vector3::z_axis(), PI);
-                    in_plane += ((upside_down.inverse() * guess * truth.inverse())
-                        .angle()
-                        .to_degrees()
-                        <= 30.0) as usize;
-                }
+                tally.add(&guess, &im.equivalents, &twins);
             }
         }
-        let n = crops.len() as f64;
-        let object_axes: Vec<Vector3<f64>> = object_misses.iter().map(unit_axis).collect();
-        println!(
-            "{name}: AR@30 {:.2}, half-turn misses {:.2}, right up to the recorded twins {:.2} ({} twins)",
-            right as f64 / n,
-            object_axes.len() as f64 / n,
-            right_up_to_twins as f64 / n,
-            twins.len()
-        );
-        println!(
-            "  misses within 30° of the truth turned half a turn about the line of sight: {:.2} of the crops",
-            in_plane as f64 / n
-        );
-        for (frame, axes) in [("object", &object_axes), ("camera", &camera_axes)] {
-            if let Some((axis, share)) = shared_axis(axes) {
-                println!(
-                    "  misses' shared axis, {frame} frame: ({:+.2}, {:+.2}, {:+.2}), share {share:.2}",
-                    axis.x, axis.y, axis.z
-                );
-                if frame == "object" {
-                    let farthest = twins.iter().max_by(|a, b| a.angle().total_cmp(&b.angle()));
-                    if let Some(s) = farthest.filter(|s| s.angle().to_degrees() > 150.0) {
-                        let a = unit_axis(s);
-                        println!(
-                            "    {:.0}° from the recorded twin's axis ({:+.2}, {:+.2}, {:+.2})",
-                            line_angle_deg(&axis, &a),
-                            a.x,
-                            a.y,
-                            a.z
-                        );
-                    }
-                    let half_turn = Rotation3::from_axis_angle(
-                        &nalgebra::Unit::new_normalize(axis),
-                        std::f64::consts::PI,
-                    );
-                    println!(
-                        "    misses within 30° of R_t·(half-turn about it): {:.2} of the crops",
-                        own_twin(&object_misses, &half_turn) as f64 / n
-                    );
-                }
-            }
-        }
+        tally.print(name, &twins, crops.len() as f64);
     }
     Ok(())
 }

@@ -9,8 +9,8 @@
 use nalgebra::Rotation3;
 
 use super::TrainError;
+use super::data::FreshRenders;
 use super::sampling::OwnTwins;
-use super::trainer::TrainingSet;
 use crate::data::realism::Realism;
 use crate::net::{Network, NetworkConfig, ProjectedGrid, images_tensor};
 use crate::so3::metrics::HALF_TURN_DEG;
@@ -21,20 +21,17 @@ pub const OWN_TWINS_LEVEL: u8 = 2;
 
 /// Per object, the turns `D = R_t⁻¹·R̂` (object frame, [`half_turn_miss`]) of the network's
 /// half-turn misses (argmax `R̂`) on `own.crops` fresh crops of it drawn from
-/// `seed`: realistic crops of the training split when the set renders realistic ones, else flat
-/// renders. `network` is the plain (non-autodiff) network, its BatchNorm statistics synced.
+/// `seed`: realistic crops of the training split when `fresh` renders realistic ones, else flat
+/// renders; `symmetries[i]` are object `i`'s proper symmetries (none: the identity alone).
+/// `network` is the plain (non-autodiff) network, its BatchNorm statistics synced.
 pub fn own_twins(
     network: &Network,
     config: &NetworkConfig,
-    set: &TrainingSet,
+    fresh: &FreshRenders,
+    symmetries: &[Vec<Rotation3<f64>>],
     own: OwnTwins,
     seed: u64,
 ) -> Result<Vec<Vec<Rotation3<f64>>>, TrainError> {
-    let Some(fresh) = &set.fresh else {
-        return Err(TrainError::Data(
-            "the network's own twins are searched on fresh renders; the set has none".into(),
-        ));
-    };
     let size = config.image_size;
     let crops: Vec<(usize, Vec<u8>, Rotation3<f64>)> = match fresh.realism {
         Some(_) => fresh
@@ -51,17 +48,14 @@ pub fn own_twins(
     let projected = ProjectedGrid::new(network, config, OWN_TWINS_LEVEL)
         .map_err(|e| TrainError::Data(format!("the own twins' grid: {e}")))?;
     let device = crate::backend::device_for(crate::backend::Workload::Conv);
-    let mut twins = vec![Vec::new(); set.objects.len()];
+    let mut twins = vec![Vec::new(); fresh.meshes.len()];
     for batch in crops.chunks(8) {
         let rgb: Vec<&[u8]> = batch.iter().map(|(_, c, _)| c.as_slice()).collect();
         let features = network
             .encoder
             .forward(images_tensor(&rgb, size as usize, &device));
         for ((object, _, r_gt), guess) in batch.iter().zip(projected.argmax_rotations(features)) {
-            let group = set
-                .symmetries
-                .get(*object)
-                .map_or(&[][..], |g| g.as_slice());
+            let group = symmetries.get(*object).map_or(&[][..], |g| g.as_slice());
             if let Some(turn) = half_turn_miss(&guess, r_gt, group) {
                 twins[*object].push(turn);
             }

@@ -227,42 +227,122 @@ fn mode_samplers(config: &TrainConfig, set: &TrainingSet) -> Result<Vec<ModeSamp
         .collect()
 }
 
-/// The samplers `recorded` (each with its part's recorded twins) with the network's own twins
-/// `own` added to each object's.
-fn with_own_twins(recorded: &[ModeSampler], own: &[Vec<Rotation3<f64>>]) -> Vec<ModeSampler> {
-    recorded
-        .iter()
-        .enumerate()
-        .map(|(i, sampler)| match own.get(i) {
-            Some(more) if !more.is_empty() => sampler.clone().with_more_twins(more),
-            _ => sampler.clone(),
-        })
-        .collect()
+/// The network's own twins in a run ([`OwnTwins`]): the search's settings, the samplers with the
+/// parts' recorded twins, the own twins in effect and every search so far.
+struct OwnTwinsRun {
+    own: Option<OwnTwins>,
+    recorded: Vec<ModeSampler>,
+    now: Vec<Vec<Rotation3<f64>>>,
+    found: Vec<OwnTwinsFound>,
 }
 
-/// The network's own twins at `step` ([`super::own_twins::own_twins`], crops drawn from the run's
-/// seed and the step's), from its weights as they are; the search is added to `found`.
-fn search_own_twins(
+impl OwnTwinsRun {
+    /// The own twins in effect at a run's start: a checkpoint's when resumed, else searched now
+    /// (none when the run searches none).
+    fn start(
+        config: &TrainConfig,
+        set: &TrainingSet,
+        network: &Network,
+        recorded: Vec<ModeSampler>,
+        resumed: Option<&CheckpointState>,
+    ) -> Result<Self, TrainError> {
+        let own = match &config.method {
+            Method::Alignist { sampling, .. } => sampling.own_twins(),
+            Method::Ipdf => None,
+        };
+        let mut run = OwnTwinsRun {
+            own,
+            recorded,
+            now: Vec::new(),
+            found: Vec::new(),
+        };
+        match (own, resumed) {
+            (None, _) => {}
+            (Some(_), Some(state)) => run.now = state.own_twins()?,
+            (Some(_), None) => run.search(config, set, network, 0)?,
+        }
+        Ok(run)
+    }
+
+    /// Whether a search is due after step `done` of `steps`.
+    fn due(&self, done: usize, steps: usize) -> bool {
+        self.own
+            .is_some_and(|o| done % o.every.max(1) == 0 && done < steps)
+    }
+
+    /// Searches the network's own twins at `step` ([`super::own_twins::own_twins`], crops drawn
+    /// from the run's seed and the step's) from its weights as they are; they replace the last.
+    fn search(
+        &mut self,
+        config: &TrainConfig,
+        set: &TrainingSet,
+        network: &Network,
+        step: usize,
+    ) -> Result<(), TrainError> {
+        let Some(own) = self.own else {
+            return Ok(());
+        };
+        let started = Instant::now();
+        network.encoder.sync_running_stats();
+        let seed = config
+            .seed
+            .wrapping_mul(0x7e1f_5eed)
+            .wrapping_add(step as u64);
+        let fresh = set.fresh.as_ref().ok_or_else(|| {
+            TrainError::Data(
+                "the network's own twins are searched on fresh renders; the set has none".into(),
+            )
+        })?;
+        self.now = super::own_twins::own_twins(
+            &network.valid(),
+            &config.network,
+            fresh,
+            &set.symmetries,
+            own,
+            seed,
+        )?;
+        self.found.push(OwnTwinsFound {
+            step,
+            misses: self.now.iter().map(Vec::len).collect(),
+            seconds: started.elapsed().as_secs_f64(),
+        });
+        Ok(())
+    }
+
+    /// The samplers with the own twins in effect added to each part's recorded ones.
+    fn samplers(&self) -> Vec<ModeSampler> {
+        self.recorded
+            .iter()
+            .enumerate()
+            .map(|(i, sampler)| match self.now.get(i) {
+                Some(more) if !more.is_empty() => sampler.clone().with_more_twins(more),
+                _ => sampler.clone(),
+            })
+            .collect()
+    }
+}
+
+/// Saves the checkpoint after step `done` of a schedule of `steps`: the weights with their
+/// BatchNorm statistics, the optimiser, the config at that length and the own twins in effect.
+fn checkpoint_at(
+    dir: &Path,
+    (network, optim): (&Network, &ModuleOptimizer),
     config: &TrainConfig,
-    set: &TrainingSet,
-    network: &Network,
-    own: OwnTwins,
-    step: usize,
-    found: &mut Vec<OwnTwinsFound>,
-) -> Result<Vec<Vec<Rotation3<f64>>>, TrainError> {
-    let started = Instant::now();
+    (done, steps): (usize, usize),
+    own_twins: &[Vec<Rotation3<f64>>],
+) -> Result<(), TrainError> {
     network.encoder.sync_running_stats();
-    let seed = config
-        .seed
-        .wrapping_mul(0x7e1f_5eed)
-        .wrapping_add(step as u64);
-    let twins = super::own_twins::own_twins(&network.valid(), &config.network, set, own, seed)?;
-    found.push(OwnTwinsFound {
-        step,
-        misses: twins.iter().map(Vec::len).collect(),
-        seconds: started.elapsed().as_secs_f64(),
-    });
-    Ok(twins)
+    let config = TrainConfig {
+        steps,
+        ..config.clone()
+    };
+    save_checkpoint(
+        dir,
+        network,
+        optim,
+        &CheckpointState::new(done, config, own_twins),
+    )?;
+    Ok(())
 }
 
 /// Refuses a training set that cannot train: no images, or fresh renders without a mesh per
@@ -710,22 +790,12 @@ pub fn train_replanned(
     let (network, mut optim, resumed) =
         starting_point(config, set, checkpoints, resume, &recorded, &device)?;
     let start = resumed.as_ref().map_or(0, |s| s.step);
-    let own = match &config.method {
-        Method::Alignist { sampling, .. } => sampling.own_twins(),
-        Method::Ipdf => None,
-    };
-    // The network's own twins in effect from `start`: a checkpoint's, else searched now.
-    let mut own_found = Vec::new();
-    let mut own_now = match (own, resumed) {
-        (None, _) => Vec::new(),
-        (Some(_), Some(state)) => state.own_twins()?,
-        (Some(own), None) => search_own_twins(config, set, &network, own, start, &mut own_found)?,
-    };
+    let mut own = OwnTwinsRun::start(config, set, &network, recorded, resumed.as_ref())?;
     let run = Run {
         config,
         steps: AtomicUsize::new(config.steps),
         set,
-        samplers: RwLock::new(Arc::new(with_own_twins(&recorded, &own_now))),
+        samplers: RwLock::new(Arc::new(own.samplers())),
         device: &device,
         head: HeadPath::from_env(),
         encoder: EncoderPath::from_env(),
@@ -741,6 +811,13 @@ pub fn train_replanned(
         let prepare = |step: usize| {
             (step < run.steps.load(Ordering::Relaxed))
                 .then(|| scope.spawn(move || batch_pool.install(|| run.batch(step))))
+        };
+        // The next step's batch, drawn before a change of schedule or twins: draw it again.
+        let redraw = |stale: Option<std::thread::ScopedJoinHandle<'_, Batch>>, from: usize| {
+            if let Some(stale) = stale {
+                let _ = stale.join();
+            }
+            prepare(from)
         };
         let mut pending = prepare(start);
         let mut step = start;
@@ -761,26 +838,15 @@ pub fn train_replanned(
             (network, loss_value) = run.step(network, &mut optim, step, batch, &mut profile)?;
             losses.push(loss_value);
             let done = step + 1;
-            if let Some(own) = own.filter(|o| done % o.every.max(1) == 0 && done < steps) {
-                own_now = search_own_twins(config, set, &network, own, done, &mut own_found)?;
-                // The next step's batch was drawn with the old twins: draw it again.
-                if let Some(stale) = pending.take() {
-                    let _ = stale.join();
-                }
-                *run.samplers.write().unwrap_or_else(|p| p.into_inner()) =
-                    Arc::new(with_own_twins(&recorded, &own_now));
-                pending = prepare(done);
+            if own.due(done, steps) {
+                own.search(config, set, &network, done)?;
+                *run.samplers.write().unwrap_or_else(|p| p.into_inner()) = Arc::new(own.samplers());
+                pending = redraw(pending.take(), done);
             }
             if let Some(dir) = checkpoints
                 && (done % config.checkpoint_every.max(1) == 0 || done == steps)
             {
-                network.encoder.sync_running_stats();
-                let config = TrainConfig {
-                    steps,
-                    ..config.clone()
-                };
-                let state = CheckpointState::new(done, config, &own_now);
-                save_checkpoint(dir, &network, &optim, &state)?;
+                checkpoint_at(dir, (&network, &optim), config, (done, steps), &own.now)?;
             }
             profile.steps += 1;
             profile.total += step_started.elapsed().as_secs_f64();
@@ -788,11 +854,7 @@ pub fn train_replanned(
                 ControlFlow::Break(()) => break,
                 ControlFlow::Continue(Some(replanned)) if replanned.max(done + 1) != steps => {
                     run.steps.store(replanned.max(done + 1), Ordering::Relaxed);
-                    // The next step's batch was drawn for the old schedule: draw it again.
-                    if let Some(stale) = pending.take() {
-                        let _ = stale.join();
-                    }
-                    pending = prepare(done);
+                    pending = redraw(pending.take(), done);
                 }
                 ControlFlow::Continue(_) => {}
             }
@@ -809,7 +871,7 @@ pub fn train_replanned(
             final_loss: tail_loss(&losses, start, run.steps.load(Ordering::Relaxed)),
             seconds: started.elapsed().as_secs_f64(),
             profile: profile.mean_ms(),
-            own_twins: own_found,
+            own_twins: own.found,
         },
     ))
 }
