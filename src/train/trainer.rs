@@ -267,7 +267,7 @@ impl OwnTwinsRun {
     /// Whether a search is due after step `done` of `steps`.
     fn due(&self, done: usize, steps: usize) -> bool {
         self.own
-            .is_some_and(|o| done % o.every.max(1) == 0 && done < steps)
+            .is_some_and(|o| done.is_multiple_of(o.every.max(1)) && done < steps)
     }
 
     /// Searches the network's own twins at `step` ([`super::own_twins::own_twins`], crops drawn
