@@ -245,8 +245,24 @@ impl FreshRenders {
         seed: u64,
         realism: Realism,
     ) -> Vec<(usize, RealisticCrop)> {
+        self.realistic_crops_of(
+            &SceneAssets::new(&self.meshes, realism),
+            size,
+            per_object,
+            seed,
+        )
+    }
+
+    /// [`FreshRenders::realistic_eval_crops`] from scene assets already built (the training set's
+    /// own, [`FreshRenders::realism`]) rather than new ones.
+    pub fn realistic_crops_of(
+        &self,
+        assets: &SceneAssets,
+        size: u32,
+        per_object: usize,
+        seed: u64,
+    ) -> Vec<(usize, RealisticCrop)> {
         use rayon::prelude::*;
-        let assets = SceneAssets::new(&self.meshes, realism);
         let draws: Vec<(usize, u64)> = (0..self.meshes.len())
             .flat_map(|i| (0..per_object as u64).map(move |j| (i, j)))
             .collect();
@@ -256,7 +272,7 @@ impl FreshRenders {
                 let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x4ea1 ^ ((i as u64) << 32) ^ j);
                 (
                     i,
-                    realistic_crop(&assets, i, size, self.supersample, &mut rng),
+                    realistic_crop(assets, i, size, self.supersample, &mut rng),
                 )
             })
             .collect()

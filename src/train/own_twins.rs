@@ -11,7 +11,6 @@ use nalgebra::Rotation3;
 use super::TrainError;
 use super::data::FreshRenders;
 use super::sampling::OwnTwins;
-use crate::data::realism::Realism;
 use crate::net::{Network, NetworkConfig, ProjectedGrid, images_tensor};
 use crate::so3::metrics::HALF_TURN_DEG;
 
@@ -21,8 +20,8 @@ pub const OWN_TWINS_LEVEL: u8 = 2;
 
 /// Per object, the turns `D = R_t⁻¹·R̂` (object frame, [`half_turn_miss`]) of the network's
 /// half-turn misses (argmax `R̂`) on `own.crops` fresh crops of it drawn from
-/// `seed`: realistic crops of the training split when `fresh` renders realistic ones, else flat
-/// renders; `symmetries[i]` are object `i`'s proper symmetries (none: the identity alone).
+/// `seed`: realistic crops made as the training crops are (`fresh`'s own scene assets) when
+/// `fresh` renders realistic ones, else flat renders; `symmetries[i]` are object `i`'s proper symmetries (none: the identity alone).
 /// `network` is the plain (non-autodiff) network, its BatchNorm statistics synced.
 pub fn own_twins(
     network: &Network,
@@ -33,9 +32,9 @@ pub fn own_twins(
     seed: u64,
 ) -> Result<Vec<Vec<Rotation3<f64>>>, TrainError> {
     let size = config.image_size;
-    let crops: Vec<(usize, Vec<u8>, Rotation3<f64>)> = match fresh.realism {
-        Some(_) => fresh
-            .realistic_eval_crops(size, own.crops, seed, Realism::TRAIN)
+    let crops: Vec<(usize, Vec<u8>, Rotation3<f64>)> = match &fresh.realism {
+        Some(assets) => fresh
+            .realistic_crops_of(assets, size, own.crops, seed)
             .into_iter()
             .map(|(i, c)| (i, c.rgb, c.r_virtual))
             .collect(),
