@@ -695,6 +695,65 @@ fn the_i8_head_agrees_with_its_emulation_and_stays_near_f32() {
     assert_heads_close_on(Precision::I8, Tolerance::I8, alignist::net::Kernels::Avx2);
 }
 
+/// The 8-bit head on AVX2's `VPMADDWD` kernel (the bytes widened to 16-bit pairs), which cores
+/// with AVX2 and no VNNI run: within the 8-bit tolerances of the emulation on a width that pads
+/// to the 64-column panel and on the shipped head, on any core with AVX2; and where the core has
+/// AVX-VNNI, the very scores of the 256-bit `VPDPBUSD` kernel (the same exact integer sums, the
+/// same blocks and epilogue).
+#[test]
+fn the_i8_head_on_avx2_pairs_agrees_with_its_emulation_and_the_vnni_kernel() {
+    use alignist::net::{FusedHead, Kernels, ReducedHead, Rows};
+    let encoding = RotationEncoding::Cube;
+    let head = HeadConfig::new(32, encoding.dim())
+        .with_hidden(40)
+        .with_layers(4)
+        .init(&device())
+        .with_output_biases(-2.5, 1.5);
+    let bundle = alignist::bundle::model::ModelBundle::load(std::path::Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/models/symsol1"
+    )))
+    .unwrap();
+    for (head, encoding, what) in [
+        (&head, &encoding, "width 40"),
+        (
+            &bundle.network.head,
+            &bundle.manifest.network.encoding,
+            "shipped",
+        ),
+    ] {
+        let fused = FusedHead::with_kernels(head, Kernels::Avx2);
+        let Some(pairs) = ReducedHead::i8_avx2_pairs(&fused) else {
+            eprintln!("this core has no AVX2: the pairs kernel does not run here");
+            return;
+        };
+        assert_eq!(pairs.kernel_name(), alignist::net::i8::KERNEL_NAME_PAIRS);
+        assert!(pairs.is_native());
+        let got = |image: &[f32], rows: Rows<'_>| pairs.branch_scores(image, rows);
+        let what = format!("{what}, AVX2 pairs");
+        assert_kernel_close(&fused, encoding, Precision::I8, &got, Tolerance::I8, &what);
+        // Capped at 256 bits, the fused head's own 8-bit kernel: AVX-VNNI where the core has it.
+        if fused.kernel_name(Precision::I8) != "AVX-VNNI kernel (256-bit)" {
+            eprintln!("{what}: no AVX-VNNI on this core to compare with");
+            continue;
+        }
+        let rotations = spread_rotations(2 * alignist::net::tiles::TILE_ROWS + 7, 0.0);
+        let features: Vec<f32> = (0..fused.image_dim())
+            .map(|i| (i % 13) as f32 / 13.0)
+            .collect();
+        let image = fused.image_term(&features);
+        let encodings = encoding.encode(&rotations);
+        let projected = fused.project_rotations(&encodings);
+        for rows in [Rows::Projected(&projected), Rows::Encoded(&encodings)] {
+            assert_eq!(
+                pairs.branch_scores(&image, rows),
+                fused.branch_scores_in(Precision::I8, &image, rows),
+                "{what}: the same sums as VPDPBUSD"
+            );
+        }
+    }
+}
+
 /// The 8-bit head's tile kernel (`TDPBUSD`: its loop, tile pointers into the packed panels and
 /// epilogue) on tiles emulated in software, on any core (a core with AMX-INT8 runs the tiles
 /// themselves in the test above): the emulation's scores within the 8-bit tolerances, on a

@@ -135,6 +135,8 @@ struct Peaks {
     bf16: Option<f64>,
     f16: Option<f64>,
     i8: Option<f64>,
+    /// `VPMADDWD` with its `VPADDD`, 256-bit, where the core has AVX2.
+    i8_pairs: Option<f64>,
     /// `TDPBF16PS` and `TDPBUSD` on AMX tiles, where the core has them and the OS grants them.
     amx: Option<f64>,
     amx_i8: Option<f64>,
@@ -165,12 +167,14 @@ fn print_peaks(model: &Model) -> Peaks {
         peak::reduced_peak(peak::ReducedOp::I8Dot),
     );
     let (amx, amx_i8) = (peak::amx_peak(), peak::amx_int8_peak());
+    let i8_pairs = peak::reduced_peak(peak::ReducedOp::I8Pairs);
     let shown = |g: Option<f64>| g.map_or("not on this CPU".into(), |g| format!("{g:.1} GFLOP/s"));
     println!(
-        "reduced-precision peaks (probe, 512-bit): f16 FMA (VFMADD231PH) {}, bfloat16 dot (VDPBF16PS) {}, int8 dot (VPDPBUSD) {}; AMX tiles: bfloat16 (TDPBF16PS) {}, int8 (TDPBUSD) {}",
+        "reduced-precision peaks (probe, 512-bit): f16 FMA (VFMADD231PH) {}, bfloat16 dot (VDPBF16PS) {}, int8 dot (VPDPBUSD) {}; 256-bit int8 pairs (VPMADDWD + VPADDD) {}; AMX tiles: bfloat16 (TDPBF16PS) {}, int8 (TDPBUSD) {}",
         shown(f16),
         shown(bf16),
         shown(i8).replace("GFLOP/s", "GOP/s"),
+        shown(i8_pairs).replace("GFLOP/s", "GOP/s"),
         shown(amx),
         shown(amx_i8).replace("GFLOP/s", "GOP/s")
     );
@@ -183,6 +187,7 @@ fn print_peaks(model: &Model) -> Peaks {
         bf16,
         f16,
         i8,
+        i8_pairs,
         amx,
         amx_i8,
     };
@@ -244,10 +249,12 @@ fn full_grid_figures(
     } else {
         peaks.bf16
     };
-    let i8_peak = if model.kernel_name(Precision::I8) == crate::net::amx::KERNEL_NAME_I8 {
-        peaks.amx_i8
-    } else {
-        peaks.i8
+    // The pairs kernel is 256-bit: its probe is, too.
+    let pairs = model.kernel_name(Precision::I8) == crate::net::i8::KERNEL_NAME_PAIRS;
+    let i8_peak = match model.kernel_name(Precision::I8) {
+        crate::net::amx::KERNEL_NAME_I8 => peaks.amx_i8,
+        _ if pairs => peaks.i8_pairs,
+        _ => peaks.i8,
     };
     for (precision, peak) in [
         (Precision::Bf16, bf16_peak),
@@ -260,7 +267,8 @@ fn full_grid_figures(
                 let _ = model.logits_in(precision, &one, level);
             });
             let gflops = grid_len as f64 / s * flops / 1e9;
-            let against_peak = model.native(precision) && wide;
+            let against_peak =
+                model.native(precision) && (wide || pairs && precision == Precision::I8);
             println!(
                 "full grid level {level} in {precision} ({}): {:.1} ms, {:.2} M rotations/s, {gflops:.1} {}{}, {:.2}× the f32 head",
                 model.kernel_name(precision),

@@ -150,6 +150,10 @@ pub enum ReducedOp {
     /// `VPDPBUSD` on 512-bit vectors (AVX-512 VNNI): 64 byte multiply-adds into 16 i32 lanes
     /// (counted as operations, two per multiply-add, like the floating-point ones).
     I8Dot,
+    /// `VPMADDWD` on 256-bit vectors (AVX2) with the `VPADDD` that accumulates it: 16
+    /// multiply-adds of 16-bit pairs into 8 i32 lanes, the 8-bit head's kernel on cores without
+    /// VNNI (counted as [`ReducedOp::I8Dot`]).
+    I8Pairs,
 }
 
 /// The rate of `op` over the pool's threads in GFLOP/s (a multiply-add counts two; best of 5
@@ -162,6 +166,7 @@ pub fn reduced_peak(op: ReducedOp) -> Option<f64> {
             ReducedOp::F16Fma => has(std::is_x86_feature_detected!("avx512fp16")),
             ReducedOp::Bf16Dot => has(std::is_x86_feature_detected!("avx512bf16")),
             ReducedOp::I8Dot => has(std::is_x86_feature_detected!("avx512vnni")),
+            ReducedOp::I8Pairs => std::is_x86_feature_detected!("avx2"),
         };
         if !available {
             return None;
@@ -170,6 +175,7 @@ pub fn reduced_peak(op: ReducedOp) -> Option<f64> {
             ReducedOp::F16Fma => (CHAINS_F16, 64),
             ReducedOp::Bf16Dot => (CHAINS_512, 64),
             ReducedOp::I8Dot => (CHAINS_512, 128),
+            ReducedOp::I8Pairs => (CHAINS_256, 32),
         };
         let flops_per_run = (ITERS * chains * flops) as f64;
         // SAFETY: the features were checked above.
@@ -178,6 +184,7 @@ pub fn reduced_peak(op: ReducedOp) -> Option<f64> {
                 ReducedOp::F16Fma => f16_chains(i as i16),
                 ReducedOp::Bf16Dot => bf16_chains(i as i32),
                 ReducedOp::I8Dot => i8_chains(i as i32),
+                ReducedOp::I8Pairs => i8_pairs_chains(i as i32),
             }
         }))
     }
@@ -294,4 +301,31 @@ unsafe fn i8_chains(seed: i32) -> f32 {
         sum = _mm512_add_epi32(sum, *acc);
     }
     _mm512_reduce_add_epi32(sum) as f32
+}
+
+/// [`ITERS`] rounds of [`CHAINS_256`] independent `VPADDD(acc, VPMADDWD(acc, b))`: each product
+/// reads its own accumulator, so that none is hoisted out of the loop (the i32 sums wrap, as
+/// vector integer sums do).
+///
+/// # Safety
+/// The core has AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn i8_pairs_chains(seed: i32) -> f32 {
+    use std::arch::x86_64::*;
+    let b = _mm256_set1_epi32(0x0001_0003);
+    let mut acc = [_mm256_set1_epi32(seed); CHAINS_256];
+    for _ in 0..ITERS {
+        for acc in acc.iter_mut() {
+            *acc = _mm256_add_epi32(*acc, _mm256_madd_epi16(*acc, b));
+        }
+    }
+    let mut sum = acc[0];
+    for acc in &acc[1..] {
+        sum = _mm256_add_epi32(sum, *acc);
+    }
+    let mut lanes = [0i32; 8];
+    // SAFETY: `lanes` holds 8 i32.
+    unsafe { _mm256_storeu_si256(lanes.as_mut_ptr() as *mut __m256i, sum) };
+    lanes.iter().fold(0i32, |s, &v| s.wrapping_add(v)) as f32
 }

@@ -380,7 +380,7 @@ enum Path {
     Bf16(Box<NativeHead<Bf16Kernel>>),
     /// `VFMADD231PH` on packed weights.
     F16(Box<NativeHead<F16Kernel>>),
-    /// `VPDPBUSD` on packed bytes.
+    /// `VPDPBUSD` (or `VPMADDWD`) on packed bytes.
     I8(Box<I8Head>),
     /// The f32 GEMM on rounded weights, rounding each GEMM's input.
     Emulated(Box<FusedHead>),
@@ -390,10 +390,10 @@ impl ReducedHead {
     /// The native kernel of `precision` when `kernels` allows it and this core has its
     /// instructions (and every branch has a hidden layer), else the emulation: bfloat16 on AMX
     /// tiles, else on `VDPBF16PS`; f16 on `VFMADD231PH`; i8 on AMX-INT8 tiles, else on
-    /// `VPDPBUSD` (512- or 256-bit).
+    /// `VPDPBUSD` (512- or 256-bit), else on AVX2's `VPMADDWD`.
     pub(super) fn new(head: &HeadWeights, precision: Precision, kernels: Kernels) -> ReducedHead {
         let native = match precision {
-            // 256-bit AVX-VNNI where the kernels are capped and the core has it.
+            // 256-bit AVX-VNNI where the kernels are capped and the core has it, else AVX2.
             Precision::I8 => I8Head::new(head, kernels).map(|n| Path::I8(Box::new(n))),
             _ if !kernels.allows_avx512() => None,
             Precision::Bf16 => kernels
@@ -430,6 +430,13 @@ impl ReducedHead {
     pub fn amx_int8_emulated(head: &FusedHead) -> ReducedHead {
         let native = I8Head::amx_emulated(&head.weights).expect("every branch has a hidden layer");
         ReducedHead(Path::I8(Box::new(native)))
+    }
+
+    /// The 8-bit head on AVX2's `VPMADDWD` kernel (bytes widened to 16-bit pairs), the one
+    /// cores with AVX2 and no VNNI run, on any core with AVX2 and FMA (`None` elsewhere). For
+    /// the tests.
+    pub fn i8_avx2_pairs(head: &FusedHead) -> Option<ReducedHead> {
+        I8Head::avx2_pairs(&head.weights).map(|native| ReducedHead(Path::I8(Box::new(native))))
     }
 
     /// Whether this is a native kernel.

@@ -2,7 +2,10 @@
 //! VNNI. `VPDPBUSD` multiplies 64 unsigned by 64 signed bytes and adds them four by four into
 //! 16 i32 lanes: at the f32 FMA's instruction rate, four times its arithmetic (twice f16's).
 //! Its 256-bit AVX-VNNI form runs the same head where the kernels are capped at 256 bits or the
-//! core has no AVX-512 (Intel cores since Alder Lake).
+//! core has no AVX-512 (Intel cores since Alder Lake). A core with AVX2 and no VNNI at all (AMD
+//! before Zen 4, Intel before Ice Lake) runs it on `VPMADDWD`: bytes widened to 16-bit pairs,
+//! two products summed into each i32 lane, the same exact sums at about twice the f32 FMA's
+//! arithmetic on such cores.
 //!
 //! What is rounded, and how ([`super::tiles`]):
 //! - each layer's weights to signed bytes with one scale per output column
@@ -27,7 +30,7 @@
 use super::amx::{self, BytesScales};
 use super::dense::Dense;
 use super::kernels::Kernels;
-use super::native::{Epilogue, Packed};
+use super::native::{Epilogue, Packed, avx2_available};
 use super::tiles::{
     ENCODING_SCALE, Rows, blocked_tile_rows, by_tiles, columns_to_i8, encoding_to_u8, row_to_u8,
 };
@@ -39,6 +42,10 @@ pub const MR: usize = 6;
 pub const NR: usize = 64;
 /// Inputs per 32-bit lane of `VPDPBUSD`.
 const GROUP: usize = 4;
+/// Inputs per 32-bit lane of `VPMADDWD` (two 16-bit products).
+const PAIR: usize = 2;
+/// The name of the `VPMADDWD` kernel ([`I8Head::kernel_name`]).
+pub const KERNEL_NAME_PAIRS: &str = "AVX2 kernel on 16-bit pairs (VPMADDWD)";
 
 /// The instructions an [`I8Head`] runs on.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -48,7 +55,10 @@ enum Isa {
     /// AVX-VNNI (the VEX form, on cores with AVX2 and no AVX-512, or with the kernels capped at
     /// 256 bits): 256-bit `VPDPBUSD`, blocks of 6 rows × 16 columns.
     AvxVnni,
-    /// Neither: scalar roundings, only beside [`Tiles::Emulated`] (the tests on any core).
+    /// AVX2 without VNNI: 256-bit `VPMADDWD` on the bytes widened to 16 bits, pairs of inputs
+    /// per i32 lane, blocks of 6 rows × 16 columns.
+    Avx2Pairs,
+    /// None of them: scalar roundings, only beside [`Tiles::Emulated`] (the tests on any core).
     Scalar,
 }
 
@@ -113,32 +123,43 @@ pub fn native_available() -> bool {
 }
 
 /// One layer in bytes: weights packed `[panel][group][NR][4]`, the bias in `packed.bias`, and
-/// each column's scale.
+/// each column's scale; for [`Isa::Avx2Pairs`] the same weights as 16-bit pairs too.
 #[derive(Debug, Clone)]
 struct I8Layer {
     packed: Packed<u8>,
+    /// The weights packed `[panel][pair][NR][2]` in i16 (the bias and scales are `packed`'s),
+    /// for [`Isa::Avx2Pairs`] only.
+    pairs: Option<Packed<i16>>,
     /// `[panels × NR]`, zero past the outputs.
     scales: Vec<f32>,
 }
 
 impl I8Layer {
-    /// `dense` in bytes, taking `padded_inputs` inputs (a multiple of 4; the extra ones weigh 0).
-    fn of(dense: &Dense, padded_inputs: usize) -> (I8Layer, Vec<i8>) {
+    /// `dense` in bytes for `isa`, taking `padded_inputs` inputs (a multiple of 4; the extra ones
+    /// weigh 0).
+    fn of(dense: &Dense, padded_inputs: usize, isa: Isa) -> (I8Layer, Vec<i8>) {
         let (bytes, mut scales) = columns_to_i8(&dense.weight, dense.outputs);
         let as_values = Dense {
             weight: bytes.iter().map(|&b| b as f32).collect(),
             ..dense.clone()
         };
         let packed = Packed::of(&as_values, padded_inputs, (GROUP, NR), |v| v as i8 as u8);
+        let pairs = (isa == Isa::Avx2Pairs)
+            .then(|| Packed::of(&as_values, padded_inputs, (PAIR, NR), |v| v as i16));
         scales.resize(packed.panels * NR, 0.0);
-        (I8Layer { packed, scales }, bytes)
+        let layer = I8Layer {
+            packed,
+            pairs,
+            scales,
+        };
+        (layer, bytes)
     }
 
     /// The rotation layer, reading encodings as `u = (e + 1)·127.5`:
     /// `Σ_i w_ij e_i = s_j · (Σ_i q_ij u_i) / 127.5 − s_j · Σ_i q_ij`; the second term joins the
     /// bias, the first's `1/127.5` is every row's scale.
-    fn of_encoding(dense: &Dense, padded_inputs: usize) -> I8Layer {
-        let (mut layer, bytes) = I8Layer::of(dense, padded_inputs);
+    fn of_encoding(dense: &Dense, padded_inputs: usize, isa: Isa) -> I8Layer {
+        let (mut layer, bytes) = I8Layer::of(dense, padded_inputs, isa);
         for (j, bias) in layer.packed.bias[..dense.outputs].iter_mut().enumerate() {
             let column: i32 = bytes
                 .iter()
@@ -176,7 +197,8 @@ pub(super) struct I8Head {
 }
 
 /// One task's buffers: one f32 row, the encodings, a layer's f32 outputs, three byte buffers
-/// (the shared input and two for the layers) with their rows' scales, and the output dots.
+/// (the shared input and two for the layers) with their rows' scales, the output dots, and a
+/// GEMM's input widened to 16 bits ([`Isa::Avx2Pairs`]).
 struct Scratch {
     row: Vec<f32>,
     e: Vec<u8>,
@@ -186,22 +208,33 @@ struct Scratch {
     bytes: [Vec<u8>; 3],
     scales: [Vec<f32>; 3],
     dots: Vec<f32>,
+    wide: Vec<u16>,
 }
 
 impl I8Head {
     /// Packs `head`'s weights in bytes for the widest kernel `kernels` allows and this core has
-    /// (AVX-512 VNNI, else AVX-VNNI), or `None` when it has neither or a branch has no hidden
-    /// layer (or one of another width).
+    /// (AVX-512 VNNI, else AVX-VNNI, else AVX2's `VPMADDWD`), or `None` when it has none of them
+    /// or a branch has no hidden layer (or one of another width).
     pub(super) fn new(head: &HeadWeights, kernels: Kernels) -> Option<I8Head> {
         let (isa, tiles) = if kernels.allows_avx512() && native_available() {
             let amx = kernels.allows_amx() && amx::amx_int8_available();
             (Isa::Avx512, if amx { Tiles::Amx } else { Tiles::None })
         } else if kernels.allows_own() && avx_vnni_available() {
             (Isa::AvxVnni, Tiles::None)
+        } else if kernels.allows_own() && avx2_available() {
+            (Isa::Avx2Pairs, Tiles::None)
         } else {
             return None;
         };
         I8Head::packed(head, isa, tiles)
+    }
+
+    /// The `VPMADDWD` kernel on any core with AVX2 and FMA (whatever VNNI it has), or `None`
+    /// as [`I8Head::new`]: for the tests.
+    pub(super) fn avx2_pairs(head: &HeadWeights) -> Option<I8Head> {
+        avx2_available()
+            .then(|| I8Head::packed(head, Isa::Avx2Pairs, Tiles::None))
+            .flatten()
     }
 
     /// The tile kernel on tiles emulated in software, on any core (its roundings on the widest
@@ -224,7 +257,10 @@ impl I8Head {
         let branches = head
             .square_branches(padded)?
             .map(|(hidden, output, output_bias)| I8Branch {
-                hidden: hidden.iter().map(|d| I8Layer::of(d, padded).0).collect(),
+                hidden: hidden
+                    .iter()
+                    .map(|d| I8Layer::of(d, padded, isa).0)
+                    .collect(),
                 output,
                 output_bias,
             });
@@ -237,6 +273,7 @@ impl I8Head {
             rotation: I8Layer::of_encoding(
                 rotation,
                 rotation.inputs.next_multiple_of(tiles.inputs()),
+                isa,
             ),
             encoding: rotation.inputs,
             branches,
@@ -249,6 +286,7 @@ impl I8Head {
             (Tiles::Amx, _) => amx::KERNEL_NAME_I8,
             (Tiles::Emulated, _) => "AMX int8 tiles, emulated",
             (Tiles::None, Isa::Avx512) => "AVX-512 VNNI kernel",
+            (Tiles::None, Isa::Avx2Pairs) => KERNEL_NAME_PAIRS,
             (Tiles::None, _) => "AVX-VNNI kernel (256-bit)",
         }
     }
@@ -283,6 +321,10 @@ impl I8Head {
                 bytes: std::array::from_fn(|_| vec![0; blocked * self.padded]),
                 scales: std::array::from_fn(|_| vec![0.0; blocked]),
                 dots: vec![0.0; blocked],
+                wide: match self.isa {
+                    Isa::Avx2Pairs => vec![0; blocked * self.padded.max(e_stride)],
+                    _ => Vec::new(),
+                },
             },
             |scratch, given, out| {
                 let tile = match rows {
@@ -297,6 +339,9 @@ impl I8Head {
                         }
                         Isa::AvxVnni => {
                             self.tile_avx_vnni(image_term, &first_bias, tile, scratch, out)
+                        }
+                        Isa::Avx2Pairs => {
+                            self.tile_avx2(image_term, &first_bias, tile, scratch, out)
                         }
                         Isa::Scalar => self.tile(image_term, &first_bias, tile, scratch, out),
                     }
@@ -343,6 +388,23 @@ impl I8Head {
         unsafe { self.tile(image_term, first_bias, given, scratch, out) }
     }
 
+    /// [`I8Head::tile`] compiled for AVX2 and FMA (no VNNI instruction in it).
+    ///
+    /// # Safety
+    /// The core has AVX2 and FMA.
+    #[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
+    unsafe fn tile_avx2(
+        &self,
+        image_term: &[f32],
+        first_bias: &[f32],
+        given: Rows<'_>,
+        scratch: &mut Scratch,
+        out: [&mut [f32]; 2],
+    ) {
+        // SAFETY: the caller's contract.
+        unsafe { self.tile(image_term, first_bias, given, scratch, out) }
+    }
+
     /// One tile of rows: the shared input `relu(P_R + W_I·f + b)` in bytes, then each branch.
     ///
     /// # Safety
@@ -367,6 +429,7 @@ impl I8Head {
             bytes: [x, a, b],
             scales: [sx, sa, sb],
             dots,
+            wide,
             ..
         } = scratch;
         for (branch, out) in self.branches.iter().zip(out) {
@@ -392,14 +455,14 @@ impl I8Head {
                         dots: &mut *dots,
                     };
                     // SAFETY: as above; `input` holds `blocked` rows of `stride`.
-                    unsafe { self.gemm(layer, bias, input, blocked, dot) };
+                    unsafe { self.gemm(layer, bias, input, blocked, dot, wide) };
                 } else {
                     let store = Epilogue::Store {
                         out: &mut values[..],
                         stride,
                     };
                     // SAFETY: as above.
-                    unsafe { self.gemm(layer, bias, input, blocked, store) };
+                    unsafe { self.gemm(layer, bias, input, blocked, store, wide) };
                     rows_to_u8(self.isa, values, output, out_scales, blocked, (w, stride));
                 }
             }
@@ -430,6 +493,7 @@ impl I8Head {
             out: values,
             bytes: [x, ..],
             scales: [sx, ..],
+            wide,
             ..
         } = scratch;
         match given {
@@ -464,17 +528,18 @@ impl I8Head {
                 // SAFETY: the core has the kernel's features (the caller's contract); `e` holds
                 // `blocked` rows of `e_stride` = 4 × groups, `e_scales` and the output
                 // `blocked` rows, `first_bias` the layer's panels × NR values.
-                unsafe { self.gemm(&self.rotation, first_bias, input, blocked, store) };
+                unsafe { self.gemm(&self.rotation, first_bias, input, blocked, store, wide) };
                 rows_to_u8(self.isa, values, x, sx, blocked, (w, stride));
             }
         }
     }
 
-    /// [`gemm`] on the head's tiles, or its `VPDPBUSD` kernel.
+    /// [`gemm`] on the head's tiles, or its `VPDPBUSD` kernel, or (for [`Isa::Avx2Pairs`]) its
+    /// input widened into `wide` and the `VPMADDWD` kernel.
     ///
     /// # Safety
     /// As [`gemm`] (`rows` a multiple of `self.tiles.mr()`), and the core has what
-    /// [`I8Head::new`] checked.
+    /// [`I8Head::new`] checked; for [`Isa::Avx2Pairs`], `wide` holds `rows × input.stride`.
     #[inline(always)]
     unsafe fn gemm(
         &self,
@@ -483,6 +548,7 @@ impl I8Head {
         input: Input<'_>,
         rows: usize,
         epilogue: Epilogue<'_, f32>,
+        wide: &mut [u16],
     ) {
         let scales = BytesScales {
             bias,
@@ -500,6 +566,19 @@ impl I8Head {
                 Tiles::Amx => unreachable!("AMX is only built on x86_64"),
                 Tiles::Emulated => {
                     amx::gemm_i8_emulated(&layer.packed, scales, bytes, rows, epilogue)
+                }
+                Tiles::None if self.isa == Isa::Avx2Pairs => {
+                    let n = rows * input.stride;
+                    for (w, &b) in wide[..n].iter_mut().zip(&input.bytes[..n]) {
+                        *w = b as u16;
+                    }
+                    let input = Input {
+                        bytes: &wide[..n],
+                        scales: input.scales,
+                        stride: input.stride,
+                    };
+                    let pairs = layer.pairs.as_ref().expect("packed in pairs for Avx2Pairs");
+                    gemm_pairs(pairs, &layer.scales, bias, input, rows, epilogue)
                 }
                 Tiles::None => gemm(self.isa, layer, bias, input, rows, epilogue),
             }
@@ -534,7 +613,7 @@ fn encoding_bytes(isa: Isa, src: &[f32], dst: &mut [u8]) {
         done = src.len().min(dst.len()) / 16 * 16;
         // SAFETY: the features were checked; both slices hold `done` values.
         unsafe { encoding_bytes_avx512(&src[..done], &mut dst[..done]) };
-    } else if isa == Isa::AvxVnni && avx_vnni_available() {
+    } else if matches!(isa, Isa::AvxVnni | Isa::Avx2Pairs) && avx2_available() {
         done = src.len().min(dst.len()) / 8 * 8;
         // SAFETY: as above.
         unsafe { encoding_bytes_avx2(&src[..done], &mut dst[..done]) };
@@ -577,10 +656,10 @@ fn row_bytes(isa: Isa, src: &[f32], dst: &mut [u8]) -> f32 {
         return unsafe { row_bytes_avx512(src, dst) };
     }
     #[cfg(target_arch = "x86_64")]
-    if isa == Isa::AvxVnni
+    if matches!(isa, Isa::AvxVnni | Isa::Avx2Pairs)
         && src.len().is_multiple_of(8)
         && dst.len() >= src.len()
-        && avx_vnni_available()
+        && avx2_available()
     {
         // SAFETY: as above, with 8-lane vectors.
         return unsafe { row_bytes_avx2(src, dst) };
@@ -680,10 +759,11 @@ unsafe fn row_bytes_avx2(src: &[f32], dst: &mut [u8]) -> f32 {
     }
 }
 
-/// A GEMM's input: `rows` rows of bytes `stride` apart, each with its scale.
+/// A GEMM's input: `rows` rows of bytes (or of bytes widened to 16 bits) `stride` apart, each
+/// with its scale.
 #[derive(Clone, Copy)]
-struct Input<'a> {
-    bytes: &'a [u8],
+struct Input<'a, E = u8> {
+    bytes: &'a [E],
     scales: &'a [f32],
     stride: usize,
 }
@@ -717,8 +797,9 @@ unsafe fn gemm(
     // SAFETY: the caller's contract is the kernels'.
     unsafe {
         match isa {
-            Isa::Avx512 => gemm_avx512(layer, bias, input, rows, epilogue),
-            Isa::AvxVnni => gemm_avx_vnni(layer, bias, input, rows, epilogue),
+            Isa::Avx512 => gemm_avx512(packed, &layer.scales, bias, input, rows, epilogue),
+            Isa::AvxVnni => gemm_avx_vnni(packed, &layer.scales, bias, input, rows, epilogue),
+            Isa::Avx2Pairs => unreachable!("the pairs kernel reads widened input (`gemm_pairs`)"),
             Isa::Scalar => unreachable!("the scalar roundings run only beside emulated tiles"),
         }
     }
@@ -729,12 +810,64 @@ unsafe fn gemm(
     }
 }
 
+/// [`gemm`] on [`Isa::Avx2Pairs`]: `input` the bytes widened to 16 bits, `pairs` the layer's
+/// weights in 16-bit pairs, `scales` its columns' scales.
+///
+/// # Safety
+/// As [`gemm`], with pairs for groups; the core has AVX2 and FMA.
+unsafe fn gemm_pairs(
+    pairs: &Packed<i16>,
+    scales: &[f32],
+    bias: &[f32],
+    input: Input<'_, u16>,
+    rows: usize,
+    epilogue: Epilogue<'_, f32>,
+) {
+    debug_assert!(
+        rows.is_multiple_of(MR)
+            && input.bytes.len() >= rows * input.stride
+            && input.stride >= PAIR * pairs.groups
+            && input.scales.len() >= rows
+            && bias.len() >= pairs.panels * NR
+            && scales.len() >= pairs.panels * NR
+    );
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: the caller's contract is the kernel's.
+    unsafe {
+        gemm_avx2_pairs(pairs, scales, bias, input, rows, epilogue)
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        let _ = (pairs, scales, bias, input, rows, epilogue);
+        unreachable!("the native kernels are only built on x86_64")
+    }
+}
+
+/// `acc + VPMADDWD(x, w)`: each i32 lane of `acc` plus its two 16-bit products (exact: the
+/// inputs are bytes, so no pair's sum nears the i32 range).
+///
+/// # Safety
+/// The core has AVX2.
+#[cfg(target_arch = "x86_64")]
+#[inline]
+#[target_feature(enable = "avx2")]
+unsafe fn madd_pairs(
+    acc: std::arch::x86_64::__m256i,
+    x: std::arch::x86_64::__m256i,
+    w: std::arch::x86_64::__m256i,
+) -> std::arch::x86_64::__m256i {
+    use std::arch::x86_64::*;
+    _mm256_add_epi32(acc, _mm256_madd_epi16(x, w))
+}
+
 /// A [`gemm`] on one vector width: each 64-column panel in blocks of `MR` rows × `NV` vectors
-/// of `LANES` i32 lanes; each row's four bytes of a group broadcast from the row, the block's
-/// weights of a group loaded once; `relu(acc · s_row · s_col + b)` (or the output dot product)
-/// as each block leaves the registers. `$hsum` sums a vector's lanes.
+/// of `LANES` i32 lanes; each row's `LANE_INPUTS` inputs of a group (four bytes, or two 16-bit values)
+/// broadcast from the row, the block's weights of a group loaded once;
+/// `relu(acc · s_row · s_col + b)` (or the output dot product) as each block leaves the
+/// registers. `$hsum` sums a vector's lanes.
 macro_rules! vnni_gemm {
-    ($(#[$doc:meta])* $name:ident, $feature:literal, lanes $lanes:literal, nv $nv:literal,
+    ($(#[$doc:meta])* $name:ident, $feature:literal, $elem:ty, $weight:ty, group $group:expr,
+     lanes $lanes:literal, nv $nv:literal,
      $vi:ty, $zero_i:ident, $load_i:ident, $set1_i:ident, $dpbusd:ident,
      $vf:ty, $zero:ident, $load:ident, $store:ident, $set1:ident, $cvt:ident, $fmadd:ident,
      $mul:ident, $max:ident, $hsum:path) => {
@@ -745,16 +878,18 @@ macro_rules! vnni_gemm {
         #[cfg(target_arch = "x86_64")]
         #[target_feature(enable = $feature)]
         unsafe fn $name(
-            layer: &I8Layer,
+            packed: &Packed<$weight>,
+            scales: &[f32],
             bias: &[f32],
-            input: Input<'_>,
+            input: Input<'_, $elem>,
             rows: usize,
             epilogue: Epilogue<'_, f32>,
         ) {
             use std::arch::x86_64::*;
             const NV: usize = $nv;
             const COLUMNS: usize = $lanes * NV;
-            let (packed, stride) = (&layer.packed, input.stride);
+            const LANE_INPUTS: usize = $group;
+            let stride = input.stride;
             let groups = packed.groups;
             let mut epilogue = epilogue;
             for panel in 0..packed.panels {
@@ -766,22 +901,22 @@ macro_rules! vnni_gemm {
                         let weights = packed
                             .weight
                             .as_ptr()
-                            .add(panel * groups * NR * GROUP + COLUMNS * block * GROUP);
+                            .add(panel * groups * NR * LANE_INPUTS + COLUMNS * block * LANE_INPUTS);
                         let at = |v: &[f32], c: usize| $load(v.as_ptr().add(column + $lanes * c));
                         let bias: [$vf; NV] = std::array::from_fn(|c| at(bias, c));
-                        let scale: [$vf; NV] = std::array::from_fn(|c| at(&layer.scales, c));
+                        let scale: [$vf; NV] = std::array::from_fn(|c| at(scales, c));
                         for r0 in (0..rows).step_by(MR) {
                             let mut acc = [[$zero_i(); NV]; MR];
                             let a = input.bytes.as_ptr().add(r0 * stride);
                             for g in 0..groups {
-                                let w = weights.add(g * NR * GROUP);
+                                let w = weights.add(g * NR * LANE_INPUTS);
                                 let b: [$vi; NV] = std::array::from_fn(|c| {
-                                    $load_i(w.add(GROUP * $lanes * c) as *const _)
+                                    $load_i(w.add(LANE_INPUTS * $lanes * c) as *const _)
                                 });
                                 for (r, acc) in acc.iter_mut().enumerate() {
-                                    let four = (a.add(r * stride + GROUP * g) as *const i32)
+                                    let inputs = (a.add(r * stride + LANE_INPUTS * g) as *const i32)
                                         .read_unaligned();
-                                    let x = $set1_i(four);
+                                    let x = $set1_i(inputs);
                                     for c in 0..NV {
                                         acc[c] = $dpbusd(acc[c], x, b[c]);
                                     }
@@ -822,7 +957,7 @@ macro_rules! vnni_gemm {
 
 vnni_gemm!(
     /// [`gemm`] on AVX-512 VNNI: blocks of 6 rows × 64 columns (24 i32 accumulators).
-    gemm_avx512, "avx512f,avx512bw,avx512vnni", lanes 16, nv 4,
+    gemm_avx512, "avx512f,avx512bw,avx512vnni", u8, u8, group GROUP, lanes 16, nv 4,
     __m512i, _mm512_setzero_si512, _mm512_loadu_si512, _mm512_set1_epi32, _mm512_dpbusd_epi32,
     __m512, _mm512_setzero_ps, _mm512_loadu_ps, _mm512_storeu_ps, _mm512_set1_ps,
     _mm512_cvtepi32_ps, _mm512_fmadd_ps, _mm512_mul_ps, _mm512_max_ps, _mm512_reduce_add_ps
@@ -831,9 +966,18 @@ vnni_gemm!(
 vnni_gemm!(
     /// [`gemm`] on AVX-VNNI: blocks of 6 rows × 16 columns (12 i32 accumulators, two weight
     /// vectors and a broadcast in the 16 ymm registers).
-    gemm_avx_vnni, "avx2,fma,avxvnni", lanes 8, nv 2,
+    gemm_avx_vnni, "avx2,fma,avxvnni", u8, u8, group GROUP, lanes 8, nv 2,
     __m256i, _mm256_setzero_si256, _mm256_loadu_si256, _mm256_set1_epi32,
     _mm256_dpbusd_avx_epi32,
+    __m256, _mm256_setzero_ps, _mm256_loadu_ps, _mm256_storeu_ps, _mm256_set1_ps,
+    _mm256_cvtepi32_ps, _mm256_fmadd_ps, _mm256_mul_ps, _mm256_max_ps, super::native::hsum256
+);
+
+vnni_gemm!(
+    /// [`gemm_pairs`] on AVX2: blocks of 6 rows × 16 columns (12 i32 accumulators, two weight
+    /// vectors, a broadcast and a product in the 16 ymm registers), each lane two 16-bit inputs.
+    gemm_avx2_pairs, "avx2,fma", u16, i16, group PAIR, lanes 8, nv 2,
+    __m256i, _mm256_setzero_si256, _mm256_loadu_si256, _mm256_set1_epi32, madd_pairs,
     __m256, _mm256_setzero_ps, _mm256_loadu_ps, _mm256_storeu_ps, _mm256_set1_ps,
     _mm256_cvtepi32_ps, _mm256_fmadd_ps, _mm256_mul_ps, _mm256_max_ps, super::native::hsum256
 );
@@ -857,7 +1001,7 @@ mod tests {
         rows.push((0..64).map(|i| (i % 32) as f32 * 0.5).collect::<Vec<f32>>());
         rows.last_mut().unwrap()[63] = 255.0;
         rows.push(vec![0.0; 64]);
-        for isa in [Isa::Avx512, Isa::AvxVnni] {
+        for isa in [Isa::Avx512, Isa::AvxVnni, Isa::Avx2Pairs] {
             for row in &rows {
                 let (mut vector, mut scalar) = ([0u8; 64], [0u8; 64]);
                 let step = row_bytes(isa, row, &mut vector);
@@ -868,7 +1012,7 @@ mod tests {
         // Encodings: every value of [−1, 1] in steps that fall on and between the bytes.
         let encodings: Vec<f32> = (0..=1020).map(|i| i as f32 / 510.0 - 1.0).collect();
         let scalar: Vec<u8> = encodings.iter().map(|&e| encoding_to_u8(e)).collect();
-        for isa in [Isa::Avx512, Isa::AvxVnni] {
+        for isa in [Isa::Avx512, Isa::AvxVnni, Isa::Avx2Pairs] {
             let mut vector = vec![0u8; 1021];
             encoding_bytes(isa, &encodings, &mut vector);
             assert_eq!(vector, scalar, "{isa:?}");
