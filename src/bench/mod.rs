@@ -146,11 +146,11 @@ struct Peaks {
 /// calibration; returns the peaks.
 fn print_peaks(model: &Model) -> Peaks {
     let kernels = model.config().kernels;
-    let library = matmul_peak_gflops(kernels, crate::net::tiles::TILE_ROWS);
+    let library = matmul_peak_gflops(kernels, crate::net::tiles::tile_rows());
     println!(
         "matmul peak of the library GEMM, {} (4096×256·256×256 f32 in tiles of {} rows over the cores): {library:.1} GFLOP/s",
         crate::net::dense::library_name(kernels),
-        crate::net::tiles::TILE_ROWS
+        crate::net::tiles::tile_rows()
     );
     let widest = peak::fma_peak(true);
     let narrow = peak::fma_peak(false);

@@ -17,7 +17,7 @@ use super::f16::F16Kernel;
 use super::i8::I8Head;
 use super::kernels::Kernels;
 use super::native::{F32Avx2, F32Avx512, NativeHead};
-pub use super::tiles::{Precision, Rows, TILE_ROWS};
+pub use super::tiles::{Precision, Rows, TILE_ROWS, tile_rows};
 use super::tiles::{by_tiles, round_bf16, round_encoding_u8, round_f16, round_rows_u8};
 use super::weights::HeadWeights;
 
@@ -238,8 +238,9 @@ impl FusedHead {
         let n = encodings.len() / e;
         let w = self.weights.width;
         let mut out = vec![0.0; n * w];
-        out.par_chunks_mut(TILE_ROWS * w)
-            .zip(encodings.par_chunks(TILE_ROWS * e))
+        let rows = tile_rows();
+        out.par_chunks_mut(rows * w)
+            .zip(encodings.par_chunks(rows * e))
             .for_each(|(out, enc)| {
                 self.weights
                     .rotation
@@ -255,15 +256,15 @@ impl FusedHead {
         if let Some(native) = &self.f32_native {
             return native.branch_scores(image_term, Rows::Projected(projected));
         }
-        let w = self.weights.width;
+        let (w, rows) = (self.weights.width, tile_rows());
         by_tiles(
             projected,
             w,
-            TILE_ROWS,
+            rows,
             || Scratch {
-                x: vec![0.0; TILE_ROWS * w],
-                a: vec![0.0; TILE_ROWS * w],
-                b: vec![0.0; TILE_ROWS * w],
+                x: vec![0.0; rows * w],
+                a: vec![0.0; rows * w],
+                b: vec![0.0; rows * w],
             },
             |scratch, projected, out| self.tile(image_term, projected, scratch, out),
         )

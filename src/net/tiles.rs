@@ -5,15 +5,70 @@
 
 use rayon::prelude::*;
 
-/// Rows of one tile: measured fastest among 64–512 (`examples/probe_gemm.rs`), and a tile's
-/// activations (2 × 256 rows × 256 × 4 B = 512 KiB) stay in a core's L2. A kernel's tiles
-/// round it up to its register block ([`blocked_tile_rows`]).
+/// The most rows of one tile, and its rows where the core's L2 size is unknown: measured fastest
+/// among 64–512 (`examples/probe_gemm.rs`) on cores with 1–2 MiB of L2, where a tile's
+/// activations (2 × 256 rows × 256 × 4 B = 512 KiB) stay in a core's L2. See [`tile_rows`].
 pub const TILE_ROWS: usize = 256;
 
-/// [`TILE_ROWS`] rounded up to a multiple of a kernel's `mr` rows: the rows of its tiles, so
+/// Rows of one tile on this core ([`tile_rows_for`] its L2 size, read once from Linux's sysfs).
+pub fn tile_rows() -> usize {
+    static ROWS: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
+    *ROWS.get_or_init(|| tile_rows_for(l2_cache_bytes()))
+}
+
+/// Rows of one tile for a core with `l2` bytes of L2 cache: the most, in powers of two from 64
+/// to [`TILE_ROWS`], whose two activation buffers of 256-wide f32 rows (1 KiB a row each) fill
+/// at most half of it, so that the weights stay beside them; [`TILE_ROWS`] where `l2` is
+/// unknown. 128 rows on AMD Zen 3's 512 KiB: the f32 head at level 3 read 79–86 % of the FMA
+/// peak there against 71–82 % with 256 rows and 69–74 % with 512 (`probe_full_grid`, 2026-11-27).
+pub fn tile_rows_for(l2: Option<usize>) -> usize {
+    let Some(l2) = l2 else {
+        return TILE_ROWS;
+    };
+    let fit = (l2 / 2 / (2 * 1024)).min(TILE_ROWS);
+    let mut rows = 64;
+    while rows * 2 <= fit {
+        rows *= 2;
+    }
+    rows
+}
+
+/// The L2 cache of the first core in bytes, from `/sys/devices/system/cpu/cpu0/cache` (the
+/// level-2 entry of type `Unified` or `Data`); `None` where that is not readable.
+fn l2_cache_bytes() -> Option<usize> {
+    let caches = std::fs::read_dir("/sys/devices/system/cpu/cpu0/cache").ok()?;
+    caches.flatten().find_map(|entry| {
+        let read = |name: &str| std::fs::read_to_string(entry.path().join(name)).ok();
+        let level = read("level")?;
+        let kind = read("type")?;
+        (level.trim() == "2" && matches!(kind.trim(), "Unified" | "Data"))
+            .then(|| cache_size_bytes(&read("size")?))
+            .flatten()
+    })
+}
+
+/// A sysfs cache size (`512K`, `2048K`, `1M`, or bytes) in bytes.
+fn cache_size_bytes(size: &str) -> Option<usize> {
+    let size = size.trim();
+    let (digits, unit) = match size.char_indices().find(|(_, c)| !c.is_ascii_digit()) {
+        Some((i, _)) => size.split_at(i),
+        None => (size, ""),
+    };
+    let value: usize = digits.parse().ok()?;
+    let scale = match unit {
+        "" => 1,
+        "K" => 1 << 10,
+        "M" => 1 << 20,
+        "G" => 1 << 30,
+        _ => return None,
+    };
+    value.checked_mul(scale)
+}
+
+/// [`tile_rows`] rounded up to a multiple of a kernel's `mr` rows: the rows of its tiles, so
 /// that a full tile is whole register blocks (12-row blocks in 256 rows would compute 264).
 pub(super) fn blocked_tile_rows(mr: usize) -> usize {
-    TILE_ROWS.div_ceil(mr) * mr
+    tile_rows().div_ceil(mr) * mr
 }
 
 /// The arithmetic a head is scored in.
@@ -213,4 +268,28 @@ pub fn columns_to_i8(weight: &[f32], outputs: usize) -> (Vec<i8>, Vec<f32>) {
         })
         .collect();
     (bytes, max.iter().map(|&m| m / 127.0).collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A tile's activations fill at most half the L2: 64 rows for 256 KiB, 128 for Zen 3's
+    /// 512 KiB, 256 (the most) from 1 MiB up, and 256 where the size is unknown.
+    #[test]
+    fn tiles_fit_half_the_l2() {
+        let kib = |k: usize| Some(k << 10);
+        assert_eq!(tile_rows_for(kib(256)), 64);
+        assert_eq!(tile_rows_for(kib(512)), 128);
+        assert_eq!(tile_rows_for(kib(1024)), 256);
+        assert_eq!(tile_rows_for(kib(2048)), 256);
+        assert_eq!(tile_rows_for(kib(32)), 64);
+        assert_eq!(tile_rows_for(None), TILE_ROWS);
+        assert_eq!(cache_size_bytes("512K\n"), Some(512 << 10));
+        assert_eq!(cache_size_bytes("2M"), Some(2 << 20));
+        assert_eq!(cache_size_bytes("1048576"), Some(1 << 20));
+        assert_eq!(cache_size_bytes("12 KB"), None);
+        assert_eq!(cache_size_bytes(""), None);
+        assert!((64..=TILE_ROWS).contains(&tile_rows()));
+    }
 }
