@@ -542,44 +542,57 @@ fn assert_kernel_close(
             ),
         ] {
             assert_eq!(got.len(), rows);
-            let scale = exact.iter().map(|v| v.abs()).sum::<f32>() / rows as f32;
-            let (mut worst, mut mean, mut flipped) = (0.0f32, 0.0f32, 0);
-            for i in 0..rows {
-                let (g, e, x) = (got[i], emulated[i], exact[i]);
-                // The same rounded products, summed in another order (the f16 kernel: partly in
-                // f16): a rounding may flip between layers, so they agree closely, not exactly.
-                // Where a flip lands on a large weight the row moves further: one row in 127
-                // rotations of the shipped head's 8-bit feature branch (0.5 % of its score, the
-                // shape branch of the same row within 4e-3), so one row in a hundred may, up to
-                // four times the tolerance.
-                let gap = (g - e).abs() / x.abs().max(scale);
-                if gap > tolerance.emulated {
-                    flipped += 1;
-                    assert!(
-                        gap <= 4.0 * tolerance.emulated && flipped <= rows.div_ceil(100),
-                        "{what} {branch}, {rows} rows, row {i}: {precision} {g} against its emulation {e} ({flipped} rows beyond {})",
-                        tolerance.emulated
-                    );
-                }
-                worst = worst.max((g - x).abs() / x.abs().max(scale));
-                mean += (g - e).abs() / scale / rows as f32;
-            }
-            eprintln!(
-                "{what} {branch}, {rows} rows: {precision} worst {worst:.4} from f32, mean gap to the emulation {mean:.5}"
-            );
-            // Most rows agree far more closely than the worst one.
-            assert!(
-                mean <= tolerance.emulated_mean,
-                "{what} {branch}, {rows} rows: mean gap to the emulation {mean}"
-            );
-            // bfloat16 keeps 8 significant bits; f16 11, but sums chunks in f16: within a few %
-            // of the f32 scores.
-            assert!(
-                worst <= tolerance.f32,
-                "{what} {branch}, {rows} rows: {precision} {worst} from f32"
-            );
+            let label = format!("{what} {branch}, {rows} rows");
+            assert_branch_close(&label, precision, tolerance, [exact, got, emulated]);
         }
     }
+}
+
+/// One branch's scores of a kernel (`got`) against its emulation and the f32 head's (`exact`),
+/// row by row and on average, [`assert_kernel_close`]'s checks.
+fn assert_branch_close(
+    label: &str,
+    precision: alignist::net::Precision,
+    tolerance: Tolerance,
+    [exact, got, emulated]: [&[f32]; 3],
+) {
+    let rows = exact.len();
+    let scale = exact.iter().map(|v| v.abs()).sum::<f32>() / rows as f32;
+    let (mut worst, mut mean, mut flipped) = (0.0f32, 0.0f32, 0);
+    for i in 0..rows {
+        let (g, e, x) = (got[i], emulated[i], exact[i]);
+        // The same rounded products, summed in another order (the f16 kernel: partly in
+        // f16): a rounding may flip between layers, so they agree closely, not exactly.
+        // Where a flip lands on a large weight the row moves further: one row in 127
+        // rotations of the shipped head's 8-bit feature branch (0.5 % of its score, the
+        // shape branch of the same row within 4e-3), so one row in a hundred may, up to
+        // four times the tolerance.
+        let gap = (g - e).abs() / x.abs().max(scale);
+        if gap > tolerance.emulated {
+            flipped += 1;
+            assert!(
+                gap <= 4.0 * tolerance.emulated && flipped <= rows.div_ceil(100),
+                "{label}, row {i}: {precision} {g} against its emulation {e} ({flipped} rows beyond {})",
+                tolerance.emulated
+            );
+        }
+        worst = worst.max((g - x).abs() / x.abs().max(scale));
+        mean += (g - e).abs() / scale / rows as f32;
+    }
+    eprintln!(
+        "{label}: {precision} worst {worst:.4} from f32, mean gap to the emulation {mean:.5}"
+    );
+    // Most rows agree far more closely than the worst one.
+    assert!(
+        mean <= tolerance.emulated_mean,
+        "{label}: mean gap to the emulation {mean}"
+    );
+    // bfloat16 keeps 8 significant bits; f16 11, but sums chunks in f16: within a few %
+    // of the f32 scores.
+    assert!(
+        worst <= tolerance.f32,
+        "{label}: {precision} {worst} from f32"
+    );
 }
 
 /// [`assert_reduced_close`] on a small random head (width 40) and on the shipped one.
