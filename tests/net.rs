@@ -655,16 +655,14 @@ fn the_amx_kernel_on_emulated_tiles_agrees_with_the_bf16_emulation() {
     );
 }
 
-/// A head on emulated tiles (`tiles_of` a head on the portable kernels) against the emulation of
-/// `precision` on the f32 GEMM, on a small random head (width 40) and on the shipped one.
-fn assert_emulated_tiles_close(
-    precision: Precision,
-    tolerance: Tolerance,
-    tiles_of: fn(&alignist::net::FusedHead) -> alignist::net::ReducedHead,
-    kernel: &str,
+/// A small random head (width 40, padded to the kernels' panels, output biases set) on
+/// `encoding`, and the shipped bundle: the two heads the kernel tests compare on.
+fn small_head_and_shipped(
+    encoding: &RotationEncoding,
+) -> (
+    alignist::net::DualHead,
+    alignist::bundle::model::ModelBundle,
 ) {
-    use alignist::net::{FusedHead, Kernels};
-    let encoding = RotationEncoding::Cube;
     let head = HeadConfig::new(32, encoding.dim())
         .with_hidden(40)
         .with_layers(4)
@@ -675,6 +673,20 @@ fn assert_emulated_tiles_close(
         "/models/symsol1"
     )))
     .unwrap();
+    (head, bundle)
+}
+
+/// A head on emulated tiles (`tiles_of` a head on the portable kernels) against the emulation of
+/// `precision` on the f32 GEMM, on a small random head (width 40) and on the shipped one.
+fn assert_emulated_tiles_close(
+    precision: Precision,
+    tolerance: Tolerance,
+    tiles_of: fn(&alignist::net::FusedHead) -> alignist::net::ReducedHead,
+    kernel: &str,
+) {
+    use alignist::net::{FusedHead, Kernels};
+    let encoding = RotationEncoding::Cube;
+    let (head, bundle) = small_head_and_shipped(&encoding);
     for (fused, encoding, what) in [
         (
             FusedHead::with_kernels(&head, Kernels::Portable),
@@ -726,16 +738,7 @@ fn the_i8_head_agrees_with_its_emulation_and_stays_near_f32() {
 fn the_i8_head_on_avx2_pairs_agrees_with_its_emulation_and_the_vnni_kernel() {
     use alignist::net::{FusedHead, Kernels, ReducedHead, Rows};
     let encoding = RotationEncoding::Cube;
-    let head = HeadConfig::new(32, encoding.dim())
-        .with_hidden(40)
-        .with_layers(4)
-        .init(&device())
-        .with_output_biases(-2.5, 1.5);
-    let bundle = alignist::bundle::model::ModelBundle::load(std::path::Path::new(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/models/symsol1"
-    )))
-    .unwrap();
+    let (head, bundle) = small_head_and_shipped(&encoding);
     for (head, encoding, what) in [
         (&head, &encoding, "width 40"),
         (
