@@ -40,7 +40,8 @@ pub struct SearchFigures {
 /// keeps that halve (wide where a wrong region is chosen, narrow inside the chosen ones) or
 /// double at each finer level, all in f32; then the wider ones with the coarse levels in
 /// bfloat16, in f16 and in 8-bit integers, and some of those with the finest level in the coarse
-/// precision as well, rescored ([`SearchParams::rescore_finest`]).
+/// precision as well, rescored ([`SearchParams::rescore_finest`]); last, start level 1 with
+/// halving keeps in every precision (the fewest rows).
 pub fn candidates() -> Vec<SearchParams> {
     let flat = |start_level, keep, keep_mass| SearchParams {
         start_level,
@@ -129,6 +130,14 @@ pub fn candidates() -> Vec<SearchParams> {
         out.push(rescored(precision(tapered(2, 1024, 0.5))));
     }
     out.push(rescored(i8(tapered(2, 128, 2.0))));
+    // The fewest rows: start level 1 (576) and halving keeps from 192–384, in every precision,
+    // for cores whose head is too slow for the start level 2 searches within the budget.
+    for keep in [192, 256, 384] {
+        for precision in [i8, bf16, f16] {
+            out.push(precision(tapered(1, keep, 0.5)));
+        }
+        out.push(tapered(1, keep, 0.5));
+    }
     out
 }
 
