@@ -56,15 +56,22 @@ impl Folded {
             .enumerate()
             .for_each(|(t, chunk)| im2col_rows(unit, x, side, t * rows, chunk));
         let mut y = vec![0.0; unit.c_out * m];
-        let channels = unit.c_out.div_ceil(rayon::current_num_threads()).max(1);
         let cols = &cols[..n * m];
+        let threads = rayon::current_num_threads();
+        let by_pixels = unit.c_out < NARROW_CHANNELS * threads && m >= MIN_PIXELS * threads;
+        if by_pixels {
+            self.gemm_by_pixels(kernels, cols, m, threads, &mut y);
+        }
+        let channels = unit.c_out.div_ceil(threads).max(1);
         y.par_chunks_mut(channels * m)
             .enumerate()
             .for_each(|(t, y)| {
                 let first = t * channels;
                 let c = y.len() / m;
-                let w = Strided::rows(&unit.weight[first * n..(first + c) * n], n);
-                gemm(kernels, [c, n, m], w, Strided::rows(cols, m), 0.0, y);
+                if !by_pixels {
+                    let w = Strided::rows(&unit.weight[first * n..(first + c) * n], n);
+                    gemm(kernels, [c, n, m], w, Strided::rows(cols, m), 0.0, y);
+                }
                 for (ch, plane) in y.chunks_exact_mut(m).enumerate() {
                     let b = self.bias[first + ch];
                     match after {
@@ -81,7 +88,49 @@ impl Folded {
             });
         (y, out)
     }
+
+    /// `W'·cols` into `y` (`[c_out, m]`), each thread all the output channels of a span of the
+    /// `m` pixels: a narrow layer (16 channels at 64 × 64) split by channels would give each
+    /// thread a GEMM of a few rows, whose packing of the wide `cols` costs as much as its FMAs.
+    fn gemm_by_pixels(
+        &self,
+        kernels: Kernels,
+        cols: &[f32],
+        m: usize,
+        threads: usize,
+        y: &mut [f32],
+    ) {
+        let unit = &self.unit;
+        let (c, n) = (unit.c_out, unit.columns());
+        let span = m.div_ceil(threads);
+        let parts: Vec<Vec<f32>> = (0..m.div_ceil(span))
+            .into_par_iter()
+            .map(|t| {
+                let (first, last) = (t * span, ((t + 1) * span).min(m));
+                let mut part = vec![0.0; c * (last - first)];
+                let w = Strided::rows(&unit.weight, n);
+                // Row step m, columns first..last of `cols`.
+                let b = Strided::rows(&cols[first..], m);
+                gemm(kernels, [c, n, last - first], w, b, 0.0, &mut part);
+                part
+            })
+            .collect();
+        for (t, part) in parts.iter().enumerate() {
+            let first = t * span;
+            let width = part.len() / c;
+            for (row, out) in part.chunks_exact(width).zip(y.chunks_exact_mut(m)) {
+                out[first..first + width].copy_from_slice(row);
+            }
+        }
+    }
 }
+
+/// Below this many output channels a thread, a convolution's GEMM is split by pixels
+/// ([`Folded::gemm_by_pixels`]).
+const NARROW_CHANNELS: usize = 32;
+
+/// The fewest pixels a thread for the split by pixels.
+const MIN_PIXELS: usize = 256;
 
 /// What follows a folded convolution in the same pass.
 #[derive(Debug, Clone, Copy)]
