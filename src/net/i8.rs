@@ -127,8 +127,8 @@ pub fn native_available() -> bool {
 #[derive(Debug, Clone)]
 struct I8Layer {
     packed: Packed<u8>,
-    /// The weights packed `[panel][pair][NR][2]` in i16 (the bias and scales are `packed`'s),
-    /// for [`Isa::Avx2Pairs`] only.
+    /// The weights packed `[panel][pair][NR][2]` in i16 (the bias and scales are `packed`'s,
+    /// whose weights are then left empty), for [`Isa::Avx2Pairs`] only.
     pairs: Option<Packed<i16>>,
     /// `[panels × NR]`, zero past the outputs.
     scales: Vec<f32>,
@@ -143,9 +143,14 @@ impl I8Layer {
             weight: bytes.iter().map(|&b| b as f32).collect(),
             ..dense.clone()
         };
-        let packed = Packed::of(&as_values, padded_inputs, (GROUP, NR), |v| v as i8 as u8);
+        let mut packed = Packed::of(&as_values, padded_inputs, (GROUP, NR), |v| v as i8 as u8);
         let pairs = (isa == Isa::Avx2Pairs)
             .then(|| Packed::of(&as_values, padded_inputs, (PAIR, NR), |v| v as i16));
+        if pairs.is_some() {
+            // The pairs kernel (always without tiles) reads only the byte packing's bias and
+            // shape: its weights would be 64 KiB of unused memory a 256 × 256 layer.
+            packed.weight = Vec::new();
+        }
         scales.resize(packed.panels * NR, 0.0);
         let layer = I8Layer {
             packed,
