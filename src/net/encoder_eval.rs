@@ -91,7 +91,8 @@ impl Folded {
 
     /// `W'·cols` into `y` (`[c_out, m]`), each thread all the output channels of a span of the
     /// `m` pixels: a narrow layer (16 channels at 64 × 64) split by channels would give each
-    /// thread a GEMM of a few rows, whose packing of the wide `cols` costs as much as its FMAs.
+    /// thread a GEMM of a few rows, which uses each element of the wide `cols` it packs only as
+    /// many times (batch 1 on AMD Zen 3: the encoder 7.4–7.6 ms that way, 6.2–6.6 ms this way).
     fn gemm_by_pixels(
         &self,
         kernels: Kernels,
