@@ -122,14 +122,52 @@ pub fn native_available() -> bool {
     }
 }
 
-/// One layer in bytes: weights packed `[panel][group][NR][4]`, the bias in `packed.bias`, and
-/// each column's scale; for [`Isa::Avx2Pairs`] the same weights as 16-bit pairs too.
+/// A layer's weights (with its bias) packed for the one kernel that reads them.
+#[derive(Debug, Clone)]
+enum LayerWeights {
+    /// `[panel][group][NR][4]` bytes: the `VPDPBUSD` kernels and the tiles.
+    Bytes(Packed<u8>),
+    /// `[panel][pair][NR][2]` in i16, the same values: [`Isa::Avx2Pairs`]'s `VPMADDWD` kernel.
+    Pairs(Packed<i16>),
+}
+
+impl LayerWeights {
+    /// `[panels × NR]`, zero past the outputs.
+    fn bias(&self) -> &[f32] {
+        match self {
+            LayerWeights::Bytes(p) => &p.bias,
+            LayerWeights::Pairs(p) => &p.bias,
+        }
+    }
+
+    fn bias_mut(&mut self) -> &mut [f32] {
+        match self {
+            LayerWeights::Bytes(p) => &mut p.bias,
+            LayerWeights::Pairs(p) => &mut p.bias,
+        }
+    }
+
+    /// The inputs a row holds, padded (a multiple of [`GROUP`]).
+    fn inputs(&self) -> usize {
+        match self {
+            LayerWeights::Bytes(p) => GROUP * p.groups,
+            LayerWeights::Pairs(p) => PAIR * p.groups,
+        }
+    }
+
+    fn panels(&self) -> usize {
+        match self {
+            LayerWeights::Bytes(p) => p.panels,
+            LayerWeights::Pairs(p) => p.panels,
+        }
+    }
+}
+
+/// One layer in bytes: its weights and bias packed for the head's kernel, and each column's
+/// scale.
 #[derive(Debug, Clone)]
 struct I8Layer {
-    packed: Packed<u8>,
-    /// The weights packed `[panel][pair][NR][2]` in i16 (the bias and scales are `packed`'s,
-    /// whose weights are then left empty), for [`Isa::Avx2Pairs`] only.
-    pairs: Option<Packed<i16>>,
+    weights: LayerWeights,
     /// `[panels × NR]`, zero past the outputs.
     scales: Vec<f32>,
 }
@@ -143,21 +181,17 @@ impl I8Layer {
             weight: bytes.iter().map(|&b| b as f32).collect(),
             ..dense.clone()
         };
-        let mut packed = Packed::of(&as_values, padded_inputs, (GROUP, NR), |v| v as i8 as u8);
-        let pairs = (isa == Isa::Avx2Pairs)
-            .then(|| Packed::of(&as_values, padded_inputs, (PAIR, NR), |v| v as i16));
-        if pairs.is_some() {
-            // The pairs kernel (always without tiles) reads only the byte packing's bias and
-            // shape: its weights would be 64 KiB of unused memory a 256 × 256 layer.
-            packed.weight = Vec::new();
-        }
-        scales.resize(packed.panels * NR, 0.0);
-        let layer = I8Layer {
-            packed,
-            pairs,
-            scales,
+        let weights = if isa == Isa::Avx2Pairs {
+            LayerWeights::Pairs(Packed::of(&as_values, padded_inputs, (PAIR, NR), |v| {
+                v as i16
+            }))
+        } else {
+            LayerWeights::Bytes(Packed::of(&as_values, padded_inputs, (GROUP, NR), |v| {
+                v as i8 as u8
+            }))
         };
-        (layer, bytes)
+        scales.resize(weights.panels() * NR, 0.0);
+        (I8Layer { weights, scales }, bytes)
     }
 
     /// The rotation layer, reading encodings as `u = (e + 1)·127.5`:
@@ -165,7 +199,10 @@ impl I8Layer {
     /// bias, the first's `1/127.5` is every row's scale.
     fn of_encoding(dense: &Dense, padded_inputs: usize, isa: Isa) -> I8Layer {
         let (mut layer, bytes) = I8Layer::of(dense, padded_inputs, isa);
-        for (j, bias) in layer.packed.bias[..dense.outputs].iter_mut().enumerate() {
+        for (j, bias) in layer.weights.bias_mut()[..dense.outputs]
+            .iter_mut()
+            .enumerate()
+        {
             let column: i32 = bytes
                 .iter()
                 .skip(j)
@@ -307,13 +344,13 @@ impl I8Head {
             Rows::Projected(p) => (p, self.width),
             Rows::Encoded(e) => (e, self.encoding),
         };
-        let mut first_bias = self.rotation.packed.bias.clone();
+        let mut first_bias = self.rotation.weights.bias().to_vec();
         for (b, i) in first_bias.iter_mut().zip(image_term) {
             *b += i;
         }
         let mr = self.tiles.mr();
         let blocked = blocked_tile_rows(mr);
-        let e_stride = GROUP * self.rotation.packed.groups;
+        let e_stride = self.rotation.weights.inputs();
         by_tiles(
             given,
             per_row,
@@ -448,7 +485,7 @@ impl I8Head {
                     l if l % 2 == 1 => (&a[..], &sa[..], &mut b[..], &mut sb[..]),
                     _ => (&b[..], &sb[..], &mut a[..], &mut sa[..]),
                 };
-                let bias = &layer.packed.bias;
+                let bias = layer.weights.bias();
                 let input = Input {
                     bytes: input,
                     scales: in_scales,
@@ -513,7 +550,7 @@ impl I8Head {
                 }
             }
             Rows::Encoded(encodings) => {
-                let e_stride = GROUP * self.rotation.packed.groups;
+                let e_stride = self.rotation.weights.inputs();
                 e[..blocked * e_stride].fill(0);
                 for (er, enc) in e
                     .chunks_exact_mut(e_stride)
@@ -564,15 +601,17 @@ impl I8Head {
         // SAFETY: the caller's contract; layers were packed with inputs padded to 64 bytes for
         // the tiles.
         unsafe {
-            match self.tiles {
+            match (self.tiles, &layer.weights) {
                 #[cfg(target_arch = "x86_64")]
-                Tiles::Amx => amx::gemm_i8_amx(&layer.packed, scales, bytes, rows, epilogue),
-                #[cfg(not(target_arch = "x86_64"))]
-                Tiles::Amx => unreachable!("AMX is only built on x86_64"),
-                Tiles::Emulated => {
-                    amx::gemm_i8_emulated(&layer.packed, scales, bytes, rows, epilogue)
+                (Tiles::Amx, LayerWeights::Bytes(packed)) => {
+                    amx::gemm_i8_amx(packed, scales, bytes, rows, epilogue)
                 }
-                Tiles::None if self.isa == Isa::Avx2Pairs => {
+                #[cfg(not(target_arch = "x86_64"))]
+                (Tiles::Amx, _) => unreachable!("AMX is only built on x86_64"),
+                (Tiles::Emulated, LayerWeights::Bytes(packed)) => {
+                    amx::gemm_i8_emulated(packed, scales, bytes, rows, epilogue)
+                }
+                (Tiles::None, LayerWeights::Pairs(pairs)) => {
                     let n = rows * input.stride;
                     for (w, &b) in wide[..n].iter_mut().zip(&input.bytes[..n]) {
                         *w = b as u16;
@@ -582,10 +621,14 @@ impl I8Head {
                         scales: input.scales,
                         stride: input.stride,
                     };
-                    let pairs = layer.pairs.as_ref().expect("packed in pairs for Avx2Pairs");
                     gemm_pairs(pairs, &layer.scales, bias, input, rows, epilogue)
                 }
-                Tiles::None => gemm(self.isa, layer, bias, input, rows, epilogue),
+                (Tiles::None, LayerWeights::Bytes(packed)) => {
+                    gemm(self.isa, packed, &layer.scales, bias, input, rows, epilogue)
+                }
+                (_, LayerWeights::Pairs(_)) => {
+                    unreachable!("pairs are packed only for the kernel without tiles")
+                }
             }
         }
     }
@@ -783,34 +826,34 @@ struct Input<'a, E = u8> {
 /// stride (≥ panels × NR), a `Dot` `rows` dots and `panels × NR` weights.
 unsafe fn gemm(
     isa: Isa,
-    layer: &I8Layer,
+    packed: &Packed<u8>,
+    scales: &[f32],
     bias: &[f32],
     input: Input<'_>,
     rows: usize,
     epilogue: Epilogue<'_, f32>,
 ) {
-    let packed = &layer.packed;
     debug_assert!(
         rows.is_multiple_of(MR)
             && input.bytes.len() >= rows * input.stride
             && input.stride >= GROUP * packed.groups
             && input.scales.len() >= rows
             && bias.len() >= packed.panels * NR
-            && layer.scales.len() >= packed.panels * NR
+            && scales.len() >= packed.panels * NR
     );
     #[cfg(target_arch = "x86_64")]
     // SAFETY: the caller's contract is the kernels'.
     unsafe {
         match isa {
-            Isa::Avx512 => gemm_avx512(packed, &layer.scales, bias, input, rows, epilogue),
-            Isa::AvxVnni => gemm_avx_vnni(packed, &layer.scales, bias, input, rows, epilogue),
+            Isa::Avx512 => gemm_avx512(packed, scales, bias, input, rows, epilogue),
+            Isa::AvxVnni => gemm_avx_vnni(packed, scales, bias, input, rows, epilogue),
             Isa::Avx2Pairs => unreachable!("the pairs kernel reads widened input (`gemm_pairs`)"),
             Isa::Scalar => unreachable!("the scalar roundings run only beside emulated tiles"),
         }
     }
     #[cfg(not(target_arch = "x86_64"))]
     {
-        let _ = (isa, layer, bias, input, rows, epilogue);
+        let _ = (isa, packed, scales, bias, input, rows, epilogue);
         unreachable!("the native kernels are only built on x86_64")
     }
 }
