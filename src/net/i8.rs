@@ -154,13 +154,6 @@ impl LayerWeights {
             LayerWeights::Pairs(p) => PAIR * p.groups,
         }
     }
-
-    fn panels(&self) -> usize {
-        match self {
-            LayerWeights::Bytes(p) => p.panels,
-            LayerWeights::Pairs(p) => p.panels,
-        }
-    }
 }
 
 /// One layer in bytes: its weights and bias packed for the head's kernel, and each column's
@@ -190,7 +183,8 @@ impl I8Layer {
                 v as i8 as u8
             }))
         };
-        scales.resize(weights.panels() * NR, 0.0);
+        // Both packings have `outputs` rounded up to panels of `NR` (`Packed::of`).
+        scales.resize(dense.outputs.div_ceil(NR) * NR, 0.0);
         (I8Layer { weights, scales }, bytes)
     }
 
