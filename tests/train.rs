@@ -107,6 +107,7 @@ fn config(method: Method) -> TrainConfig {
         seed: 11,
         checkpoint_every: 3,
         init: None,
+        teacher: None,
     }
 }
 
@@ -516,6 +517,7 @@ fn a_warm_restart_starts_from_the_given_weights_and_checks_them() {
     // The same run from a seeded initialisation keeps other weights.
     let (s, _) = go(&TrainConfig {
         init: None,
+        teacher: None,
         ..warm.clone()
     })
     .unwrap();
@@ -677,4 +679,74 @@ fn a_replanned_schedule_ends_at_its_new_length_and_resumes_exactly() {
     .unwrap();
     assert_eq!((second.resumed_from, second.steps_run), (3, 5));
     assert_eq!(fingerprint(&a, &set), fingerprint(&resumed, &set));
+}
+
+#[test]
+fn a_distilled_head_keeps_the_teachers_encoder_and_learns_its_scores() {
+    use alignist::train::config::TeacherWeights;
+    let set = tiny_set();
+    let go = |c: &TrainConfig| train(c, &set, None, false, |_, _, _| ControlFlow::Continue(()));
+    // A teacher trained past its start, so that its scores are its own, not the experts' mean.
+    let teacher_cfg = TrainConfig {
+        steps: 30,
+        ..config(alignist_method())
+    };
+    let (teacher, _) = go(&teacher_cfg).unwrap();
+    let files = tempfile::tempdir().unwrap();
+    let path = files.path().join("network.safetensors");
+    let entry = alignist::bundle::save_weights(&teacher, &path).unwrap();
+    let student = |lr: f64| TrainConfig {
+        network: teacher_cfg.network.clone().with_hidden(16),
+        steps: 60,
+        lr,
+        teacher: Some(TeacherWeights {
+            path: path.display().to_string(),
+            file: entry.clone(),
+            network: teacher_cfg.network.clone(),
+            trained_by: "the test's teacher".into(),
+        }),
+        ..config(alignist_method())
+    };
+    let (before, _) = go(&student(0.0)).unwrap();
+    let (after, _) = go(&student(3e-3)).unwrap();
+    // The encoder is the teacher's, frozen: every encoder tensor (running statistics too).
+    let encoder = |n: &Network, name: &str| {
+        let p = files.path().join(name);
+        alignist::bundle::save_weights(n, &p).unwrap();
+        let mut t = tensors(&p);
+        t.retain(|k, _| k.starts_with("encoder"));
+        t
+    };
+    let theirs = encoder(&teacher, "t.safetensors");
+    assert!(theirs.len() > 10);
+    assert_eq!(theirs, encoder(&after, "a.safetensors"));
+    // The head learns the teacher's scores: nearer them after the steps than at its start.
+    let want = fingerprint(&teacher, &set);
+    let distance = |n: &Network| {
+        let got = fingerprint(n, &set);
+        assert_eq!(got.len(), want.len());
+        got.iter()
+            .zip(&want)
+            .map(|(g, w)| (g - w).powi(2))
+            .sum::<f32>()
+            / got.len() as f32
+    };
+    let (d0, d1) = (distance(&before), distance(&after));
+    assert!(
+        d1 < 0.5 * d0,
+        "distance to the teacher's scores: {d0} at the start, {d1} after"
+    );
+    // A teacher whose encoder is not the run's, or whose file is not the recorded one, is refused
+    // with its path named.
+    let mut other = student(3e-3);
+    other.network = other.network.with_image_size(SIZE * 2);
+    let err = go(&other).unwrap_err().to_string();
+    assert!(
+        err.contains("network.safetensors") && err.contains("px"),
+        "{err}"
+    );
+    let mut other = student(3e-3);
+    other.teacher.as_mut().unwrap().file.sha256 = "0".repeat(64);
+    let err = go(&other).unwrap_err().to_string();
+    assert!(err.contains("network.safetensors"), "{err}");
 }

@@ -250,6 +250,11 @@ pub struct TrainConfig {
     /// from a trained model's weights). `None`: seeded initialisation.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub init: Option<InitWeights>,
+    /// A trained model whose head this run's head learns to reproduce (`src/train/distil.rs`):
+    /// its encoder is taken and frozen, and its branch scores replace the experts' targets.
+    /// `None`: the experts' targets, the paper's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub teacher: Option<TeacherWeights>,
 }
 
 impl Default for TrainConfig {
@@ -276,6 +281,7 @@ impl Default for TrainConfig {
             seed: 0,
             checkpoint_every: 100,
             init: None,
+            teacher: None,
         }
     }
 }
@@ -305,6 +311,21 @@ pub struct InitWeights {
     /// blocks start as identities).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub layout: Option<crate::net::ResNetLayout>,
+}
+
+/// The model a distilled head learns from: its weights file, checked before loading, and the
+/// network they are.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TeacherWeights {
+    /// The weights file (a bundle's `network.safetensors`).
+    pub path: String,
+    /// Its checksum and size, checked before loading.
+    pub file: FileEntry,
+    /// The teacher's network (its head may be wider than this run's).
+    pub network: NetworkConfig,
+    /// The command that trained it (from its bundle's manifest).
+    #[serde(default)]
+    pub trained_by: String,
 }
 
 /// How the K rotations of an image are drawn.

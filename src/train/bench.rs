@@ -132,6 +132,7 @@ pub fn bench_training(config: &TrainingBenchConfig) -> Result<TrainingBench, Tra
             seed: 0,
             checkpoint_every: usize::MAX,
             init: None,
+            teacher: None,
         };
         train(&cfg, &set, None, false, |_, _, _| ControlFlow::Continue(()))
             .map(|(_, report)| report.profile)

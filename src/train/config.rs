@@ -2,7 +2,7 @@
 //! the checkpoints (which record it), so neither imports the other.
 
 pub use crate::bundle::record::{
-    ExpertBranches, InitWeights, MeasureLoss, Method, TrainConfig, warmup_steps,
+    ExpertBranches, InitWeights, MeasureLoss, Method, TeacherWeights, TrainConfig, warmup_steps,
 };
 
 /// Learning rate at `step` of a schedule of `steps` (`config.steps`, or what a re-plan made of

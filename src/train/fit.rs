@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use crate::bundle::BundleError;
 use crate::bundle::experts::ExpertSet;
 use crate::bundle::model::{BundleObject, ModelBundle, ModelManifest, NETWORK_FILE, Provenance};
-use crate::bundle::record::{EvalReport, InitWeights, TrainConfig, TrainReport};
+use crate::bundle::record::{EvalReport, InitWeights, TeacherWeights, TrainConfig, TrainReport};
 use crate::data::realism::{Realism, SceneAssets};
 use crate::data::{BopDataset, DataError};
 use crate::net::NetworkConfig;
@@ -317,6 +317,41 @@ pub fn init_weights(dir: &Path, network: &NetworkConfig) -> Result<InitWeights, 
         trained_by: bundle.manifest.provenance.command.clone(),
         image_size: (theirs.image_size != network.image_size).then_some(theirs.image_size),
         layout: (theirs.layout != network.layout).then_some(theirs.layout),
+    })
+}
+
+/// The weights of the bundle in `dir` as the teacher of a distilled head
+/// ([`super::distil`]): checked to share `network`'s encoder (layout and crop side) and
+/// rotation encoding, recorded with their checksum and the command that trained them.
+pub fn teacher_weights(dir: &Path, network: &NetworkConfig) -> Result<TeacherWeights, FitError> {
+    let path = dir.display().to_string();
+    let bundle = ModelBundle::load(dir).map_err(|source| FitError::Bundle {
+        path: path.clone(),
+        source,
+    })?;
+    let theirs = &bundle.manifest.network;
+    if (theirs.layout, theirs.image_size, &theirs.encoding)
+        != (network.layout, network.image_size, &network.encoding)
+    {
+        return Err(FitError::Invalid(format!(
+            "{path}: a {:?} network at {} px; a distilled head keeps its teacher's encoder, so \
+             give its layout, crop side and rotation encoding (this run: {:?} at {} px)",
+            theirs.layout, theirs.image_size, network.layout, network.image_size
+        )));
+    }
+    let file = bundle
+        .manifest
+        .files
+        .get(NETWORK_FILE)
+        .cloned()
+        .ok_or_else(|| {
+            FitError::Invalid(format!("{path}: the manifest lists no {NETWORK_FILE}"))
+        })?;
+    Ok(TeacherWeights {
+        path: dir.join(NETWORK_FILE).display().to_string(),
+        file,
+        network: theirs.clone(),
+        trained_by: bundle.manifest.provenance.command.clone(),
     })
 }
 

@@ -7,6 +7,7 @@ pub mod checkpoint;
 pub mod config;
 pub mod data;
 pub mod depth_eval;
+pub mod distil;
 pub mod eval;
 pub mod experts;
 pub mod fit;

@@ -589,6 +589,7 @@ impl Recipe {
             seed,
             checkpoint_every: 50,
             init: None,
+            teacher: None,
         }
     }
 }

@@ -19,6 +19,7 @@ use super::TrainError;
 use super::checkpoint::{CheckpointState, latest_checkpoint, load_checkpoint, save_checkpoint};
 pub use super::config::{ExpertBranches, MeasureLoss, Method, TrainConfig, learning_rate};
 pub use super::data::{FreshRenders, TrainingImage};
+use super::distil::Teacher;
 use super::sampling::{ModeSampler, OwnTwins, SamplingStrategy, sample_rotations};
 pub use crate::bundle::record::{OwnTwinsFound, StepProfile, TrainReport};
 use crate::experts::energy::{BakedExperts, LogTargets};
@@ -106,6 +107,7 @@ fn sample_image(
     (step, steps): (usize, usize),
     rng: &mut ChaCha8Rng,
     profile: &mut StepProfile,
+    with_targets: bool,
 ) -> (Vec<[f32; 9]>, Option<LogTargets>) {
     let experts = &set.objects[im.object];
     let started = Instant::now();
@@ -129,8 +131,10 @@ fn sample_image(
     profile.sampling += started.elapsed().as_secs_f64();
     let started = Instant::now();
     let targets = match config.method {
-        Method::Alignist { .. } => Some(experts.log_targets(&im.rotation, &im.visible, &mats)),
-        Method::Ipdf => None,
+        Method::Alignist { .. } if with_targets => {
+            Some(experts.log_targets(&im.rotation, &im.visible, &mats))
+        }
+        _ => None,
     };
     profile.targets += started.elapsed().as_secs_f64();
     (mats, targets)
@@ -189,9 +193,16 @@ fn mean_log_targets(
         &mut rng,
     ) {
         let at_start = (0, config.steps);
-        if let (_, Some(t)) =
-            sample_image(config, set, &im, samplers, at_start, &mut rng, &mut profile)
-        {
+        if let (_, Some(t)) = sample_image(
+            config,
+            set,
+            &im,
+            samplers,
+            at_start,
+            &mut rng,
+            &mut profile,
+            true,
+        ) {
             sdf += t.log_a_sdf.iter().map(|&l| (l as f64).exp()).sum::<f64>();
             se += t.log_a_se.iter().map(|&l| (l as f64).exp()).sum::<f64>();
             count += t.log_a_sdf.len();
@@ -364,13 +375,14 @@ fn check_set(set: &TrainingSet) -> Result<(), TrainError> {
 /// The network and optimiser a run starts from, and its first step: the last checkpoint of
 /// `checkpoints` when resuming, else the `init` weights (a warm restart), else a seeded
 /// initialisation whose output biases start at the targets' mean (a silenced branch for a
-/// single-expert run).
+/// single-expert run) and, when distilling, whose encoder is the teacher's.
 fn starting_point(
     config: &TrainConfig,
     set: &TrainingSet,
     checkpoints: Option<&Path>,
     resume: bool,
     samplers: &[ModeSampler],
+    teacher_encoder: Option<crate::net::Encoder>,
     device: &Device,
 ) -> Result<(Network, ModuleOptimizer, Option<CheckpointState>), TrainError> {
     let mut network =
@@ -410,6 +422,9 @@ fn starting_point(
         }
         // As after a checkpoint: loading runs ops on the parameters, fork gives them a graph.
         return Ok((loaded.valid().train().fork(device), optim, None));
+    }
+    if let Some(encoder) = teacher_encoder {
+        network.encoder = encoder;
     }
     if let Method::Alignist { experts, .. } = config.method {
         let (sdf, se) = mean_log_targets(config, set, config.batch, samplers);
@@ -516,6 +531,8 @@ struct Run<'a> {
     encoder: EncoderPath,
     /// The hand-written paths' GEMM kernels (`ALIGNIST_KERNELS`, read once per run).
     kernels: crate::net::Kernels,
+    /// The model whose scores a distilled head learns ([`super::distil`]).
+    teacher: Option<Teacher>,
 }
 
 /// One step's inputs, drawn from the step's own seed alone (so a batch prepared on another thread,
@@ -559,6 +576,8 @@ impl Run<'_> {
                 (step, steps),
                 &mut rng,
                 &mut profile,
+                // A distilled head's targets are the teacher's, scored with the step.
+                config.teacher.is_none(),
             );
             if let Some(t) = targets {
                 log_sdf.extend(t.log_a_sdf);
@@ -586,6 +605,13 @@ impl Run<'_> {
     ) -> Result<(Network, f64), TrainError> {
         let (config, device) = (self.config, self.device);
         let started = Instant::now();
+        if let Some(teacher) = &self.teacher {
+            let (loss_value, grads) =
+                self.distilled_head(&network, teacher, batch, step, profile)?;
+            let steps = self.steps.load(Ordering::Relaxed);
+            let network = optim.step(learning_rate(config, steps, step), network, grads);
+            return Ok((network, loss_value));
+        }
         let hand_encoder = match (self.head, self.encoder) {
             (HeadPath::Fused, EncoderPath::Fused) => {
                 TrainingEncoder::of(&network.encoder, self.kernels)
@@ -698,6 +724,35 @@ impl Run<'_> {
         Ok((loss_value, grads))
     }
 
+    /// A distilled head's step ([`super::distil`]): the teacher's frozen encoder gives the
+    /// features, its head the targets; the loss and the head's gradients alone.
+    fn distilled_head(
+        &self,
+        network: &Network,
+        teacher: &Teacher,
+        batch: Batch,
+        step: usize,
+        profile: &mut StepProfile,
+    ) -> Result<(f64, GradientsParams), TrainError> {
+        let started = Instant::now();
+        let crops: Vec<&[u8]> = batch.images.iter().map(|im| im.rgb.as_slice()).collect();
+        let features = teacher.features(&crops, self.config.network.image_size as usize);
+        profile.encoder_forward += started.elapsed().as_secs_f64();
+        let started = Instant::now();
+        let (log_sdf, log_se) = teacher.targets(&features, &batch.rotations);
+        profile.targets += started.elapsed().as_secs_f64();
+        let batch = Batch {
+            log_sdf,
+            log_se,
+            ..batch
+        };
+        let (loss_value, head, head_grads) =
+            self.hand_head(network, features.concat(), batch, step, profile)?;
+        let mut grads = GradientsParams::new();
+        head_grads.register(&head, &mut grads, self.device);
+        Ok((loss_value, grads))
+    }
+
     /// The loss and the head's gradients on the hand-written head ([`TrainingHead`]); the
     /// encoder's (burn's encoder) by burn's backward of `Σ F ⊙ dF`, whose gradient with respect
     /// to the features `F` is the head's `dF`.
@@ -787,8 +842,30 @@ pub fn train_replanned(
     let started = Instant::now();
     let device = crate::backend::device_for(crate::backend::Workload::Conv).autodiff();
     let recorded = mode_samplers(config, set)?;
-    let (network, mut optim, resumed) =
-        starting_point(config, set, checkpoints, resume, &recorded, &device)?;
+    let kernels = crate::net::Kernels::from_env();
+    let (teacher, teacher_encoder) = match &config.teacher {
+        Some(_) if config.init.is_some() || matches!(config.method, Method::Ipdf) => {
+            return Err(TrainError::Data(
+                "a distilled head starts from its teacher's encoder and learns its two branches: \
+                 give no warm start, and the Alignist method"
+                    .into(),
+            ));
+        }
+        Some(t) => {
+            let (teacher, encoder) = Teacher::load(t, &config.network, kernels, &device)?;
+            (Some(teacher), Some(encoder))
+        }
+        None => (None, None),
+    };
+    let (network, mut optim, resumed) = starting_point(
+        config,
+        set,
+        checkpoints,
+        resume,
+        &recorded,
+        teacher_encoder,
+        &device,
+    )?;
     let start = resumed.as_ref().map_or(0, |s| s.step);
     let mut own = OwnTwinsRun::start(config, set, &network, recorded, resumed.as_ref())?;
     let run = Run {
@@ -799,7 +876,8 @@ pub fn train_replanned(
         device: &device,
         head: HeadPath::from_env(),
         encoder: EncoderPath::from_env(),
-        kernels: crate::net::Kernels::from_env(),
+        kernels,
+        teacher,
     };
     // Every step's loss in this process, for the mean over the schedule's last tenth.
     let mut losses = Vec::new();

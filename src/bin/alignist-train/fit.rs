@@ -7,7 +7,9 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::eval::print_eval;
 use alignist::net::ResNetLayout;
-use alignist::train::fit::{FitData, FitInputs, FitSource, fitted_manifest, init_weights};
+use alignist::train::fit::{
+    FitData, FitInputs, FitSource, fitted_manifest, init_weights, teacher_weights,
+};
 use alignist::train::{ExpertBranches, MeasureLoss, TrainConfig};
 
 #[derive(clap::Args)]
@@ -65,6 +67,12 @@ pub(crate) struct FitArgs {
     /// Crop side in pixels.
     #[arg(long, default_value_t = TrainConfig::default().network.image_size)]
     image_size: u32,
+    /// Width of the head's hidden layers (the paper's: 256).
+    #[arg(long, default_value_t = TrainConfig::default().network.hidden)]
+    hidden: usize,
+    /// Linear layers per head branch (the paper's: 4).
+    #[arg(long, default_value_t = TrainConfig::default().network.layers)]
+    layers: usize,
     /// Adam steps.
     #[arg(long, default_value_t = TrainConfig::default().steps)]
     steps: usize,
@@ -103,6 +111,12 @@ pub(crate) struct FitArgs {
     /// sha256.
     #[arg(long)]
     init: Option<PathBuf>,
+    /// Distil the head from this trained model bundle instead of fitting the experts (a
+    /// narrower head that serves faster): its encoder is taken and frozen, and the head learns
+    /// its two branch scores at the sampled rotations. Same --layout, --image-size and
+    /// --encoding as the teacher; not with --init.
+    #[arg(long, conflicts_with = "init")]
+    teacher: Option<PathBuf>,
     /// Grid level of the evaluation.
     #[arg(long, default_value_t = 4)]
     eval_level: u8,
@@ -188,6 +202,14 @@ impl FitArgs {
                     init_weights(dir, network).with_context(|| format!("--init {}", dir.display()))
                 })
                 .transpose()?,
+            teacher: self
+                .teacher
+                .as_deref()
+                .map(|dir| {
+                    teacher_weights(dir, network)
+                        .with_context(|| format!("--teacher {}", dir.display()))
+                })
+                .transpose()?,
         })
     }
 
@@ -264,8 +286,13 @@ pub(crate) fn fit_cmd(args: &FitArgs) -> Result<()> {
     use alignist::train::NetworkConfig;
 
     args.check()?;
-    let network =
-        NetworkConfig::new(args.layout, args.encoding.into()).with_image_size(args.image_size);
+    let network = NetworkConfig::new(args.layout, args.encoding.into())
+        .with_image_size(args.image_size)
+        .with_hidden(args.hidden)
+        .with_layers(args.layers);
+    network
+        .validate()
+        .map_err(|e| anyhow::anyhow!("the network flags: {e}"))?;
     let mut data = FitData::load(&args.inputs(), args.steps, args.batch)?;
     eprintln!("{}", data.describe());
     let config = args.train_config(&network)?;

@@ -1,0 +1,107 @@
+//! A narrower head distilled from a trained model (a serving-cost measure, not the paper's): the
+//! run takes the teacher's encoder and freezes it, and its head learns the teacher's two branch
+//! scores `s_θ`, `s_φ` with the same per-branch generalised KL (paper Eq. 6) that fits the experts'
+//! measures, at the rotations the step samples. The teacher already read the experts' measures
+//! off realistic crops; its scores are those measures as the network can see them, so the student
+//! needs no expert targets and no encoder backward.
+
+use std::path::Path;
+
+use burn::module::Module;
+use burn::tensor::Device;
+
+use super::TrainError;
+use super::config::TeacherWeights;
+use crate::encoding::RotationEncoding;
+use crate::net::{Encoder, FusedHead, InferenceEncoder, Kernels, Network};
+
+/// The teacher of a run: its encoder (folded for inference) and its head.
+pub struct Teacher {
+    encoder: InferenceEncoder,
+    head: FusedHead,
+    encoding: RotationEncoding,
+}
+
+/// The teacher's network, loaded from its checked weights file.
+fn teacher_network(teacher: &TeacherWeights, device: &Device) -> Result<Network, TrainError> {
+    let fail = |message: String| TrainError::Checkpoint {
+        path: teacher.path.clone(),
+        message,
+    };
+    teacher.network.validate().map_err(fail)?;
+    crate::bundle::load_weights(
+        teacher.network.init(device),
+        Path::new(&teacher.path),
+        &teacher.file,
+    )
+    .map_err(|e| fail(format!("the teacher's weights: {e}")))
+}
+
+impl Teacher {
+    /// Loads the teacher and returns it with its encoder as a trainable module (the student's
+    /// frozen encoder). `network` is the student's: the encoders must be the same tensors.
+    pub fn load(
+        teacher: &TeacherWeights,
+        network: &crate::net::NetworkConfig,
+        kernels: Kernels,
+        device: &Device,
+    ) -> Result<(Teacher, Encoder), TrainError> {
+        check_pair(teacher, network)?;
+        let loaded = teacher_network(teacher, device)?;
+        let valid = loaded.valid();
+        let encoder = InferenceEncoder::of(&valid.encoder, kernels).ok_or_else(|| {
+            TrainError::Data(format!(
+                "{}: a {:?} encoder has no folded inference path to distil from",
+                teacher.path, teacher.network.layout
+            ))
+        })?;
+        Ok((
+            Teacher {
+                encoder,
+                head: FusedHead::with_kernels(&valid.head, kernels),
+                encoding: teacher.network.encoding.clone(),
+            },
+            loaded.encoder,
+        ))
+    }
+
+    /// The features of `crops` (`size`² RGB8): the teacher's, which are the student's.
+    pub fn features(&self, crops: &[&[u8]], size: usize) -> Vec<Vec<f32>> {
+        self.encoder.features(crops, size)
+    }
+
+    /// The teacher's branch scores `(s_θ, s_φ)` of each image's rotations, concatenated in
+    /// image order (`[B, K]` each): the student's targets.
+    pub fn targets(
+        &self,
+        features: &[Vec<f32>],
+        rotations: &[Vec<[f32; 9]>],
+    ) -> (Vec<f32>, Vec<f32>) {
+        let (mut shape, mut feature) = (Vec::new(), Vec::new());
+        for (f, rots) in features.iter().zip(rotations) {
+            let projected = self.head.project_rotations(&self.encoding.encode(rots));
+            let (s, e) = self
+                .head
+                .branch_scores(&self.head.image_term(f), &projected);
+            shape.extend(s);
+            feature.extend(e);
+        }
+        (shape, feature)
+    }
+}
+
+/// Refuses a student whose encoder is not the teacher's (layout, crop side).
+fn check_pair(
+    teacher: &TeacherWeights,
+    network: &crate::net::NetworkConfig,
+) -> Result<(), TrainError> {
+    let t = &teacher.network;
+    if t.layout != network.layout || t.image_size != network.image_size {
+        return Err(TrainError::Data(format!(
+            "{}: the teacher is a {:?} encoder at {} px, the run a {:?} encoder at {} px; a \
+             distilled head keeps the teacher's encoder, so give its layout and crop side",
+            teacher.path, t.layout, t.image_size, network.layout, network.image_size
+        )));
+    }
+    Ok(())
+}
