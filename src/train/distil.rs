@@ -59,7 +59,7 @@ impl Teacher {
             Teacher {
                 encoder,
                 head: FusedHead::with_kernels(&valid.head, kernels),
-                encoding: teacher.network.encoding.clone(),
+                encoding: teacher.network.encoding,
             },
             loaded.encoder,
         ))

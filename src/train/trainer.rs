@@ -98,7 +98,8 @@ impl EncoderPath {
     }
 }
 
-/// The K rotations of image `id` at `step`, and (Alignist) their expert targets.
+/// The K rotations of image `id` at `step`, and (Alignist, unless a teacher gives the targets)
+/// their expert targets.
 fn sample_image(
     config: &TrainConfig,
     set: &TrainingSet,
@@ -107,7 +108,6 @@ fn sample_image(
     (step, steps): (usize, usize),
     rng: &mut ChaCha8Rng,
     profile: &mut StepProfile,
-    with_targets: bool,
 ) -> (Vec<[f32; 9]>, Option<LogTargets>) {
     let experts = &set.objects[im.object];
     let started = Instant::now();
@@ -131,7 +131,7 @@ fn sample_image(
     profile.sampling += started.elapsed().as_secs_f64();
     let started = Instant::now();
     let targets = match config.method {
-        Method::Alignist { .. } if with_targets => {
+        Method::Alignist { .. } if config.teacher.is_none() => {
             Some(experts.log_targets(&im.rotation, &im.visible, &mats))
         }
         _ => None,
@@ -193,15 +193,19 @@ fn mean_log_targets(
         &mut rng,
     ) {
         let at_start = (0, config.steps);
+        // The experts' targets, also where a teacher gives the steps' (a distilled head).
+        let experts_only = TrainConfig {
+            teacher: None,
+            ..config.clone()
+        };
         if let (_, Some(t)) = sample_image(
-            config,
+            &experts_only,
             set,
             &im,
             samplers,
             at_start,
             &mut rng,
             &mut profile,
-            true,
         ) {
             sdf += t.log_a_sdf.iter().map(|&l| (l as f64).exp()).sum::<f64>();
             se += t.log_a_se.iter().map(|&l| (l as f64).exp()).sum::<f64>();
@@ -576,8 +580,6 @@ impl Run<'_> {
                 (step, steps),
                 &mut rng,
                 &mut profile,
-                // A distilled head's targets are the teacher's, scored with the step.
-                config.teacher.is_none(),
             );
             if let Some(t) = targets {
                 log_sdf.extend(t.log_a_sdf);
