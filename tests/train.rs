@@ -736,6 +736,22 @@ fn a_distilled_head_keeps_the_teachers_encoder_and_learns_its_scores() {
         d1 < 0.5 * d0,
         "distance to the teacher's scores: {d0} at the start, {d1} after"
     );
+    // Trained on from the student's weights (a warm restart at learning rate 0): its head is
+    // the student's, its encoder still the teacher's.
+    let student_file = files.path().join("student.safetensors");
+    let warm = TrainConfig {
+        init: Some(alignist::train::config::InitWeights {
+            path: student_file.display().to_string(),
+            file: alignist::bundle::save_weights(&after, &student_file).unwrap(),
+            trained_by: "the test's student".into(),
+            image_size: None,
+            layout: None,
+        }),
+        ..student(0.0)
+    };
+    let (again, _) = go(&warm).unwrap();
+    assert_eq!(theirs, encoder(&again, "w.safetensors"));
+    assert_eq!(fingerprint(&again, &set), fingerprint(&after, &set));
     // A teacher whose encoder is not the run's, or whose file is not the recorded one, is refused
     // with its path named.
     let mut other = student(3e-3);

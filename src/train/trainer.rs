@@ -379,7 +379,7 @@ fn check_set(set: &TrainingSet) -> Result<(), TrainError> {
 /// The network and optimiser a run starts from, and its first step: the last checkpoint of
 /// `checkpoints` when resuming, else the `init` weights (a warm restart), else a seeded
 /// initialisation whose output biases start at the targets' mean (a silenced branch for a
-/// single-expert run) and, when distilling, whose encoder is the teacher's.
+/// single-expert run). When distilling, the encoder is the teacher's in either start.
 fn starting_point(
     config: &TrainConfig,
     set: &TrainingSet,
@@ -423,6 +423,10 @@ fn starting_point(
                 loaded.encoder.deepened(from, to, device)
             })
             .ok_or_else(|| fail(format!("a {from:?} encoder does not warm-start {to:?}")))?;
+        }
+        // A distilled head's encoder is its teacher's, whatever the warm start held.
+        if let Some(encoder) = teacher_encoder {
+            loaded.encoder = encoder;
         }
         // As after a checkpoint: loading runs ops on the parameters, fork gives them a graph.
         return Ok((loaded.valid().train().fork(device), optim, None));
@@ -846,10 +850,9 @@ pub fn train_replanned(
     let recorded = mode_samplers(config, set)?;
     let kernels = crate::net::Kernels::from_env();
     let (teacher, teacher_encoder) = match &config.teacher {
-        Some(_) if config.init.is_some() || matches!(config.method, Method::Ipdf) => {
+        Some(_) if matches!(config.method, Method::Ipdf) => {
             return Err(TrainError::Data(
-                "a distilled head starts from its teacher's encoder and learns its two branches: \
-                 give no warm start, and the Alignist method"
+                "a distilled head learns its teacher's two branches: give the Alignist method"
                     .into(),
             ));
         }

@@ -114,8 +114,9 @@ pub(crate) struct FitArgs {
     /// Distil the head from this trained model bundle instead of fitting the experts (a
     /// narrower head that serves faster): its encoder is taken and frozen, and the head learns
     /// its two branch scores at the sampled rotations. Same --layout, --image-size and
-    /// --encoding as the teacher; not with --init.
-    #[arg(long, conflicts_with = "init")]
+    /// --encoding as the teacher. With --init (a distilled head trained on), the encoder is
+    /// still the teacher's.
+    #[arg(long)]
     teacher: Option<PathBuf>,
     /// Grid level of the evaluation.
     #[arg(long, default_value_t = 4)]
