@@ -152,6 +152,7 @@ fn render_experts_fit_eval_and_load_a_bundle() {
     assert_eq!(p.eval_overall("2")["images"], 2);
     fresh_renders_fit_with_their_loss_and_sampling(&p);
     a_warm_start_may_change_the_crop_side_and_deepen_the_encoder(&p);
+    a_narrower_head_is_distilled_from_a_bundle(&p);
     the_bundle_read_back_scores_as_fit_held_it(&p, &eval);
     bad_arguments_are_refused_naming_them(&p);
     a_corrupt_network_is_refused(&p);
@@ -364,6 +365,38 @@ fn a_warm_start_may_change_the_crop_side_and_deepen_the_encoder(p: &Pipeline) {
     assert!(!refused.status.success());
     let err = String::from_utf8_lossy(&refused.stderr);
     assert!(err.contains("deepens it"), "{err}");
+}
+
+/// `fit --teacher`: a head of its own width on the teacher's encoder, the teacher on record; a
+/// teacher whose encoder is not the run's is refused, naming it.
+fn a_narrower_head_is_distilled_from_a_bundle(p: &Pipeline) {
+    let (bundle, dir) = (&p.bundle, &p.dir);
+    let out = dir.path().join("distilled");
+    let fit = |size: &str| {
+        let args = [
+            "--teacher",
+            s(bundle),
+            "--hidden",
+            "16",
+            "--image-size",
+            size,
+        ];
+        p.fresh_fit(&out, &[&args[..], &["--eval-images", "0"]].concat())
+    };
+    let done = fit("32");
+    assert!(done.status.success(), "{done:?}");
+    let manifest = ModelBundle::load(&out).unwrap().manifest;
+    assert_eq!(manifest.network.hidden, 16);
+    let teacher = manifest.provenance.train.teacher.unwrap();
+    assert!(teacher.path.contains("models/tiny"), "{}", teacher.path);
+    assert_ne!(teacher.network.hidden, 16);
+    let refused = fit("48");
+    assert!(!refused.status.success());
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        err.contains("--teacher") && err.contains("models/tiny") && err.contains("px"),
+        "{err}"
+    );
 }
 
 /// The bundle read back scores as the network `fit` held in memory.

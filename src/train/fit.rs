@@ -8,7 +8,9 @@ use std::path::{Path, PathBuf};
 use crate::bundle::BundleError;
 use crate::bundle::experts::ExpertSet;
 use crate::bundle::model::{BundleObject, ModelBundle, ModelManifest, NETWORK_FILE, Provenance};
-use crate::bundle::record::{EvalReport, InitWeights, TeacherWeights, TrainConfig, TrainReport};
+use crate::bundle::record::{
+    EvalReport, FileEntry, InitWeights, TeacherWeights, TrainConfig, TrainReport,
+};
 use crate::data::realism::{Realism, SceneAssets};
 use crate::data::{BopDataset, DataError};
 use crate::net::NetworkConfig;
@@ -278,12 +280,8 @@ fn dataset_data(inputs: &FitInputs, data: &[PathBuf]) -> Result<FitData, FitErro
 /// may the layout, where this run's deepens theirs (`tiny` → `tiny_deep`: the added blocks start
 /// as identities). The side and layout the weights were trained in are recorded beside them.
 pub fn init_weights(dir: &Path, network: &NetworkConfig) -> Result<InitWeights, FitError> {
-    let path = dir.display().to_string();
-    let bundle = ModelBundle::load(dir).map_err(|source| FitError::Bundle {
-        path: path.clone(),
-        source,
-    })?;
-    let theirs = &bundle.manifest.network;
+    let (path, manifest, file) = bundle_weights(dir)?;
+    let theirs = &manifest.network;
     let same_tensors = NetworkConfig {
         image_size: network.image_size,
         layout: if network.layout.deepens(theirs.layout) {
@@ -303,6 +301,22 @@ pub fn init_weights(dir: &Path, network: &NetworkConfig) -> Result<InitWeights, 
             json(network)
         )));
     }
+    Ok(InitWeights {
+        path: dir.join(NETWORK_FILE).display().to_string(),
+        file,
+        trained_by: manifest.provenance.command.clone(),
+        image_size: (theirs.image_size != network.image_size).then_some(theirs.image_size),
+        layout: (theirs.layout != network.layout).then_some(theirs.layout),
+    })
+}
+
+/// The bundle in `dir` (its path for messages, its manifest) and its weights file's entry.
+fn bundle_weights(dir: &Path) -> Result<(String, ModelManifest, FileEntry), FitError> {
+    let path = dir.display().to_string();
+    let bundle = ModelBundle::load(dir).map_err(|source| FitError::Bundle {
+        path: path.clone(),
+        source,
+    })?;
     let file = bundle
         .manifest
         .files
@@ -311,25 +325,15 @@ pub fn init_weights(dir: &Path, network: &NetworkConfig) -> Result<InitWeights, 
         .ok_or_else(|| {
             FitError::Invalid(format!("{path}: the manifest lists no {NETWORK_FILE}"))
         })?;
-    Ok(InitWeights {
-        path: dir.join(NETWORK_FILE).display().to_string(),
-        file,
-        trained_by: bundle.manifest.provenance.command.clone(),
-        image_size: (theirs.image_size != network.image_size).then_some(theirs.image_size),
-        layout: (theirs.layout != network.layout).then_some(theirs.layout),
-    })
+    Ok((path, bundle.manifest, file))
 }
 
 /// The weights of the bundle in `dir` as the teacher of a distilled head
 /// ([`super::distil`]): checked to share `network`'s encoder (layout and crop side) and
 /// rotation encoding, recorded with their checksum and the command that trained them.
 pub fn teacher_weights(dir: &Path, network: &NetworkConfig) -> Result<TeacherWeights, FitError> {
-    let path = dir.display().to_string();
-    let bundle = ModelBundle::load(dir).map_err(|source| FitError::Bundle {
-        path: path.clone(),
-        source,
-    })?;
-    let theirs = &bundle.manifest.network;
+    let (path, manifest, file) = bundle_weights(dir)?;
+    let theirs = &manifest.network;
     if (theirs.layout, theirs.image_size, &theirs.encoding)
         != (network.layout, network.image_size, &network.encoding)
     {
@@ -339,19 +343,11 @@ pub fn teacher_weights(dir: &Path, network: &NetworkConfig) -> Result<TeacherWei
             theirs.layout, theirs.image_size, network.layout, network.image_size
         )));
     }
-    let file = bundle
-        .manifest
-        .files
-        .get(NETWORK_FILE)
-        .cloned()
-        .ok_or_else(|| {
-            FitError::Invalid(format!("{path}: the manifest lists no {NETWORK_FILE}"))
-        })?;
     Ok(TeacherWeights {
         path: dir.join(NETWORK_FILE).display().to_string(),
         file,
         network: theirs.clone(),
-        trained_by: bundle.manifest.provenance.command.clone(),
+        trained_by: manifest.provenance.command.clone(),
     })
 }
 
