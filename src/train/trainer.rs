@@ -812,6 +812,42 @@ fn tail_loss(losses: &[f64], start: usize, steps: usize) -> f64 {
     tail.iter().sum::<f64>() / tail.len().max(1) as f64
 }
 
+/// A run's network, optimiser and checkpoint to resume from, and its teacher.
+type Start = (
+    Network,
+    ModuleOptimizer,
+    Option<CheckpointState>,
+    Option<Teacher>,
+);
+
+/// Where a run starts ([`starting_point`]) and, when it distils, its teacher (whose encoder
+/// the student takes, frozen).
+fn start_with_teacher(
+    config: &TrainConfig,
+    set: &TrainingSet,
+    (checkpoints, resume): (Option<&Path>, bool),
+    recorded: &[ModeSampler],
+    device: &Device,
+) -> Result<Start, TrainError> {
+    let kernels = crate::net::Kernels::from_env();
+    let (teacher, encoder) = match &config.teacher {
+        None => (None, None),
+        Some(_) if matches!(config.method, Method::Ipdf) => {
+            return Err(TrainError::Data(
+                "a distilled head learns its teacher's two branches: give the Alignist method"
+                    .into(),
+            ));
+        }
+        Some(t) => {
+            let (teacher, encoder) = Teacher::load(t, &config.network, kernels, device)?;
+            (Some(teacher), Some(encoder))
+        }
+    };
+    let (network, optim, resumed) =
+        starting_point(config, set, checkpoints, resume, recorded, encoder, device)?;
+    Ok((network, optim, resumed, teacher))
+}
+
 /// Trains (or resumes, when `checkpoints` holds one and `resume` is set) and returns the network
 /// on the plain (non-autodiff) device. `progress(step, steps, loss)` runs after every step (and
 /// its checkpoint); returning `ControlFlow::Break` stops the run there, as an interruption would.
@@ -850,29 +886,8 @@ pub fn train_replanned(
     let started = Instant::now();
     let device = crate::backend::device_for(crate::backend::Workload::Conv).autodiff();
     let recorded = mode_samplers(config, set)?;
-    let kernels = crate::net::Kernels::from_env();
-    let (teacher, teacher_encoder) = match &config.teacher {
-        Some(_) if matches!(config.method, Method::Ipdf) => {
-            return Err(TrainError::Data(
-                "a distilled head learns its teacher's two branches: give the Alignist method"
-                    .into(),
-            ));
-        }
-        Some(t) => {
-            let (teacher, encoder) = Teacher::load(t, &config.network, kernels, &device)?;
-            (Some(teacher), Some(encoder))
-        }
-        None => (None, None),
-    };
-    let (network, mut optim, resumed) = starting_point(
-        config,
-        set,
-        checkpoints,
-        resume,
-        &recorded,
-        teacher_encoder,
-        &device,
-    )?;
+    let (network, mut optim, resumed, teacher) =
+        start_with_teacher(config, set, (checkpoints, resume), &recorded, &device)?;
     let start = resumed.as_ref().map_or(0, |s| s.step);
     let mut own = OwnTwinsRun::start(config, set, &network, recorded, resumed.as_ref())?;
     let run = Run {
@@ -883,7 +898,7 @@ pub fn train_replanned(
         device: &device,
         head: HeadPath::from_env(),
         encoder: EncoderPath::from_env(),
-        kernels,
+        kernels: crate::net::Kernels::from_env(),
         teacher,
     };
     // Every step's loss in this process, for the mean over the schedule's last tenth.
