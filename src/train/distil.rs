@@ -90,16 +90,20 @@ impl Teacher {
     }
 }
 
-/// Refuses a student whose encoder is not the teacher's (layout, crop side).
-fn check_pair(
+/// Refuses a student whose encoder is not the teacher's (layout, crop side) or whose rotation
+/// encoding is not: the one check of `fit --teacher` and of [`Teacher::load`].
+pub fn check_pair(
     teacher: &TeacherWeights,
     network: &crate::net::NetworkConfig,
 ) -> Result<(), TrainError> {
     let t = &teacher.network;
-    if t.layout != network.layout || t.image_size != network.image_size {
+    if (t.layout, t.image_size, &t.encoding)
+        != (network.layout, network.image_size, &network.encoding)
+    {
         return Err(TrainError::Data(format!(
-            "{}: the teacher is a {:?} encoder at {} px, the run a {:?} encoder at {} px; a \
-             distilled head keeps the teacher's encoder, so give its layout and crop side",
+            "{}: the teacher is a {:?} network at {} px, the run a {:?} network at {} px; a \
+             distilled head keeps the teacher's encoder, so give its layout, crop side and \
+             rotation encoding",
             teacher.path, t.layout, t.image_size, network.layout, network.image_size
         )));
     }

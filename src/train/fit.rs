@@ -332,23 +332,15 @@ fn bundle_weights(dir: &Path) -> Result<(String, ModelManifest, FileEntry), FitE
 /// ([`super::distil`]): checked to share `network`'s encoder (layout and crop side) and
 /// rotation encoding, recorded with their checksum and the command that trained them.
 pub fn teacher_weights(dir: &Path, network: &NetworkConfig) -> Result<TeacherWeights, FitError> {
-    let (path, manifest, file) = bundle_weights(dir)?;
-    let theirs = &manifest.network;
-    if (theirs.layout, theirs.image_size, &theirs.encoding)
-        != (network.layout, network.image_size, &network.encoding)
-    {
-        return Err(FitError::Invalid(format!(
-            "{path}: a {:?} network at {} px; a distilled head keeps its teacher's encoder, so \
-             give its layout, crop side and rotation encoding (this run: {:?} at {} px)",
-            theirs.layout, theirs.image_size, network.layout, network.image_size
-        )));
-    }
-    Ok(TeacherWeights {
+    let (_, manifest, file) = bundle_weights(dir)?;
+    let teacher = TeacherWeights {
         path: dir.join(NETWORK_FILE).display().to_string(),
         file,
-        network: theirs.clone(),
+        network: manifest.network.clone(),
         trained_by: manifest.provenance.command.clone(),
-    })
+    };
+    super::distil::check_pair(&teacher, network).map_err(|e| FitError::Invalid(e.to_string()))?;
+    Ok(teacher)
 }
 
 /// The manifest of a bundle fitted by `command` (its files are added when it is saved): served
