@@ -51,7 +51,8 @@ struct Cli {
     /// Latency budget of the default Predict search (top-10 to level 5, encoder included), in
     /// milliseconds: at load, each model's search is chosen on this CPU among the searches its
     /// bundle's study (`search-study.json`) found to reach --search-agreement, the most agreeing
-    /// one predicted within the budget (or, when none fits, the fastest, with a warning).
+    /// one predicted within the budget (agreements one studied image apart count as equal, and
+    /// among equals the fastest wins; when none fits, the fastest, with a warning).
     /// Setting any --search-* flag below serves that search instead; 0 turns calibration off.
     #[arg(long, env = "ALIGNIST_SEARCH_BUDGET_MS", default_value_t = alignist::engine::calibrate::DEFAULT_SEARCH_BUDGET_MS)]
     search_budget_ms: f64,

@@ -5,8 +5,9 @@
 //! minimum of two runs, or one run of a large measurement whose code just ran) — predicts each
 //! studied search's latency from the rows it scores (a fixed number per level), and picks, among
 //! the searches whose agreement reaches the target, the most
-//! agreeing one predicted within the budget (ties: the fastest); when none fits, the fastest of
-//! them, flagged as over budget. It never picks a search below the target. Without a study it
+//! agreeing one predicted within the budget (agreements one studied image apart count as equal,
+//! [`TIE_IMAGES`]; ties: the fastest); when none fits, the fastest of them, flagged as over
+//! budget. It never picks a search below the target. Without a study it
 //! keeps the configured search's shape and only chooses its coarse precision among f32, bfloat16
 //! and f16 (which rank cells like f32, up to rounding, so each twin is taken to agree as well;
 //! not 8-bit integers, whose scores are a few % off: they are served only where a study
@@ -47,6 +48,12 @@ pub const MEASURING_DEADLINE_MS: f64 = 250.0;
 
 /// Predictions within this factor of the fastest count as equally fast.
 const TIE: f64 = 1.15;
+
+/// Agreements this many studied images apart count as equal: at 99 % over a 100-image study,
+/// one image is about the binomial standard error, so ranking on it would let timing noise
+/// decide between searches that agree equally well (a search predicted near the budget flips in
+/// and out of it between starts, and with it the choice).
+const TIE_IMAGES: f64 = 1.0;
 
 /// Top-k of the searches the calibration times (the bench's and a typical Predict's).
 const TOP_K: usize = 10;
@@ -213,6 +220,27 @@ fn min_ms(runs: usize, mut f: impl FnMut()) -> f64 {
         .fold(f64::INFINITY, f64::min)
 }
 
+/// The candidates' studied agreements (0 without a study), and how far apart two may be and still
+/// count as equal ([`TIE_IMAGES`] over the study's images).
+struct Agreement {
+    of: Vec<f64>,
+    tie: f64,
+}
+
+impl Agreement {
+    /// The highest agreement among `set` (−∞ for none).
+    fn most(&self, set: &[usize]) -> f64 {
+        set.iter()
+            .map(|&i| self.of[i])
+            .fold(f64::NEG_INFINITY, f64::max)
+    }
+
+    /// Whether candidate `i` agrees as well as `most`, within the tie.
+    fn ties(&self, i: usize, most: f64) -> bool {
+        self.of[i] >= most - self.tie - 1e-12
+    }
+}
+
 /// A search the calibration may choose, with its studied agreement.
 #[derive(Debug, Clone, Copy)]
 struct Candidate {
@@ -348,11 +376,15 @@ pub fn calibrate_within(
         .iter()
         .map(|c| c.agreement.unwrap_or(0.0))
         .collect();
+    let tied = Agreement {
+        of: agreement,
+        tie: study.map_or(0.0, |s| TIE_IMAGES / s.images.max(1) as f64),
+    };
     let meter = Meter::new(model, &grey, level)?;
     let (estimates, mut spent, cut_short) = estimate(
         meter,
         &candidates,
-        &agreement,
+        &tied,
         (level, budget_ms),
         (started, deadline_ms),
     );
@@ -369,7 +401,7 @@ pub fn calibrate_within(
         .iter()
         .map(|&(ms, need)| if need.is_none() { ms } else { f64::INFINITY })
         .collect();
-    let (pick, reason) = choose(&rows, &agreement, &predicted, budget_ms);
+    let (pick, reason) = choose(&rows, &tied, &predicted, budget_ms);
     let chosen = candidates[pick];
     let measured_ms = run_once(model, &grey, &chosen.params, level)?;
     spent.check_ms = measured_ms;
@@ -426,7 +458,7 @@ fn run_once(
 fn estimate(
     mut meter: Meter,
     candidates: &[Candidate],
-    agreement: &[f64],
+    agreement: &Agreement,
     (level, budget_ms): (u8, f64),
     (started, deadline_ms): (Instant, f64),
 ) -> (Vec<(f64, Option<Need>)>, Spent, bool) {
@@ -450,13 +482,17 @@ fn estimate(
 /// The measurement to make next, or `None` when none is needed: the one needed by the search
 /// with the lowest bound among those that may still be chosen. `estimates` holds each
 /// candidate's predicted latency, exact where its `Need` is `None`, else a lower bound. A search
-/// with a bound can no longer be chosen (by [`choose`], whatever its exact prediction) when some
-/// exact search is within the budget and it is not (or agrees less than the most agreeing such
-/// search, or as much but is bounded beyond [`TIE`] times the fastest of those); or, when no
-/// exact search is within the budget, when it is not either and is bounded beyond [`TIE`] times
-/// the fastest exact search. Measuring more only lowers those thresholds, so a search ruled out
-/// stays ruled out.
-fn next_need(estimates: &[(f64, Option<Need>)], agreement: &[f64], budget_ms: f64) -> Option<Need> {
+/// with a bound cannot be chosen (by [`choose`], whatever its exact prediction, given the exact
+/// ones) when some exact search is within the budget and it is not; or when, counted in, it would
+/// agree less than the most agreeing such search (beyond the tie), or be bounded beyond [`TIE`]
+/// times the fastest exact search within the budget that agrees as well (within the tie); or,
+/// when no exact search is within the budget, when it is not either and is bounded beyond
+/// [`TIE`] times the fastest exact search. Every bound is checked again after each measurement.
+fn next_need(
+    estimates: &[(f64, Option<Need>)],
+    agreement: &Agreement,
+    budget_ms: f64,
+) -> Option<Need> {
     let exact: Vec<usize> = (0..estimates.len())
         .filter(|&i| estimates[i].1.is_none())
         .collect();
@@ -465,23 +501,20 @@ fn next_need(estimates: &[(f64, Option<Need>)], agreement: &[f64], budget_ms: f6
         .copied()
         .filter(|&i| estimates[i].0 <= budget_ms)
         .collect();
-    let most = within
-        .iter()
-        .map(|&i| agreement[i])
-        .fold(f64::NEG_INFINITY, f64::max);
+    let most = agreement.most(&within);
     let fastest = |set: &mut dyn Iterator<Item = usize>| {
         set.map(|i| estimates[i].0).fold(f64::INFINITY, f64::min)
     };
-    let fastest_most = fastest(&mut within.iter().copied().filter(|&i| agreement[i] >= most));
     let fastest_exact = fastest(&mut exact.iter().copied());
     let may_win = |i: usize| {
         let bound = estimates[i].0;
         if within.is_empty() {
-            bound <= budget_ms || bound <= fastest_exact * TIE
-        } else {
-            bound <= budget_ms
-                && (agreement[i] > most || (agreement[i] >= most && bound <= fastest_most * TIE))
+            return bound <= budget_ms || bound <= fastest_exact * TIE;
         }
+        // The most agreeing, with this search counted in, and the fastest that tie with it.
+        let most = most.max(agreement.of[i]);
+        let rivals = fastest(&mut within.iter().copied().filter(|&j| agreement.ties(j, most)));
+        bound <= budget_ms && agreement.ties(i, most) && bound <= rivals * TIE
     };
     (0..estimates.len())
         .filter(|&i| estimates[i].1.is_some() && may_win(i))
@@ -571,12 +604,17 @@ impl<'a> Meter<'a> {
     }
 }
 
-/// The candidate to serve and why: the most agreeing one predicted within `budget_ms`, else the
-/// fastest. Timings are noisy: searches predicted within [`TIE`] of the fastest of a set count as
+/// The candidate to serve and why: the most agreeing one predicted within `budget_ms` (within
+/// the agreement's tie), else the fastest. Timings are noisy: searches predicted within [`TIE`] of the fastest of a set count as
 /// equally fast, and the one scoring the fewest rows is taken, so that the choice does not flip
 /// between starts; among those the lower prediction (twins in other precisions score the same
 /// rows), then the study's order.
-fn choose(rows: &[usize], agreement: &[f64], predicted: &[f64], budget_ms: f64) -> (usize, String) {
+fn choose(
+    rows: &[usize],
+    agreement: &Agreement,
+    predicted: &[f64],
+    budget_ms: f64,
+) -> (usize, String) {
     let fastest = |set: &[usize]| -> Option<usize> {
         let best = set
             .iter()
@@ -594,21 +632,20 @@ fn choose(rows: &[usize], agreement: &[f64], predicted: &[f64], budget_ms: f64) 
     let within: Vec<usize> = (0..predicted.len())
         .filter(|&i| predicted[i] <= budget_ms)
         .collect();
-    let most = within
-        .iter()
-        .map(|&i| agreement[i])
-        .fold(f64::NEG_INFINITY, f64::max);
+    let most = agreement.most(&within);
     let most_agreeing: Vec<usize> = within
         .iter()
         .copied()
-        .filter(|&i| agreement[i] >= most)
+        .filter(|&i| agreement.ties(i, most))
         .collect();
     let all: Vec<usize> = (0..predicted.len()).collect();
     match fastest(&most_agreeing) {
         Some(i) => (
             i,
             format!(
-                "the most agreeing of {} searches predicted within {budget_ms} ms",
+                "the fastest of {} searches agreeing within {:.1} % of the most agreeing, among {} predicted within {budget_ms} ms",
+                most_agreeing.len(),
+                agreement.tie * 100.0,
                 within.len()
             ),
         ),
@@ -624,9 +661,17 @@ fn choose(rows: &[usize], agreement: &[f64], predicted: &[f64], budget_ms: f64) 
 
 #[cfg(test)]
 mod tests {
-    use super::{Candidate, Need, choose, next_need, without_emulated_twins};
+    use super::{Agreement, Candidate, Need, choose, next_need, without_emulated_twins};
     use crate::engine::SearchParams;
     use crate::net::Precision;
+
+    /// Agreements, with those within `tie` of each other counted as equal.
+    fn agreed(of: &[f64], tie: f64) -> Agreement {
+        Agreement {
+            of: of.to_vec(),
+            tie,
+        }
+    }
 
     fn search(start_level: u8, keep: usize, coarse_precision: Precision) -> Candidate {
         Candidate {
@@ -675,16 +720,21 @@ mod tests {
     fn twins_scoring_the_same_rows_go_to_the_faster_one_even_within_the_tie() {
         // An f16 search and its i8 twin (same rows), the twin 10 % faster: within TIE, and
         // the study lists f16 first.
-        let (pick, _) = choose(&[1000, 1000], &[1.0, 1.0], &[20.0, 18.0], 25.0);
+        let (pick, _) = choose(
+            &[1000, 1000],
+            &agreed(&[1.0, 1.0], 0.0),
+            &[20.0, 18.0],
+            25.0,
+        );
         assert_eq!(pick, 1);
     }
 
     #[test]
     fn within_the_tie_fewer_rows_win_over_a_faster_prediction() {
-        let (pick, _) = choose(&[1000, 800], &[1.0, 1.0], &[18.0, 20.0], 25.0);
+        let (pick, _) = choose(&[1000, 800], &agreed(&[1.0, 1.0], 0.0), &[18.0, 20.0], 25.0);
         assert_eq!(pick, 1);
         // Out of the tie the faster one wins.
-        let (pick, _) = choose(&[1000, 800], &[1.0, 1.0], &[15.0, 20.0], 25.0);
+        let (pick, _) = choose(&[1000, 800], &agreed(&[1.0, 1.0], 0.0), &[15.0, 20.0], 25.0);
         assert_eq!(pick, 0);
     }
 
@@ -717,7 +767,7 @@ mod tests {
         ];
         for (estimates, agreement, expected) in cases {
             assert_eq!(
-                next_need(&estimates, &agreement, 25.0),
+                next_need(&estimates, &agreed(&agreement, 0.0), 25.0),
                 expected,
                 "{estimates:?} {agreement:?}"
             );
@@ -726,10 +776,39 @@ mod tests {
 
     #[test]
     fn agreement_first_within_the_budget_else_the_fastest() {
-        let (pick, reason) = choose(&[1000, 500], &[1.0, 0.99], &[20.0, 10.0], 25.0);
+        let agreement = agreed(&[1.0, 0.99], 0.0);
+        let (pick, reason) = choose(&[1000, 500], &agreement, &[20.0, 10.0], 25.0);
         assert_eq!(pick, 0, "{reason}");
-        let (pick, reason) = choose(&[1000, 500], &[1.0, 0.99], &[40.0, 30.0], 25.0);
+        let (pick, reason) = choose(&[1000, 500], &agreement, &[40.0, 30.0], 25.0);
         assert_eq!(pick, 1, "{reason}");
         assert!(reason.contains("no search"), "{reason}");
+    }
+
+    #[test]
+    fn agreements_one_studied_image_apart_count_as_equal() {
+        // A 100-image study: 99 % and 100 % are one image apart, so the faster search is
+        // chosen whether or not the slower, more agreeing one is predicted within the budget
+        // (its prediction near the budget no longer flips the choice between starts).
+        let one_image = agreed(&[1.0, 0.99], 0.01);
+        for slower in [24.0, 26.0] {
+            let (pick, reason) = choose(&[1000, 500], &one_image, &[slower, 15.0], 25.0);
+            assert_eq!(pick, 1, "{slower} ms: {reason}");
+        }
+        // Two images apart, the more agreeing search still wins within the budget.
+        let two_images = agreed(&[1.0, 0.98], 0.01);
+        let (pick, reason) = choose(&[1000, 500], &two_images, &[24.0, 15.0], 25.0);
+        assert_eq!(pick, 0, "{reason}");
+        // Measuring follows the same rule: a slower search one image more agreeing is not
+        // timed once a faster one is exact; two images more agreeing, it is.
+        let start = Some(Need::Start(2, Precision::F32));
+        let estimates = [(15.0, None), (20.0, start)];
+        assert_eq!(
+            next_need(&estimates, &agreed(&[0.99, 1.0], 0.01), 25.0),
+            None
+        );
+        assert_eq!(
+            next_need(&estimates, &agreed(&[0.98, 1.0], 0.01), 25.0),
+            start
+        );
     }
 }

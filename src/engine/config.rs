@@ -32,7 +32,8 @@ pub struct EngineConfig {
     /// Depth pixels of a depth image used per detection (evenly spaced in the box).
     pub depth_image_points: usize,
     /// With `Some(ms)`, the search is chosen at load on this CPU ([`super::calibrate`]) among the
-    /// bundle's studied searches: the most agreeing one predicted within `ms`; with `None`, the
+    /// bundle's studied searches: the most agreeing one predicted within `ms` (agreements one
+    /// studied image apart count as equal; among equals the fastest); with `None`, the
     /// search above is served as it is.
     pub search_budget_ms: Option<f64>,
     /// The agreement with the exhaustive argmax a calibrated search must have reached in the
