@@ -372,19 +372,18 @@ pub fn calibrate_within(
                 .sum()
         })
         .collect();
-    let agreement: Vec<f64> = candidates
-        .iter()
-        .map(|c| c.agreement.unwrap_or(0.0))
-        .collect();
-    let tied = Agreement {
-        of: agreement,
+    let agreement = Agreement {
+        of: candidates
+            .iter()
+            .map(|c| c.agreement.unwrap_or(0.0))
+            .collect(),
         tie: study.map_or(0.0, |s| TIE_IMAGES / s.images.max(1) as f64),
     };
     let meter = Meter::new(model, &grey, level)?;
     let (estimates, mut spent, cut_short) = estimate(
         meter,
         &candidates,
-        &tied,
+        &agreement,
         (level, budget_ms),
         (started, deadline_ms),
     );
@@ -401,7 +400,7 @@ pub fn calibrate_within(
         .iter()
         .map(|&(ms, need)| if need.is_none() { ms } else { f64::INFINITY })
         .collect();
-    let (pick, reason) = choose(&rows, &tied, &predicted, budget_ms);
+    let (pick, reason) = choose(&rows, &agreement, &predicted, budget_ms);
     let chosen = candidates[pick];
     let measured_ms = run_once(model, &grey, &chosen.params, level)?;
     spent.check_ms = measured_ms;
@@ -605,10 +604,10 @@ impl<'a> Meter<'a> {
 }
 
 /// The candidate to serve and why: the most agreeing one predicted within `budget_ms` (within
-/// the agreement's tie), else the fastest. Timings are noisy: searches predicted within [`TIE`] of the fastest of a set count as
-/// equally fast, and the one scoring the fewest rows is taken, so that the choice does not flip
-/// between starts; among those the lower prediction (twins in other precisions score the same
-/// rows), then the study's order.
+/// the agreement's tie), else the fastest. Timings are noisy: searches predicted within [`TIE`]
+/// of the fastest of a set count as equally fast, and the one scoring the fewest rows is taken,
+/// so that the choice does not flip between starts; among those the lower prediction (twins in
+/// other precisions score the same rows), then the study's order.
 fn choose(
     rows: &[usize],
     agreement: &Agreement,
