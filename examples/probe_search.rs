@@ -4,7 +4,7 @@
 //! encoder, the start level in full, each refined level, and the rest (cell rotations, softmax,
 //! selection, modes) as the difference.
 //! `cargo run --release --example probe_search [BUNDLE] [START] [KEEP] [f32|bf16|f16|i8] [REPEATS]
-//! [TAPER] [KEEP_MASS|-] [RESCORE_FINEST: true|false] [KEEP_MIN]` (with a keep by mass, the parts are timed
+//! [TAPER] [KEEP_MASS|-] [RESCORE_FINEST: true|false]` (with a keep by mass, the parts are timed
 //! at the most cells kept; `-`: no keep by mass).
 use std::time::Instant;
 
@@ -30,7 +30,6 @@ fn main() -> anyhow::Result<()> {
             .map(|m| m.parse())
             .transpose()?,
         keep_taper: arg(6, "0.5").parse()?,
-        keep_min: arg(9, "0").parse()?,
         coarse_precision: arg(4, "bf16")
             .parse::<Precision>()
             .map_err(anyhow::Error::msg)?,
@@ -107,8 +106,7 @@ fn time_parts(model: &Model, search: &SearchParams, crop: &[u8], runs: usize) ->
     );
     let mut parts = encoder + start;
     for (i, level) in (search.start_level + 1..=FINEST).enumerate() {
-        let keep = ((search.keep as f64 * search.keep_taper.powi(i as i32)).round() as usize)
-            .max(search.keep_min);
+        let keep = (search.keep as f64 * search.keep_taper.powi(i as i32)).round() as usize;
         let grid = model.grid(level).expect("grid");
         let rotations: Vec<[f32; 9]> = (0..8 * keep as u64)
             .map(|c| to_row_major_f32(&grid.rotation(c * 97 % grid.len() as u64)))

@@ -30,7 +30,6 @@ fn studied(
         keep,
         keep_mass: None,
         keep_taper: taper,
-        keep_min: 0,
         coarse_precision: precision.into(),
         rescore_finest: false,
         agreement,
@@ -193,21 +192,6 @@ fn a_model_loaded_with_a_budget_serves_the_calibrated_search() {
         text.contains(SEARCH_STUDY_FILE) && text.contains("searches[2].agreement"),
         "{text}"
     );
-    let mut bad = study();
-    bad.searches[1].keep_min = bad.searches[1].keep + 1;
-    bad.save(&folder).unwrap();
-    let text = Engine::load_model(&folder, config)
-        .err()
-        .expect("refused")
-        .to_string();
-    assert!(text.contains("searches[1].keep_min"), "{text}");
-    // A floor is written to the file and read back; a study without one reads as 0.
-    let mut floored = study();
-    floored.searches[1].keep_min = 8.min(floored.searches[1].keep);
-    floored.save(&folder).unwrap();
-    let text = std::fs::read_to_string(folder.join(SEARCH_STUDY_FILE)).unwrap();
-    assert_eq!(text.matches("keep_min").count(), 1, "{text}");
-    assert_eq!(SearchStudy::load(&folder).unwrap(), Some(floored));
     std::fs::write(folder.join(SEARCH_STUDY_FILE), "{ not json").unwrap();
     let text = Engine::load_model(&folder, config)
         .err()
@@ -318,7 +302,6 @@ fn rescoring_the_finest_level_gives_the_answer_f32s_scores() {
         keep: 128,
         keep_mass: None,
         keep_taper: 1.0,
-        keep_min: 0,
         coarse_precision: Precision::I8,
         rescore_finest: false,
     };

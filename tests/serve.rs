@@ -149,7 +149,6 @@ fn the_search_study_counts_agreements_and_lists_disagreements() {
         keep,
         keep_mass: None,
         keep_taper: 1.0,
-        keep_min: 0,
         coarse_precision: alignist::net::Precision::F32,
         rescore_finest: false,
     };
@@ -876,16 +875,12 @@ async fn server_levels_are_checked_at_start_up_and_level_0_is_the_default_everyw
     assert_eq!((first.level, first.total_cells), (3, 36_864));
     // Settings that cannot work stop the server at start-up with a message naming them.
     for (args, named) in [
-        (&["--max-level", "7"][..], "level"),
-        (&["--max-search-level", "1"], "level"),
-        (&["--max-level", "1"], "level"),
-        (&["--search-keep-taper", "0"], "keep_taper"),
-        (&["--search-keep-taper", "NaN"], "keep_taper"),
-        (&["--search-coarse-precision", "fp8"], "precision"),
-        (
-            &["--search-keep", "32", "--search-keep-min", "64"],
-            "keep_min",
-        ),
+        (["--max-level", "7"], "level"),
+        (["--max-search-level", "1"], "level"),
+        (["--max-level", "1"], "level"),
+        (["--search-keep-taper", "0"], "keep_taper"),
+        (["--search-keep-taper", "NaN"], "keep_taper"),
+        (["--search-coarse-precision", "fp8"], "precision"),
     ] {
         let out = Command::new(env!("CARGO_BIN_EXE_alignist-server"))
             .args([

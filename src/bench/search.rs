@@ -41,15 +41,13 @@ pub struct SearchFigures {
 /// double at each finer level, all in f32; then the wider ones with the coarse levels in
 /// bfloat16, in f16 and in 8-bit integers, and some of those with the finest level in the coarse
 /// precision as well, rescored ([`SearchParams::rescore_finest`]); last, start level 1 with
-/// halving keeps in every precision (the fewest rows), and some of those again with at least 64
-/// or 96 cells kept at every level ([`SearchParams::keep_min`]).
+/// halving keeps in every precision (the fewest rows).
 pub fn candidates() -> Vec<SearchParams> {
     let flat = |start_level, keep, keep_mass| SearchParams {
         start_level,
         keep,
         keep_mass,
         keep_taper: 1.0,
-        keep_min: 0,
         coarse_precision: Precision::F32,
         rescore_finest: false,
     };
@@ -139,16 +137,6 @@ pub fn candidates() -> Vec<SearchParams> {
             out.push(precision(tapered(1, keep, 0.5)));
         }
         out.push(tapered(1, keep, 0.5));
-    }
-    // The same with at least 64 or 96 cells kept at every level: a halving keep of 256 keeps 32
-    // at level 4, fewer than an icosahedron's 60 modes, and so may lose the argmax among them;
-    // the floor carries every mode to the finest level at a fraction of a wider keep's rows.
-    let floored = |search: SearchParams, keep_min| SearchParams { keep_min, ..search };
-    for (keep, keep_min) in [(128, 96), (192, 64), (192, 96), (256, 64), (256, 96)] {
-        for precision in [i8, bf16, f16] {
-            out.push(floored(precision(tapered(1, keep, 0.5)), keep_min));
-        }
-        out.push(floored(tapered(1, keep, 0.5), keep_min));
     }
     out
 }
@@ -242,7 +230,6 @@ pub fn record(figures: &[SearchFigures], level: u8, images: usize, command: Stri
                 keep: f.params.keep,
                 keep_mass: f.params.keep_mass,
                 keep_taper: f.params.keep_taper,
-                keep_min: f.params.keep_min,
                 coarse_precision: f.params.coarse_precision.name().into(),
                 rescore_finest: f.params.rescores(),
                 agreement: f.agreement,

@@ -78,11 +78,6 @@ struct Cli {
     /// calibrated, else 0.5.
     #[arg(long, env = "ALIGNIST_SEARCH_KEEP_TAPER")]
     search_keep_taper: Option<f64>,
-    /// The fewest cells a Predict search keeps at any level, at most --search-keep (a floor
-    /// under the taper: 64 carries the 60 modes of an icosahedron to the finest level). Default:
-    /// calibrated, else 0 (none beyond the top-k's).
-    #[arg(long, env = "ALIGNIST_SEARCH_KEEP_MIN")]
-    search_keep_min: Option<usize>,
     /// Arithmetic of a Predict search's levels before the finest (which is f32, or rescored in
     /// f32: `--search-rescore-finest`): `bf16`
     /// ranks the cells to refine at about 2.6 times the f32 rate where the core has fast AVX-512
@@ -259,7 +254,6 @@ fn engine_config(cli: &Cli) -> Result<EngineConfig> {
     let search_set = cli.search_start_level.is_some()
         || cli.search_keep.is_some()
         || cli.search_keep_taper.is_some()
-        || cli.search_keep_min.is_some()
         || cli.search_coarse_precision.is_some()
         || cli.search_rescore_finest.is_some();
     anyhow::ensure!(
@@ -281,7 +275,6 @@ fn engine_config(cli: &Cli) -> Result<EngineConfig> {
                 .unwrap_or(defaults.search.start_level),
             keep: cli.search_keep.unwrap_or(defaults.search.keep),
             keep_taper: cli.search_keep_taper.unwrap_or(defaults.search.keep_taper),
-            keep_min: cli.search_keep_min.unwrap_or(defaults.search.keep_min),
             coarse_precision: cli
                 .search_coarse_precision
                 .unwrap_or(defaults.search.coarse_precision),

@@ -29,10 +29,6 @@ pub struct StudiedSearch {
     pub keep_mass: Option<f64>,
     /// Each finer level keeps this many times as many cells.
     pub keep_taper: f64,
-    /// The fewest cells kept at any level (absent in studies written before the option, and
-    /// when 0: none beyond the top-k's).
-    #[serde(default, skip_serializing_if = "is_zero")]
-    pub keep_min: usize,
     /// Arithmetic of the levels before the finest (`f32`, `bf16`, `f16`, `i8`).
     pub coarse_precision: String,
     /// Whether the finest level was scored in the coarse precision too, its best cells then
@@ -43,11 +39,6 @@ pub struct StudiedSearch {
     pub agreement: f64,
     /// Fraction of images whose top-1 scores within 0.01 of the exhaustive maximum.
     pub found_maximum: f64,
-}
-
-/// Whether `n` is 0 (a `keep_min` the study leaves out).
-fn is_zero(n: &usize) -> bool {
-    *n == 0
 }
 
 /// A bundle's search study.
@@ -128,14 +119,6 @@ impl SearchStudy {
             }
             if s.keep == 0 {
                 return Err(format!("{}: must be positive", field("keep")));
-            }
-            if s.keep_min > s.keep {
-                return Err(format!(
-                    "{}: {} must be at most keep ({})",
-                    field("keep_min"),
-                    s.keep_min,
-                    s.keep
-                ));
             }
             if let Some(m) = s.keep_mass
                 && !(m > 0.0 && m <= 1.0)

@@ -462,18 +462,13 @@ pub fn models_table(list: &ListModelsResponse) -> String {
             };
             let _ = writeln!(
                 s,
-                "  search: start {}, keep {}{}{}{}, coarse {}{}{calibrated}; kernels {}",
+                "  search: start {}, keep {}{}{}, coarse {}{}{calibrated}; kernels {}",
                 q.start_level,
                 q.keep,
                 if q.keep_taper == 1.0 {
                     String::new()
                 } else {
                     format!(" ×{}/level", q.keep_taper)
-                },
-                if q.keep_min > 0 {
-                    format!(" ≥{}", q.keep_min)
-                } else {
-                    String::new()
                 },
                 if q.keep_mass > 0.0 {
                     format!(" ({} of the mass)", q.keep_mass)

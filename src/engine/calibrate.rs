@@ -186,7 +186,13 @@ pub fn rows_per_level(
 ) -> Vec<(u8, usize, Precision)> {
     let start = search.start_level.min(level);
     let precision = |l: u8| search.precision_at(l, start, level);
-    let keep = Keep::of(search, TOP_K);
+    let min = TOP_K.div_ceil(8);
+    let keep = Keep {
+        max: search.keep.max(min),
+        min,
+        mass: search.keep_mass,
+        taper: search.keep_taper,
+    };
     let mut out = Vec::new();
     let mut cells = model.grid(start).map_or(0, |g| g.len());
     out.push((start, cells, precision(start)));
@@ -262,7 +268,6 @@ fn candidates(
                         keep: s.keep,
                         keep_mass: s.keep_mass,
                         keep_taper: s.keep_taper,
-                        keep_min: s.keep_min,
                         coarse_precision: s.precision().ok()?,
                         rescore_finest: s.rescore_finest,
                     },
@@ -674,7 +679,6 @@ mod tests {
                 keep,
                 keep_mass: None,
                 keep_taper: 0.5,
-                keep_min: 0,
                 coarse_precision,
                 rescore_finest: false,
             },

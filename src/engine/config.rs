@@ -56,11 +56,6 @@ pub struct SearchParams {
     /// Each finer level keeps `keep_taper` times as many cells as the one before (1: `keep` at
     /// every level).
     pub keep_taper: f64,
-    /// The fewest cells kept at any level (0: only the top-k's eighth), at most `keep`: a taper
-    /// may halve a keep of 256 to 32 at level 4, fewer than the modes of an object with 60
-    /// symmetries; a floor of 64 keeps them all at the finest levels without the coarse levels'
-    /// cost of a larger keep.
-    pub keep_min: usize,
     /// The arithmetic of every level but the finest, which is scored in f32 (or rescored in it,
     /// `rescore_finest`): bfloat16 ranks
     /// the cells to refine at about 2.6 times the f32 rate on AMD Zen 4, f16 at 1.8–1.9 times
@@ -105,8 +100,7 @@ impl SearchParams {
 }
 
 impl SearchParams {
-    /// The cells it keeps, in words: `128`, `0.99 mass ≤512`, `512 ×0.5/level`,
-    /// `256 ×0.5/level ≥64`.
+    /// The cells it keeps, in words: `128`, `0.99 mass ≤512`, `512 ×0.5/level`.
     pub fn keep_description(&self) -> String {
         let mut keep = match self.keep_mass {
             Some(m) => format!("{m} mass ≤{}", self.keep),
@@ -114,9 +108,6 @@ impl SearchParams {
         };
         if self.keep_taper != 1.0 {
             keep += &format!(" ×{}/level", self.keep_taper);
-        }
-        if self.keep_min > 0 {
-            keep += &format!(" ≥{}", self.keep_min);
         }
         keep
     }
@@ -214,15 +205,6 @@ impl EngineConfig {
                 format!("{} must be in {KEEP_TAPER:?}", self.search.keep_taper),
             );
         }
-        if self.search.keep_min > self.search.keep {
-            return bad(
-                "keep_min",
-                format!(
-                    "{} must be at most keep ({})",
-                    self.search.keep_min, self.search.keep
-                ),
-            );
-        }
         if self.search.keep == 0
             || self.image_limits.max_bytes == 0
             || self.image_limits.max_pixels == 0
@@ -262,7 +244,6 @@ impl Default for EngineConfig {
                 keep: 1024,
                 keep_mass: None,
                 keep_taper: 0.5,
-                keep_min: 0,
                 coarse_precision: Precision::Bf16,
                 rescore_finest: false,
             },

@@ -617,18 +617,13 @@ impl Model {
         let level = options.level;
         if search.start_level > self.config.max_full_level
             || search.keep == 0
-            || search.keep_min > search.keep
             || !KEEP_TAPER.contains(&search.keep_taper)
         {
             return Err(invalid(
                 "search",
                 format!(
-                    "start level {} above the full levels ({}), keep 0, keep_min {} above keep {}, or keep taper {} outside {KEEP_TAPER:?}",
-                    search.start_level,
-                    self.config.max_full_level,
-                    search.keep_min,
-                    search.keep,
-                    search.keep_taper
+                    "start level {} above the full levels ({}), keep 0, or keep taper {} outside {KEEP_TAPER:?}",
+                    search.start_level, self.config.max_full_level, search.keep_taper
                 ),
             ));
         }
@@ -642,7 +637,14 @@ impl Model {
         }
         let start = search.start_level.min(level);
         let grids: Vec<&GridLevel> = self.grids[start as usize..=level as usize].iter().collect();
-        let keep = search::Keep::of(search, options.top_k);
+        // Enough cells kept for the top-k at the finest level (8 children each).
+        let min = options.top_k.div_ceil(8);
+        let keep = search::Keep {
+            max: search.keep.max(min),
+            min,
+            mass: search.keep_mass,
+            taper: search.keep_taper,
+        };
         let mut fusion = DepthSearch::new(depth, level, options.top_k.max(MIN_REFITS));
         let results = coarse_to_fine_many(&grids, keep, b, |grid, cells| {
             let rescore = grid.level() == level && search.rescores_to(start, level);

@@ -7,7 +7,6 @@
 
 use nalgebra::{Quaternion, Rotation3, UnitQuaternion};
 
-use super::config::SearchParams;
 use crate::so3::{GridLevel, quaternion_angle, quaternion_dot, to_quaternion};
 
 /// One scored cell.
@@ -69,18 +68,6 @@ pub struct Keep {
 }
 
 impl Keep {
-    /// The cells `search` keeps for a top-`top_k` answer: never fewer than the top-k needs at
-    /// the finest level (8 children each) or the search's `keep_min`.
-    pub fn of(search: &SearchParams, top_k: usize) -> Keep {
-        let min = top_k.div_ceil(8).max(search.keep_min);
-        Keep {
-            max: search.keep.max(min),
-            min,
-            mass: search.keep_mass,
-            taper: search.keep_taper,
-        }
-    }
-
     /// The most cells kept at the `refinement`-th refinement (0: the start level's):
     /// `max · taper^refinement`, rounded, at least `min`.
     pub fn max_at(&self, refinement: usize) -> usize {
@@ -295,40 +282,5 @@ mod tests {
         assert_eq!(scored(0.5, 1), vec![576, 8 * 64, 8 * 32, 8 * 16]);
         assert_eq!(scored(0.5, 24), vec![576, 8 * 64, 8 * 32, 8 * 24]);
         assert_eq!(scored(2.0, 1), vec![576, 8 * 64, 8 * 128, 8 * 256]);
-    }
-
-    /// A search's `keep_min` is a floor under its taper; without one the top-k's eighth is.
-    #[test]
-    fn a_keep_floor_holds_the_finer_levels_at_keep_min() {
-        let search = SearchParams {
-            start_level: 1,
-            keep: 256,
-            keep_mass: None,
-            keep_taper: 0.5,
-            keep_min: 64,
-            coarse_precision: crate::net::Precision::F32,
-            rescore_finest: false,
-        };
-        let kept = |search: &SearchParams, top_k| {
-            let keep = Keep::of(search, top_k);
-            (0..4).map(|r| keep.max_at(r)).collect::<Vec<_>>()
-        };
-        assert_eq!(kept(&search, 10), vec![256, 128, 64, 64]);
-        let unfloored = SearchParams {
-            keep_min: 0,
-            ..search
-        };
-        assert_eq!(kept(&unfloored, 10), vec![256, 128, 64, 32]);
-        assert_eq!(kept(&unfloored, 800), vec![256, 128, 100, 100]);
-        // A keep by mass keeps at least the floor too.
-        let by_mass = Keep::of(
-            &SearchParams {
-                keep_mass: Some(0.5),
-                ..search
-            },
-            10,
-        );
-        let probs = vec![0.9, 0.05, 0.05];
-        assert_eq!(by_mass.cells(&probs, 1.0, 0).len(), 3);
     }
 }

@@ -897,7 +897,6 @@ fn search_info(model: &Model) -> SearchInfo {
         keep: search.keep as u32,
         keep_taper: search.keep_taper,
         keep_mass: search.keep_mass.unwrap_or(0.0),
-        keep_min: search.keep_min as u32,
         coarse_precision: search.coarse_precision.name().into(),
         rescore_finest: search.rescores(),
         chosen_by: if c.is_some() {
