@@ -4,8 +4,9 @@
 //! encoder, the start level in full, each refined level, and the rest (cell rotations, softmax,
 //! selection, modes) as the difference.
 //! `cargo run --release --example probe_search [BUNDLE] [START] [KEEP] [f32|bf16|f16|i8] [REPEATS]
-//! [TAPER] [KEEP_MASS|-] [RESCORE_FINEST: true|false]` (with a keep by mass, the parts are timed
-//! at the most cells kept; `-`: no keep by mass).
+//! [TAPER] [KEEP_MASS|-] [RESCORE_FINEST: true|false] [SHAPE_ONLY_TO|-]` (with a keep by mass,
+//! the parts are timed at the most cells kept; `-`: no keep by mass, both branches at every
+//! level).
 use std::time::Instant;
 
 use alignist::engine::{Engine, EngineConfig, Model, PredictOptions, RESCORED_CELLS, SearchParams};
@@ -34,6 +35,11 @@ fn main() -> anyhow::Result<()> {
             .parse::<Precision>()
             .map_err(anyhow::Error::msg)?,
         rescore_finest: arg(8, "false").parse()?,
+        shape_only_to: args
+            .get(9)
+            .filter(|l| *l != "-")
+            .map(|l| l.parse())
+            .transpose()?,
     };
     let repeats: usize = arg(5, "20").parse()?;
     let bundle = alignist::bundle::model::ModelBundle::load(&path)?;
@@ -94,14 +100,19 @@ fn time_parts(model: &Model, search: &SearchParams, crop: &[u8], runs: usize) ->
     });
     println!("  encoder: {encoder:.1} ms");
     let start_precision = search.precision_at(search.start_level, search.start_level, FINEST);
+    let start_branches = search.branches_at(search.start_level, FINEST);
     let start = timed(&mut || {
         model
-            .logits_in(start_precision, &features[0], search.start_level)
+            .logits_by(
+                (start_precision, start_branches),
+                &features[0],
+                search.start_level,
+            )
             .expect("start level");
     });
     let start_len = model.grid(search.start_level).map_or(0, |g| g.len());
     println!(
-        "  level {} in full ({start_len} rotations, {start_precision}): {start:.1} ms",
+        "  level {} in full ({start_len} rotations, {start_precision}, {start_branches:?}): {start:.1} ms",
         search.start_level
     );
     let mut parts = encoder + start;
@@ -112,11 +123,17 @@ fn time_parts(model: &Model, search: &SearchParams, crop: &[u8], runs: usize) ->
             .map(|c| to_row_major_f32(&grid.rotation(c * 97 % grid.len() as u64)))
             .collect();
         let precision = search.precision_at(level, search.start_level, FINEST);
+        let branches = search.branches_at(level, FINEST);
         let t = timed(&mut || {
-            model.score_rotations_many(&features, std::slice::from_ref(&rotations), precision);
+            model.score_rotations_by(
+                &features,
+                std::slice::from_ref(&rotations),
+                precision,
+                branches,
+            );
         });
         println!(
-            "  level {level} ({} rotations, {precision}, encodings included): {t:.1} ms",
+            "  level {level} ({} rotations, {precision}, {branches:?}, encodings included): {t:.1} ms",
             rotations.len()
         );
         parts += t;

@@ -8,7 +8,7 @@ use std::path::Path;
 use alignist::bundle::study::{SEARCH_STUDY_FILE, SearchStudy, StudiedSearch};
 use alignist::engine::calibrate::{calibrate, calibrate_within};
 use alignist::engine::{Engine, EngineConfig, Model};
-use alignist::net::Precision;
+use alignist::net::{Branches, Precision};
 
 fn shipped() -> &'static Path {
     Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/models/symsol1"))
@@ -32,6 +32,7 @@ fn studied(
         keep_taper: taper,
         coarse_precision: precision.into(),
         rescore_finest: false,
+        shape_only_to: None,
         agreement,
         found_maximum: agreement,
     }
@@ -304,6 +305,7 @@ fn rescoring_the_finest_level_gives_the_answer_f32s_scores() {
         keep_taper: 1.0,
         coarse_precision: Precision::I8,
         rescore_finest: false,
+        shape_only_to: None,
     };
     let rescored = SearchParams {
         rescore_finest: true,
@@ -341,9 +343,100 @@ fn rescoring_the_finest_level_gives_the_answer_f32s_scores() {
     // The calibration's account of the rows.
     let rows = rows_per_level(&model, &rescored, 4);
     let last = rows.len() - 1;
-    assert_eq!(rows[last], (4, RESCORED_CELLS, Precision::F32));
-    assert_eq!(rows[last - 1], (4, 8 * 128, Precision::I8));
+    let both = Branches::Both;
+    assert_eq!(rows[last], (4, RESCORED_CELLS, Precision::F32, both));
+    assert_eq!(rows[last - 1], (4, 8 * 128, Precision::I8, both));
     let plain = rows_per_level(&model, &exact, 4);
     assert_eq!(plain.len(), rows.len() - 1);
-    assert_eq!(plain[plain.len() - 1], (4, 8 * 128, Precision::F32));
+    assert_eq!(plain[plain.len() - 1], (4, 8 * 128, Precision::F32, both));
+}
+
+/// A search whose coarse levels are ranked by the shape branch alone answers with both
+/// branches' scores: keeping every cell (start level 2, all 4 608 kept, to level 3), it gives
+/// the very answer of the same search ranked by both; and the calibration counts its rows as
+/// the shape branch's up to its level and as both's at the finest, even when asked for more.
+#[test]
+fn ranking_by_the_shape_branch_still_answers_with_both_branches() {
+    use alignist::engine::calibrate::rows_per_level;
+    use alignist::engine::{PredictOptions, SearchParams};
+    let model = model();
+    let bundle = alignist::bundle::model::ModelBundle::load(shipped()).unwrap();
+    let crops: Vec<Vec<u8>> = alignist::train::data::BundleRenders::of(&bundle, 1)
+        .eval_images(bundle.manifest.network.image_size, 1, 12)
+        .into_iter()
+        .map(|im| im.rgb)
+        .collect();
+    let options = PredictOptions {
+        top_k: 10,
+        level: Some(3),
+        mode_angle_deg: None,
+        ..Default::default()
+    };
+    let both = SearchParams {
+        start_level: 2,
+        keep: 4608,
+        keep_mass: None,
+        keep_taper: 1.0,
+        coarse_precision: Precision::F32,
+        rescore_finest: false,
+        shape_only_to: None,
+    };
+    let shape = SearchParams {
+        shape_only_to: Some(2),
+        ..both
+    };
+    for crop in &crops {
+        let features = model.features(&[crop]).unwrap();
+        let run = |search: &SearchParams| {
+            model
+                .predict_searching(&features, &options, search, &[None])
+                .unwrap()
+                .swap_remove(0)
+        };
+        let (a, b) = (run(&both), run(&shape));
+        assert_eq!(a.top.len(), b.top.len());
+        for (x, y) in a.top.iter().zip(&b.top) {
+            assert_eq!(x.cell, y.cell);
+            assert!((x.log_density - y.log_density).abs() < 1e-6, "{x:?} {y:?}");
+        }
+    }
+    let halving = SearchParams {
+        start_level: 1,
+        keep: 512,
+        keep_taper: 0.5,
+        coarse_precision: Precision::I8,
+        shape_only_to: Some(7),
+        ..both
+    };
+    let rows = rows_per_level(&model, &halving, 5);
+    let branches: Vec<Branches> = rows.iter().map(|r| r.3).collect();
+    let shape_only = Branches::Shape;
+    assert_eq!(
+        branches,
+        [
+            shape_only,
+            shape_only,
+            shape_only,
+            shape_only,
+            Branches::Both
+        ]
+    );
+    let to_three = rows_per_level(
+        &model,
+        &SearchParams {
+            shape_only_to: Some(3),
+            ..halving
+        },
+        5,
+    );
+    assert_eq!(to_three[2], (3, 8 * 256, Precision::I8, shape_only));
+    assert_eq!(to_three[3], (4, 8 * 128, Precision::I8, Branches::Both));
+    assert_eq!(
+        SearchParams {
+            shape_only_to: Some(3),
+            ..halving
+        }
+        .to_string(),
+        "start 1, keep 512 ×0.5/level, coarse i8, shape branch to level 3"
+    );
 }

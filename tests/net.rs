@@ -890,3 +890,82 @@ fn the_folded_inference_encoder_computes_burns_eval_features() {
         }
     }
 }
+
+/// The shape branch alone (`Branches::Shape`, what a search's coarse levels may rank by) on every
+/// path a head scores on: the f32 head on the portable and the widest kernels, each reduced
+/// precision, the AMX kernels on emulated tiles and AVX2's 8-bit pairs. Its `s_θ` is, to the
+/// bit, the one both branches give (a row's shape branch never reads the feature branch), and the
+/// feature branch it leaves out scores 0; from projections and from encodings, over rows around
+/// the tile, on a width that pads to the panel and on the shipped head.
+#[test]
+fn the_shape_branch_alone_scores_as_it_does_beside_the_feature_branch() {
+    use alignist::net::{Branches, FusedHead, Kernels, ReducedHead, Rows};
+    let encoding = RotationEncoding::Cube;
+    let (head, bundle) = small_head_and_shipped(&encoding);
+    let tile = alignist::net::tiles::tile_rows();
+    for (head, encoding, what) in [
+        (&head, &encoding, "width 40"),
+        (
+            &bundle.network.head,
+            &bundle.manifest.network.encoding,
+            "shipped",
+        ),
+    ] {
+        for kernels in [Kernels::Portable, Kernels::from_env()] {
+            let fused = FusedHead::with_kernels(head, kernels);
+            let mut paths: Vec<(String, Box<BranchScoresBy<'_>>)> = Vec::new();
+            for precision in [
+                Precision::F32,
+                Precision::Bf16,
+                Precision::F16,
+                Precision::I8,
+            ] {
+                let fused = &fused;
+                paths.push((
+                    format!("{precision}, {}", fused.kernel_name(precision)),
+                    Box::new(move |image, rows, branches| {
+                        fused.branch_scores_of(precision, image, rows, branches)
+                    }),
+                ));
+            }
+            let mut tiles = vec![
+                ReducedHead::amx_emulated(&fused),
+                ReducedHead::amx_int8_emulated(&fused),
+            ];
+            tiles.extend(ReducedHead::i8_avx2_pairs(&fused));
+            for t in tiles {
+                paths.push((
+                    t.kernel_name().to_string(),
+                    Box::new(move |image, rows, branches| {
+                        t.branch_scores_of(image, rows, branches)
+                    }),
+                ));
+            }
+            for rows in [1, 7, 13, tile + 1] {
+                let rotations = spread_rotations(rows, 0.5);
+                let features: Vec<f32> = (0..fused.image_dim())
+                    .map(|i| ((i * 29 + rows) % 19) as f32 / 19.0)
+                    .collect();
+                let image = fused.image_term(&features);
+                let encodings = encoding.encode(&rotations);
+                let projected = fused.project_rotations(&encodings);
+                for (name, scores) in &paths {
+                    for given in [Rows::Projected(&projected), Rows::Encoded(&encodings)] {
+                        let both = scores(&image, given, Branches::Both);
+                        let (shape, feature) = scores(&image, given, Branches::Shape);
+                        assert_eq!(shape, both.0, "{what}, {name}, {rows} rows");
+                        assert!(
+                            feature.iter().all(|&f| f == 0.0),
+                            "{what}, {name}: the feature branch left out scores 0"
+                        );
+                        assert!(both.1.iter().any(|&f| f != 0.0), "{what}, {name}");
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// A path's `(s_θ, s_φ)` of rows by branches, for an image's term.
+type BranchScoresBy<'a> =
+    dyn Fn(&[f32], alignist::net::Rows<'_>, alignist::net::Branches) -> (Vec<f32>, Vec<f32>) + 'a;

@@ -151,6 +151,7 @@ fn the_search_study_counts_agreements_and_lists_disagreements() {
         keep_taper: 1.0,
         coarse_precision: alignist::net::Precision::F32,
         rescore_finest: false,
+        shape_only_to: None,
     };
     // From level 2 keeping all 4 608 cells, level 3 is scored in full: the exhaustive argmax.
     let figures = study(&model, &crops, &[search(2, 4608), search(0, 1)], 3, 5).unwrap();

@@ -93,6 +93,11 @@ struct Cli {
     /// effect with `--search-coarse-precision f32`. Default: calibrated, else off.
     #[arg(long, env = "ALIGNIST_SEARCH_RESCORE_FINEST")]
     search_rescore_finest: Option<bool>,
+    /// Rank a Predict search's cells by the shape branch alone at the levels up to this one
+    /// (never the finest, whose scores both branches give): about half the arithmetic of a row
+    /// there. `none`: both branches at every level. Default: calibrated, else none.
+    #[arg(long, env = "ALIGNIST_SEARCH_SHAPE_ONLY_TO", value_parser = parse_shape_only_to)]
+    search_shape_only_to: Option<ShapeOnlyTo>,
     /// Head worker threads per model, each running one call's head work at a time: a Predict or
     /// PredictFrame search, a PredictDistribution grid (default: one per core).
     #[arg(long, env = "ALIGNIST_HEAD_WORKERS")]
@@ -247,6 +252,20 @@ fn optional_address(flag: &str, value: &str) -> Result<Option<SocketAddr>> {
     }
 }
 
+/// `--search-shape-only-to`: a level, or `none`.
+#[derive(Debug, Clone, Copy)]
+struct ShapeOnlyTo(Option<u8>);
+
+fn parse_shape_only_to(value: &str) -> Result<ShapeOnlyTo, String> {
+    match value {
+        "none" => Ok(ShapeOnlyTo(None)),
+        s => s
+            .parse::<u8>()
+            .map(|l| ShapeOnlyTo(Some(l)))
+            .map_err(|_| format!("'{s}' is not a grid level (0–255) or 'none'")),
+    }
+}
+
 /// The engine's settings from the flags: explicit `--search-*` flags serve that search; otherwise
 /// a positive budget calibrates it at load.
 fn engine_config(cli: &Cli) -> Result<EngineConfig> {
@@ -255,7 +274,8 @@ fn engine_config(cli: &Cli) -> Result<EngineConfig> {
         || cli.search_keep.is_some()
         || cli.search_keep_taper.is_some()
         || cli.search_coarse_precision.is_some()
-        || cli.search_rescore_finest.is_some();
+        || cli.search_rescore_finest.is_some()
+        || cli.search_shape_only_to.is_some();
     anyhow::ensure!(
         cli.search_budget_ms.is_finite() && cli.search_budget_ms >= 0.0,
         "--search-budget-ms {} must be a number of milliseconds ≥ 0",
@@ -281,6 +301,9 @@ fn engine_config(cli: &Cli) -> Result<EngineConfig> {
             rescore_finest: cli
                 .search_rescore_finest
                 .unwrap_or(defaults.search.rescore_finest),
+            shape_only_to: cli
+                .search_shape_only_to
+                .map_or(defaults.search.shape_only_to, |s| s.0),
             ..defaults.search
         },
         search_budget_ms: (!search_set && cli.search_budget_ms > 0.0)

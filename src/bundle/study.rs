@@ -35,6 +35,10 @@ pub struct StudiedSearch {
     /// rescored in f32 (absent in studies written before the option: `false`).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub rescore_finest: bool,
+    /// The levels up to this one (below the study's level) were ranked by the shape branch
+    /// alone (absent: every level by both branches, as in studies written before the option).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub shape_only_to: Option<u8>,
     /// Fraction of images whose top-1 is the exhaustive argmax's cell or a neighbour.
     pub agreement: f64,
     /// Fraction of images whose top-1 scores within 0.01 of the exhaustive maximum.
@@ -119,6 +123,16 @@ impl SearchStudy {
             }
             if s.keep == 0 {
                 return Err(format!("{}: must be positive", field("keep")));
+            }
+            if let Some(to) = s.shape_only_to
+                && !(s.start_level..self.level).contains(&to)
+            {
+                return Err(format!(
+                    "{}: {to} must be from the start level {} to below the study's level {}",
+                    field("shape_only_to"),
+                    s.start_level,
+                    self.level
+                ));
             }
             if let Some(m) = s.keep_mass
                 && !(m > 0.0 && m <= 1.0)

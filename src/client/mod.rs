@@ -462,7 +462,7 @@ pub fn models_table(list: &ListModelsResponse) -> String {
             };
             let _ = writeln!(
                 s,
-                "  search: start {}, keep {}{}{}, coarse {}{}{calibrated}; kernels {}",
+                "  search: start {}, keep {}{}{}, coarse {}{}{}{calibrated}; kernels {}",
                 q.start_level,
                 q.keep,
                 if q.keep_taper == 1.0 {
@@ -481,6 +481,9 @@ pub fn models_table(list: &ListModelsResponse) -> String {
                 } else {
                     String::new()
                 },
+                q.shape_only_to
+                    .map(|l| format!(", ranked by the shape branch to level {l}"))
+                    .unwrap_or_default(),
                 q.kernels
             );
         }

@@ -25,7 +25,7 @@ use std::time::Instant;
 use super::search::Keep;
 use super::{EngineError, Model, PredictOptions, RESCORED_CELLS, SearchParams};
 use crate::bundle::study::SearchStudy;
-use crate::net::Precision;
+use crate::net::{Branches, Precision};
 
 /// The default latency budget of a search (the server's `--search-budget-ms`), in milliseconds.
 pub const DEFAULT_SEARCH_BUDGET_MS: f64 = 25.0;
@@ -110,21 +110,25 @@ impl std::fmt::Display for Spent {
     }
 }
 
-/// A measurement a prediction needs: a start level in full, or the head's rows, in a precision.
+/// The arithmetic of a level's rows: its precision, and the branches that score them.
+type Arithmetic = (Precision, Branches);
+
+/// A measurement a prediction needs: a start level in full, or the head's rows, in an
+/// arithmetic.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
 enum Need {
-    Start(u8, Precision),
-    Rows(Precision),
+    Start(u8, Arithmetic),
+    Rows(Arithmetic),
 }
 
 /// The costs measured so far, in milliseconds.
 struct Rates {
     encoder: f64,
-    /// Per start level and precision: scoring the level in full from its projections.
-    start: BTreeMap<(u8, Precision), f64>,
-    /// Per precision: a level's fixed cost and one row's, from encodings (a line through the
+    /// Per start level and arithmetic: scoring the level in full from its projections.
+    start: BTreeMap<(u8, Arithmetic), f64>,
+    /// Per arithmetic: a level's fixed cost and one row's, from encodings (a line through the
     /// times of [`SMALL_ROWS`] and [`TIMED_ROWS`] rows).
-    row: BTreeMap<Precision, (f64, f64)>,
+    row: BTreeMap<Arithmetic, (f64, f64)>,
 }
 
 impl Rates {
@@ -142,22 +146,22 @@ impl Rates {
     ) -> (f64, Option<Need>) {
         let mut ms = self.encoder;
         let mut missing = None;
-        for (l, rows, precision) in rows_per_level(model, search, level) {
+        for (l, rows, precision, branches) in rows_per_level(model, search, level) {
             let is_start = l == search.start_level.min(level);
             let cost = |p: Precision| {
                 if is_start {
-                    self.start.get(&(l, p)).copied()
+                    self.start.get(&(l, (p, branches))).copied()
                 } else {
                     self.row
-                        .get(&p)
+                        .get(&(p, branches))
                         .map(|(fixed, per_row)| fixed + rows as f64 * per_row)
                 }
             };
             let need = |p: Precision| {
                 if is_start {
-                    Need::Start(l, p)
+                    Need::Start(l, (p, branches))
                 } else {
-                    Need::Rows(p)
+                    Need::Rows((p, branches))
                 }
             };
             match cost(precision) {
@@ -177,15 +181,17 @@ impl Rates {
 }
 
 /// The levels `search` scores to `level` with a top-[`TOP_K`], each with the rows it scores (at
-/// most: a keep by mass may keep fewer) and its precision; a search that rescores the finest
-/// level lists it twice, the second time with the rows rescored in f32.
+/// most: a keep by mass may keep fewer), their precision and the branches that score them; a
+/// search that rescores the finest level lists it twice, the second time with the rows
+/// rescored in f32.
 pub fn rows_per_level(
     model: &Model,
     search: &SearchParams,
     level: u8,
-) -> Vec<(u8, usize, Precision)> {
+) -> Vec<(u8, usize, Precision, Branches)> {
     let start = search.start_level.min(level);
     let precision = |l: u8| search.precision_at(l, start, level);
+    let branches = |l: u8| search.branches_at(l, level);
     let min = TOP_K.div_ceil(8);
     let keep = Keep {
         max: search.keep.max(min),
@@ -195,14 +201,15 @@ pub fn rows_per_level(
     };
     let mut out = Vec::new();
     let mut cells = model.grid(start).map_or(0, |g| g.len());
-    out.push((start, cells, precision(start)));
+    out.push((start, cells, precision(start), branches(start)));
     for l in start + 1..=level {
         let kept = keep.max_at((l - start - 1) as usize).min(cells);
         cells = 8 * kept;
-        out.push((l, cells, precision(l)));
+        out.push((l, cells, precision(l), branches(l)));
     }
     if search.rescores_to(start, level) {
-        out.push((level, RESCORED_CELLS.max(TOP_K).min(cells), Precision::F32));
+        let rescored = RESCORED_CELLS.max(TOP_K).min(cells);
+        out.push((level, rescored, Precision::F32, Branches::Both));
     }
     out
 }
@@ -270,6 +277,7 @@ fn candidates(
                         keep_taper: s.keep_taper,
                         coarse_precision: s.precision().ok()?,
                         rescore_finest: s.rescore_finest,
+                        shape_only_to: s.shape_only_to,
                     },
                     agreement: Some(s.agreement),
                 })
@@ -363,12 +371,14 @@ pub fn calibrate_within(
     }
     let size = model.input_size() as usize;
     let grey = vec![128u8; size * size * 3];
+    // The branch-rows each scores: a row the shape branch alone scores counts half of one
+    // both branches score.
     let rows: Vec<usize> = candidates
         .iter()
         .map(|c| {
             rows_per_level(model, &c.params, level)
                 .iter()
-                .map(|r| r.1)
+                .map(|r| r.1 * r.3.count())
                 .sum()
         })
         .collect();
@@ -567,8 +577,8 @@ impl<'a> Meter<'a> {
 
     /// Whether a measurement in `precision` has run here (its code is warm).
     fn ran(&self, precision: Precision) -> bool {
-        self.rates.row.contains_key(&precision)
-            || self.rates.start.keys().any(|&(_, p)| p == precision)
+        self.rates.row.keys().any(|&(p, _)| p == precision)
+            || self.rates.start.keys().any(|&(_, (p, _))| p == precision)
     }
 
     fn measure(&mut self, need: Need) {
@@ -577,25 +587,31 @@ impl<'a> Meter<'a> {
         // Once for a large measurement whose code just ran, else the minimum of RUNS.
         let runs = |rows: usize, warm: bool| if rows > LARGE_ROWS && warm { 1 } else { RUNS };
         match need {
-            Need::Start(l, precision) => {
+            Need::Start(l, (precision, branches)) => {
                 let cells = model.grid(l).map_or(0, |g| g.len());
                 let ms = min_ms(runs(cells, self.ran(precision)), || {
-                    let _ = model.projected[l as usize].log_weights_of_row(precision, &features[0]);
+                    let _ = model.projected[l as usize].log_weights_of_row_by(
+                        precision,
+                        branches,
+                        &features[0],
+                    );
                 });
-                self.rates.start.insert((l, precision), ms);
+                self.rates.start.insert((l, (precision, branches)), ms);
                 self.spent.starts_ms += clock.elapsed().as_secs_f64() * 1e3;
             }
-            Need::Rows(precision) => {
+            Need::Rows((precision, branches)) => {
                 let time = |rows: &[Vec<[f32; 9]>], runs: usize| {
                     min_ms(runs, || {
-                        let _ = model.score_rotations_many(features, rows, precision);
+                        let _ = model.score_rotations_by(features, rows, precision, branches);
                     })
                 };
                 let few = time(&self.few, RUNS);
                 let many = time(&self.many, runs(TIMED_ROWS, true));
                 let per_row = ((many - few) / (TIMED_ROWS - SMALL_ROWS) as f64).max(0.0);
                 let fixed = (few - per_row * SMALL_ROWS as f64).max(0.0);
-                self.rates.row.insert(precision, (fixed, per_row));
+                self.rates
+                    .row
+                    .insert((precision, branches), (fixed, per_row));
                 self.spent.rows_ms += clock.elapsed().as_secs_f64() * 1e3;
             }
         }
@@ -662,7 +678,7 @@ fn choose(
 mod tests {
     use super::{Agreement, Candidate, Need, choose, next_need, without_emulated_twins};
     use crate::engine::SearchParams;
-    use crate::net::Precision;
+    use crate::net::{Branches, Precision};
 
     /// Agreements, with those within `tie` of each other counted as equal.
     fn agreed(of: &[f64], tie: f64) -> Agreement {
@@ -681,6 +697,7 @@ mod tests {
                 keep_taper: 0.5,
                 coarse_precision,
                 rescore_finest: false,
+                shape_only_to: None,
             },
             agreement: Some(1.0),
         }
@@ -739,8 +756,8 @@ mod tests {
 
     #[test]
     fn a_search_is_measured_only_while_its_bound_may_still_win() {
-        let start = Some(Need::Start(2, Precision::I8));
-        let rows = Some(Need::Rows(Precision::Bf16));
+        let start = Some(Need::Start(2, (Precision::I8, Branches::Both)));
+        let rows = Some(Need::Rows((Precision::Bf16, Branches::Both)));
         // (estimates, agreement, the measurement expected next), budget 25 ms.
         let cases = [
             // An exact search at 10 ms: a bound beyond TIE × 10 with the same agreement is ruled
@@ -799,7 +816,7 @@ mod tests {
         assert_eq!(pick, 0, "{reason}");
         // Measuring follows the same rule: a slower search one image more agreeing is not
         // timed once a faster one is exact; two images more agreeing, it is.
-        let start = Some(Need::Start(2, Precision::F32));
+        let start = Some(Need::Start(2, (Precision::F32, Branches::Both)));
         let estimates = [(15.0, None), (20.0, start)];
         assert_eq!(
             next_need(&estimates, &agreed(&[0.99, 1.0], 0.01), 25.0),

@@ -2,7 +2,7 @@
 //! "Inference").
 
 use super::{EngineError, ImageLimits, invalid};
-use crate::net::Precision;
+use crate::net::{Branches, Precision};
 use crate::so3::MAX_LEVEL;
 
 /// Most rotations one Predict may return (the search keeps `top_k / 8` cells per level, so this
@@ -66,6 +66,12 @@ pub struct SearchParams {
     /// rate, the answer's cells at f32's. No effect with f32 coarse levels, or where the finest
     /// level is the start level (scored in f32 from its projections).
     pub rescore_finest: bool,
+    /// Rank the cells of the levels up to this one (never the finest, whose scores are
+    /// answered) by the shape branch `s_θ` alone, at about half the arithmetic of a row
+    /// ([`Branches::Shape`]); `None`: every level by `s_θ + s_φ`. Both branches learn the same
+    /// symmetric modes, so `s_θ` alone keeps the cells holding the combined maximum (measured in
+    /// the bundle's search study like any other search).
+    pub shape_only_to: Option<u8>,
 }
 
 /// Cells of the finest level scored again in f32 by a search with
@@ -92,6 +98,15 @@ impl SearchParams {
         }
     }
 
+    /// The branches that score level `l`'s rows in a search to `finest`: the shape branch alone
+    /// up to [`SearchParams::shape_only_to`], both at the finest level and below that one.
+    pub fn branches_at(&self, l: u8, finest: u8) -> Branches {
+        match self.shape_only_to {
+            Some(to) if l <= to && l < finest => Branches::Shape,
+            _ => Branches::Both,
+        }
+    }
+
     /// Whether the finest level is scored in the coarse precision and its best cells rescored
     /// (a rescoring flag with f32 coarse levels changes nothing).
     pub fn rescores(&self) -> bool {
@@ -115,7 +130,8 @@ impl SearchParams {
 
 impl std::fmt::Display for SearchParams {
     /// `start 2, keep 1024 ×0.5/level, coarse bf16` (a keep by mass: `keep 0.999 mass ≤512`;
-    /// rescoring the finest level: `…, coarse i8, finest i8 rescored`).
+    /// rescoring the finest level: `…, coarse i8, finest i8 rescored`; ranking by the shape
+    /// branch: `…, shape branch to level 3`).
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(
             f,
@@ -126,6 +142,9 @@ impl std::fmt::Display for SearchParams {
         )?;
         if self.rescores() {
             write!(f, ", finest {} rescored", self.coarse_precision)?;
+        }
+        if let Some(to) = self.shape_only_to {
+            write!(f, ", shape branch to level {to}")?;
         }
         Ok(())
     }
@@ -246,6 +265,7 @@ impl Default for EngineConfig {
                 keep_taper: 0.5,
                 coarse_precision: Precision::Bf16,
                 rescore_finest: false,
+                shape_only_to: None,
             },
             image_limits: ImageLimits::default(),
             max_depth_points: 10_000,

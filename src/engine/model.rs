@@ -17,7 +17,7 @@ use super::{
 use crate::bundle::model::ModelBundle;
 use crate::net::network::feature_rows;
 use crate::net::{
-    FusedHead, Network, NetworkConfig, Precision, ProjectedGrid, Rows, images_tensor,
+    Branches, FusedHead, Network, NetworkConfig, Precision, ProjectedGrid, Rows, images_tensor,
 };
 use crate::so3::{GridLevel, MAX_LEVEL, to_row_major_f32};
 
@@ -451,9 +451,19 @@ impl Model {
         features: &[f32],
         level: u8,
     ) -> Result<Vec<f32>, EngineError> {
+        self.logits_by((precision, Branches::Both), features, level)
+    }
+
+    /// [`Model::logits_at`] in `precision`, by `branches`: `s_θ + s_φ`, or `s_θ` alone.
+    pub fn logits_by(
+        &self,
+        (precision, branches): (Precision, Branches),
+        features: &[f32],
+        level: u8,
+    ) -> Result<Vec<f32>, EngineError> {
         self.check_rows([features])?;
         if let Some(projected) = self.projected.get(level as usize) {
-            return Ok(projected.log_weights_of_row(precision, features));
+            return Ok(projected.log_weights_of_row_by(precision, branches, features));
         }
         let grid = self.grid_at(level)?;
         let image = self.fused.image_term(features);
@@ -465,10 +475,12 @@ impl Model {
                 .map(|c| to_row_major_f32(&grid.rotation(c)))
                 .collect();
             let encodings = encoding.encode(&mats);
-            logits.extend(
-                self.fused
-                    .scores_in(precision, &image, Rows::Encoded(&encodings)),
-            );
+            logits.extend(self.fused.scores_of(
+                precision,
+                &image,
+                Rows::Encoded(&encodings),
+                branches,
+            ));
         }
         Ok(logits)
     }
@@ -649,9 +661,11 @@ impl Model {
         let results = coarse_to_fine_many(&grids, keep, b, |grid, cells| {
             let rescore = grid.level() == level && search.rescores_to(start, level);
             let precision = search.precision_at(grid.level(), start, level);
+            let branches = search.branches_at(grid.level(), level);
             // A level boundary: a call whose caller went away stops here.
             options.cancel.check()?;
-            let (mut logits, mats) = self.search_logits(features, grid, cells, start, precision);
+            let (mut logits, mats) =
+                self.search_logits(features, grid, cells, start, (precision, branches));
             let network = rescore.then(|| logits.clone());
             fusion.add_terms(grid, cells, &mats, &mut logits, &options.cancel)?;
             if let Some(network) = network {
@@ -705,16 +719,17 @@ impl Model {
         }
     }
 
-    /// `s_θ + s_φ` of each search's `cells` of `grid` in `precision`: read from the precomputed
-    /// projections at the start level, scored on their rotations above it. Also returns those
-    /// rotations (row-major; empty at the start level, which does not compute them).
+    /// `s_θ + s_φ` (or `s_θ` alone, by `branches`) of each search's `cells` of `grid` in
+    /// `precision`: read from the precomputed projections at the start level, scored on their
+    /// rotations above it. Also returns those rotations (row-major; empty at the start level,
+    /// which does not compute them).
     fn search_logits(
         &self,
         features: &[Vec<f32>],
         grid: &GridLevel,
         cells: &[Vec<u64>],
         start: u8,
-        precision: Precision,
+        (precision, branches): (Precision, Branches),
     ) -> (Vec<Vec<f32>>, Vec<Vec<[f32; 9]>>) {
         if grid.level() == start && (start as usize) < self.projected.len() {
             let projected = &self.projected[start as usize];
@@ -722,7 +737,7 @@ impl Model {
                 .iter()
                 .zip(cells)
                 .map(|(f, cells)| {
-                    let all = projected.log_weights_of_row(precision, f);
+                    let all = projected.log_weights_of_row_by(precision, branches, f);
                     if cells.len() == all.len() {
                         all
                     } else {
@@ -741,7 +756,10 @@ impl Model {
                     .collect()
             })
             .collect();
-        (self.score_rotations_many(features, &mats, precision), mats)
+        (
+            self.score_rotations_by(features, &mats, precision, branches),
+            mats,
+        )
     }
 
     /// `s_θ + s_φ` of `rotations[b]` (row-major, the same number for every image) for each image
@@ -752,16 +770,28 @@ impl Model {
         rotations: &[Vec<[f32; 9]>],
         precision: Precision,
     ) -> Vec<Vec<f32>> {
+        self.score_rotations_by(features, rotations, precision, Branches::Both)
+    }
+
+    /// [`Model::score_rotations_many`] by `branches`: `s_θ + s_φ`, or `s_θ` alone.
+    pub fn score_rotations_by(
+        &self,
+        features: &[Vec<f32>],
+        rotations: &[Vec<[f32; 9]>],
+        precision: Precision,
+        branches: Branches,
+    ) -> Vec<Vec<f32>> {
         let encoding = &self.manifest.network.encoding;
         features
             .iter()
             .zip(rotations)
             .map(|(f, rotations)| {
                 let encodings = encoding.encode(rotations);
-                self.fused.scores_in(
+                self.fused.scores_of(
                     precision,
                     &self.fused.image_term(f),
                     Rows::Encoded(&encodings),
+                    branches,
                 )
             })
             .collect()

@@ -17,8 +17,8 @@ use super::f16::F16Kernel;
 use super::i8::I8Head;
 use super::kernels::Kernels;
 use super::native::{F32Avx2, F32Avx512, NativeHead};
+use super::tiles::{Branches, by_tiles, round_bf16, round_encoding_u8, round_f16, round_rows_u8};
 pub use super::tiles::{Precision, Rows, TILE_ROWS, tile_rows};
-use super::tiles::{by_tiles, round_bf16, round_encoding_u8, round_f16, round_rows_u8};
 use super::weights::HeadWeights;
 
 /// The rounding of a reduced precision's weights (per value) and encodings (the identity for
@@ -84,10 +84,15 @@ impl F32Native {
         }
     }
 
-    fn branch_scores(&self, image_term: &[f32], rows: Rows<'_>) -> (Vec<f32>, Vec<f32>) {
+    fn branch_scores(
+        &self,
+        image_term: &[f32],
+        rows: Rows<'_>,
+        branches: Branches,
+    ) -> (Vec<f32>, Vec<f32>) {
         match self {
-            F32Native::Avx512(h) => h.branch_scores(image_term, rows),
-            F32Native::Avx2(h) => h.branch_scores(image_term, rows),
+            F32Native::Avx512(h) => h.branch_scores(image_term, rows, branches),
+            F32Native::Avx2(h) => h.branch_scores(image_term, rows, branches),
         }
     }
 }
@@ -253,14 +258,25 @@ impl FusedHead {
     /// `projected` (`[n, width]`, [`FusedHead::project_rotations`]), for one image's
     /// [`FusedHead::image_term`].
     pub fn branch_scores(&self, image_term: &[f32], projected: &[f32]) -> (Vec<f32>, Vec<f32>) {
+        self.projected_scores(image_term, projected, Branches::Both)
+    }
+
+    /// [`FusedHead::branch_scores`] of `branches` in f32 (0 for a branch left out).
+    fn projected_scores(
+        &self,
+        image_term: &[f32],
+        projected: &[f32],
+        branches: Branches,
+    ) -> (Vec<f32>, Vec<f32>) {
         if let Some(native) = &self.f32_native {
-            return native.branch_scores(image_term, Rows::Projected(projected));
+            return native.branch_scores(image_term, Rows::Projected(projected), branches);
         }
         let (w, rows) = (self.weights.width, tile_rows());
         by_tiles(
             projected,
             w,
             rows,
+            branches,
             || Scratch {
                 x: vec![0.0; rows * w],
                 a: vec![0.0; rows * w],
@@ -279,9 +295,21 @@ impl FusedHead {
         image_term: &[f32],
         rows: Rows<'_>,
     ) -> (Vec<f32>, Vec<f32>) {
+        self.branch_scores_of(precision, image_term, rows, Branches::Both)
+    }
+
+    /// [`FusedHead::branch_scores_in`] of `branches` (0 for a branch left out: the shape branch
+    /// alone costs half the arithmetic of both, past the shared first layer).
+    pub fn branch_scores_of(
+        &self,
+        precision: Precision,
+        image_term: &[f32],
+        rows: Rows<'_>,
+        branches: Branches,
+    ) -> (Vec<f32>, Vec<f32>) {
         match (self.reduced(precision), rows) {
             (Some(reduced), _) => {
-                let scores = reduced.branch_scores(image_term, rows);
+                let scores = reduced.branch_scores_of(image_term, rows, branches);
                 if scores.0.iter().chain(&scores.1).all(|s| s.is_finite()) {
                     return scores;
                 }
@@ -290,37 +318,54 @@ impl FusedHead {
                 tracing::warn!(
                     "{precision} scores not finite (out of its range): scored again in f32"
                 );
-                self.branch_scores_in(Precision::F32, image_term, rows)
+                self.branch_scores_of(Precision::F32, image_term, rows, branches)
             }
-            (_, Rows::Projected(projected)) => self.branch_scores(image_term, projected),
+            (_, Rows::Projected(projected)) => {
+                self.projected_scores(image_term, projected, branches)
+            }
             (_, Rows::Encoded(encodings)) if self.rounds_to != Precision::F32 => {
                 let round = rounding(self.rounds_to);
                 let rounded: Vec<f32> = encodings.iter().copied().map(round).collect();
-                self.branch_scores(image_term, &self.project_rotations(&rounded))
+                self.projected_scores(image_term, &self.project_rotations(&rounded), branches)
             }
             (_, Rows::Encoded(encodings)) => match &self.f32_native {
-                Some(native) => native.branch_scores(image_term, rows),
-                None => self.branch_scores(image_term, &self.project_rotations(encodings)),
+                Some(native) => native.branch_scores(image_term, rows, branches),
+                None => {
+                    self.projected_scores(image_term, &self.project_rotations(encodings), branches)
+                }
             },
         }
     }
 
     /// `s_θ + s_φ` of `rows` in `precision` ([`FusedHead::branch_scores_in`] summed).
     pub fn scores_in(&self, precision: Precision, image_term: &[f32], rows: Rows<'_>) -> Vec<f32> {
-        let (mut shape, feature) = self.branch_scores_in(precision, image_term, rows);
+        self.scores_of(precision, image_term, rows, Branches::Both)
+    }
+
+    /// The sum of `branches`' log-weights of `rows` in `precision`: `s_θ + s_φ`, or `s_θ` alone
+    /// ([`FusedHead::branch_scores_of`] summed).
+    pub fn scores_of(
+        &self,
+        precision: Precision,
+        image_term: &[f32],
+        rows: Rows<'_>,
+        branches: Branches,
+    ) -> Vec<f32> {
+        let (mut shape, feature) = self.branch_scores_of(precision, image_term, rows, branches);
         for (s, f) in shape.iter_mut().zip(feature) {
             *s += f;
         }
         shape
     }
 
-    /// One tile: the shared input, then each branch's layers, into `out[branch][row]`.
+    /// One tile: the shared input, then the layers of each branch `out` holds an output for (the
+    /// shape branch first), into `out[branch][row]`.
     fn tile(
         &self,
         image_term: &[f32],
         projected: &[f32],
         scratch: &mut Scratch,
-        out: [&mut [f32]; 2],
+        out: &mut [&mut [f32]],
     ) {
         let w = self.weights.width;
         let rows = projected.len() / w;
@@ -331,7 +376,7 @@ impl FusedHead {
             }
         }
         round_activations(self.rounds_to, &mut x[..rows * w], w);
-        for (branch, out) in self.weights.branches.iter().zip(out) {
+        for (branch, out) in self.weights.branches.iter().zip(out.iter_mut()) {
             // Ping-pong between the two activation buffers; 0 is the shared input.
             let mut current = 0;
             for (l, layer) in branch.hidden.iter().enumerate() {
@@ -465,13 +510,25 @@ impl ReducedHead {
     /// the native kernels run the rotation half of the first layer in their precision too,
     /// inside the tiles (no projection pass).
     pub fn branch_scores(&self, image_term: &[f32], rows: Rows<'_>) -> (Vec<f32>, Vec<f32>) {
+        self.branch_scores_of(image_term, rows, Branches::Both)
+    }
+
+    /// The `branches`' log-weights of `rows` (0 for a branch left out).
+    pub fn branch_scores_of(
+        &self,
+        image_term: &[f32],
+        rows: Rows<'_>,
+        branches: Branches,
+    ) -> (Vec<f32>, Vec<f32>) {
         match &self.0 {
-            Path::Amx(native) => native.branch_scores(image_term, rows),
-            Path::AmxEmulated(native) => native.branch_scores(image_term, rows),
-            Path::Bf16(native) => native.branch_scores(image_term, rows),
-            Path::F16(native) => native.branch_scores(image_term, rows),
-            Path::I8(native) => native.branch_scores(image_term, rows),
-            Path::Emulated(head) => head.branch_scores_in(Precision::F32, image_term, rows),
+            Path::Amx(native) => native.branch_scores(image_term, rows, branches),
+            Path::AmxEmulated(native) => native.branch_scores(image_term, rows, branches),
+            Path::Bf16(native) => native.branch_scores(image_term, rows, branches),
+            Path::F16(native) => native.branch_scores(image_term, rows, branches),
+            Path::I8(native) => native.branch_scores(image_term, rows, branches),
+            Path::Emulated(head) => {
+                head.branch_scores_of(Precision::F32, image_term, rows, branches)
+            }
         }
     }
 }

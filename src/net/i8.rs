@@ -32,7 +32,8 @@ use super::dense::Dense;
 use super::kernels::Kernels;
 use super::native::{Epilogue, Packed, avx2_available};
 use super::tiles::{
-    ENCODING_SCALE, Rows, blocked_tile_rows, by_tiles, columns_to_i8, encoding_to_u8, row_to_u8,
+    Branches, ENCODING_SCALE, Rows, blocked_tile_rows, by_tiles, columns_to_i8, encoding_to_u8,
+    row_to_u8,
 };
 use super::weights::HeadWeights;
 
@@ -332,8 +333,14 @@ impl I8Head {
         self.tiles != Tiles::Emulated
     }
 
-    /// Both branches' log-weights of `rows`, for one image's term of the first layer.
-    pub(super) fn branch_scores(&self, image_term: &[f32], rows: Rows<'_>) -> (Vec<f32>, Vec<f32>) {
+    /// The `branches`' log-weights of `rows` (0 for a branch left out), for one image's term of
+    /// the first layer.
+    pub(super) fn branch_scores(
+        &self,
+        image_term: &[f32],
+        rows: Rows<'_>,
+        branches: Branches,
+    ) -> (Vec<f32>, Vec<f32>) {
         let (given, per_row) = match rows {
             Rows::Projected(p) => (p, self.width),
             Rows::Encoded(e) => (e, self.encoding),
@@ -349,6 +356,7 @@ impl I8Head {
             given,
             per_row,
             blocked,
+            branches,
             || Scratch {
                 row: vec![0.0; self.width],
                 e: vec![0; blocked * e_stride],
@@ -401,7 +409,7 @@ impl I8Head {
         first_bias: &[f32],
         given: Rows<'_>,
         scratch: &mut Scratch,
-        out: [&mut [f32]; 2],
+        out: &mut [&mut [f32]],
     ) {
         // SAFETY: the caller's contract.
         unsafe { self.tile(image_term, first_bias, given, scratch, out) }
@@ -418,7 +426,7 @@ impl I8Head {
         first_bias: &[f32],
         given: Rows<'_>,
         scratch: &mut Scratch,
-        out: [&mut [f32]; 2],
+        out: &mut [&mut [f32]],
     ) {
         // SAFETY: the caller's contract.
         unsafe { self.tile(image_term, first_bias, given, scratch, out) }
@@ -435,13 +443,14 @@ impl I8Head {
         first_bias: &[f32],
         given: Rows<'_>,
         scratch: &mut Scratch,
-        out: [&mut [f32]; 2],
+        out: &mut [&mut [f32]],
     ) {
         // SAFETY: the caller's contract.
         unsafe { self.tile(image_term, first_bias, given, scratch, out) }
     }
 
-    /// One tile of rows: the shared input `relu(P_R + W_I·f + b)` in bytes, then each branch.
+    /// One tile of rows: the shared input `relu(P_R + W_I·f + b)` in bytes, then each branch
+    /// `out` holds an output for (the shape branch first).
     ///
     /// # Safety
     /// The core has the instructions of `self.isa`.
@@ -452,7 +461,7 @@ impl I8Head {
         first_bias: &[f32],
         given: Rows<'_>,
         scratch: &mut Scratch,
-        out: [&mut [f32]; 2],
+        out: &mut [&mut [f32]],
     ) {
         let (w, stride) = (self.width, self.padded);
         let rows = out[0].len();
@@ -468,7 +477,7 @@ impl I8Head {
             wide,
             ..
         } = scratch;
-        for (branch, out) in self.branches.iter().zip(out) {
+        for (branch, out) in self.branches.iter().zip(out.iter_mut()) {
             let last = branch.hidden.len() - 1;
             let dots = &mut dots[..blocked];
             dots.fill(branch.output_bias);

@@ -34,4 +34,4 @@ pub use network::{
     NETWORK_LIMITS, Network, NetworkConfig, NetworkLimits, ProjectedGrid, check_range,
     images_tensor,
 };
-pub use tiles::{Precision, Rows};
+pub use tiles::{Branches, Precision, Rows};

@@ -30,7 +30,7 @@
 use std::marker::PhantomData;
 
 use super::dense::Dense;
-use super::tiles::{Rows, blocked_tile_rows, by_tiles};
+use super::tiles::{Branches, Rows, blocked_tile_rows, by_tiles};
 use super::weights::HeadWeights;
 
 /// A GEMM kernel of the driver: its element type and its block shape.
@@ -206,9 +206,14 @@ impl<K: Kernel> NativeHead<K> {
         })
     }
 
-    /// Both branches' log-weights of `rows`. From encodings, the rotation half of the first
-    /// layer runs inside the tiles too (no projection pass).
-    pub(super) fn branch_scores(&self, image_term: &[f32], rows: Rows<'_>) -> (Vec<f32>, Vec<f32>) {
+    /// The `branches`' log-weights of `rows` (0 for a branch left out). From encodings, the
+    /// rotation half of the first layer runs inside the tiles too (no projection pass).
+    pub(super) fn branch_scores(
+        &self,
+        image_term: &[f32],
+        rows: Rows<'_>,
+        branches: Branches,
+    ) -> (Vec<f32>, Vec<f32>) {
         let (given, per_row) = match rows {
             Rows::Projected(p) => (p, self.width),
             Rows::Encoded(e) => (e, self.encoding),
@@ -223,6 +228,7 @@ impl<K: Kernel> NativeHead<K> {
             given,
             per_row,
             blocked,
+            branches,
             || Scratch {
                 row: vec![0.0; self.width],
                 e: vec![K::Elem::default(); blocked * K::GROUP * self.rotation.groups],
@@ -241,14 +247,15 @@ impl<K: Kernel> NativeHead<K> {
         )
     }
 
-    /// One tile of rows: the shared input `relu(P_R + W_I·f + b)`, then each branch.
+    /// One tile of rows: the shared input `relu(P_R + W_I·f + b)`, then each branch `out` holds
+    /// an output for (the shape branch first).
     fn tile(
         &self,
         image_term: &[f32],
         first_bias: &[f32],
         given: Rows<'_>,
         scratch: &mut Scratch<K::Elem>,
-        out: [&mut [f32]; 2],
+        out: &mut [&mut [f32]],
     ) {
         let stride = self.padded;
         let rows = out[0].len();
@@ -292,7 +299,7 @@ impl<K: Kernel> NativeHead<K> {
                 unsafe { K::gemm(&self.rotation, first_bias, e, e_stride, blocked, epilogue) };
             }
         }
-        for (branch, out) in self.branches.iter().zip(out) {
+        for (branch, out) in self.branches.iter().zip(out.iter_mut()) {
             let last = branch.hidden.len() - 1;
             let dots = &mut dots[..blocked];
             dots.fill(branch.output_bias);

@@ -8,8 +8,8 @@ use std::sync::Arc;
 use burn::tensor::{Device, Tensor, TensorData};
 
 use super::{
-    BranchScores, DualHead, Encoder, EncoderConfig, FusedHead, HeadConfig, Precision, ResNetLayout,
-    Rows,
+    BranchScores, Branches, DualHead, Encoder, EncoderConfig, FusedHead, HeadConfig, Precision,
+    ResNetLayout, Rows,
 };
 use crate::encoding::RotationEncoding;
 use crate::so3::{GridLevel, So3Error};
@@ -232,10 +232,21 @@ impl ProjectedGrid {
     /// `s_θ + s_φ` of every cell for one image's features (a plain row of `D` floats), in
     /// `precision`.
     pub fn log_weights_of_row(&self, precision: Precision, features: &[f32]) -> Vec<f32> {
-        self.head.scores_in(
+        self.log_weights_of_row_by(precision, Branches::Both, features)
+    }
+
+    /// [`ProjectedGrid::log_weights_of_row`] by `branches`: `s_θ + s_φ`, or `s_θ` alone.
+    pub fn log_weights_of_row_by(
+        &self,
+        precision: Precision,
+        branches: Branches,
+        features: &[f32],
+    ) -> Vec<f32> {
+        self.head.scores_of(
             precision,
             &self.head.image_term(features),
             Rows::Projected(&self.projected),
+            branches,
         )
     }
 

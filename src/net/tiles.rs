@@ -125,6 +125,28 @@ impl std::str::FromStr for Precision {
     }
 }
 
+/// The branches a head scores a row with: both (`s_θ + s_φ`, the model's log-density), or the
+/// shape branch `s_θ` alone, at half the arithmetic, for ranking the cells a coarse-to-fine
+/// search refines (`engine::SearchParams::shape_only_to`). A branch left out scores 0.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
+pub enum Branches {
+    /// The shape and the feature branch.
+    #[default]
+    Both,
+    /// The shape branch alone (the first of the two).
+    Shape,
+}
+
+impl Branches {
+    /// How many of the branches, counted from the shape branch, are scored.
+    pub fn count(self) -> usize {
+        match self {
+            Branches::Both => 2,
+            Branches::Shape => 1,
+        }
+    }
+}
+
 /// The rotations a head scores, as their rotation projections or as their encodings.
 #[derive(Debug, Clone, Copy)]
 pub enum Rows<'a> {
@@ -135,17 +157,18 @@ pub enum Rows<'a> {
     Encoded(&'a [f32]),
 }
 
-/// Both branches' scores of the `given.len() / per_row` rows of `given`, one tile of
-/// `tile_rows` rows per task over the cores, each task with its scratch from `init`:
-/// `tile(scratch, rows of the tile, [shape, feature] outputs of the tile)`. A kernel's heads
+/// The `branches`' scores of the `given.len() / per_row` rows of `given` (0 for a branch left
+/// out), one tile of `tile_rows` rows per task over the cores, each task with its scratch from
+/// `init`: `tile(scratch, rows of the tile, outputs of the tile: [shape] or [shape, feature])`. A kernel's heads
 /// pass [`TILE_ROWS`] rounded up to their register block ([`blocked_tile_rows`]), so that only
 /// the last tile computes padding rows.
 pub(super) fn by_tiles<S>(
     given: &[f32],
     per_row: usize,
     tile_rows: usize,
+    branches: Branches,
     init: impl Fn() -> S + Send + Sync,
-    tile: impl Fn(&mut S, &[f32], [&mut [f32]; 2]) + Send + Sync,
+    tile: impl Fn(&mut S, &[f32], &mut [&mut [f32]]) + Send + Sync,
 ) -> (Vec<f32>, Vec<f32>) {
     let n = given.len() / per_row;
     let (mut shape, mut feature) = (vec![0.0; n], vec![0.0; n]);
@@ -154,7 +177,8 @@ pub(super) fn by_tiles<S>(
         .zip(feature.par_chunks_mut(tile_rows))
         .zip(given.par_chunks(tile_rows * per_row))
         .for_each_init(init, |scratch, ((shape, feature), given)| {
-            tile(scratch, given, [shape, feature])
+            let mut out = [shape, feature];
+            tile(scratch, given, &mut out[..branches.count()])
         });
     (shape, feature)
 }

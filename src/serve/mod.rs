@@ -899,6 +899,7 @@ fn search_info(model: &Model) -> SearchInfo {
         keep_mass: search.keep_mass.unwrap_or(0.0),
         coarse_precision: search.coarse_precision.name().into(),
         rescore_finest: search.rescores(),
+        shape_only_to: search.shape_only_to.map(u32::from),
         chosen_by: if c.is_some() {
             "calibration"
         } else {
