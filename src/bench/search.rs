@@ -141,27 +141,43 @@ pub fn candidates() -> Vec<SearchParams> {
         }
         out.push(tapered(1, keep, 0.5));
     }
-    // The coarse levels ranked by the shape branch alone: to level 3 in every precision, to
-    // levels 2 and 4 in i8 (the shipped model's choice on AVX2), and from start level 2.
-    let shape_to = |to: u8, search: SearchParams| SearchParams {
+    out.extend(shape_ranked());
+    out
+}
+
+/// Halving searches whose coarse levels are ranked by the shape branch alone: to level 3 in
+/// every precision, to levels 2 and 4 in i8 (the shipped model's choice on AVX2), and from start
+/// level 2.
+fn shape_ranked() -> Vec<SearchParams> {
+    let halving = |start_level, keep, to, coarse_precision| SearchParams {
+        start_level,
+        keep,
+        keep_mass: None,
+        keep_taper: 0.5,
+        coarse_precision,
+        rescore_finest: false,
         shape_only_to: Some(to),
-        ..search
     };
+    let mut out = Vec::new();
     for keep in [256, 384, 512] {
-        for precision in [i8, bf16, f16] {
-            out.push(shape_to(3, precision(tapered(1, keep, 0.5))));
+        for precision in [
+            Precision::I8,
+            Precision::Bf16,
+            Precision::F16,
+            Precision::F32,
+        ] {
+            out.push(halving(1, keep, 3, precision));
         }
-        out.push(shape_to(3, tapered(1, keep, 0.5)));
     }
     for keep in [256, 384] {
-        out.push(shape_to(2, i8(tapered(1, keep, 0.5))));
+        out.push(halving(1, keep, 2, Precision::I8));
     }
     for keep in [512, 768] {
-        out.push(shape_to(4, i8(tapered(1, keep, 0.5))));
+        out.push(halving(1, keep, 4, Precision::I8));
     }
     for keep in [512, 1024] {
-        out.push(shape_to(3, i8(tapered(2, keep, 0.5))));
-        out.push(shape_to(3, bf16(tapered(2, keep, 0.5))));
+        out.push(halving(2, keep, 3, Precision::I8));
+        out.push(halving(2, keep, 3, Precision::Bf16));
     }
     out
 }

@@ -11,7 +11,7 @@ use tonic::transport::{Channel, Endpoint};
 use crate::serve::proto::alignist_client::AlignistClient;
 use crate::serve::proto::{
     DistributionRequest, FrameRequest, FrameResponse, ImageInput, ListModelsRequest,
-    ListModelsResponse, ModelInfo, PixelBox, PredictRequest, PredictResponse, Rotation,
+    ListModelsResponse, ModelInfo, PixelBox, PredictRequest, PredictResponse, Rotation, SearchInfo,
 };
 
 /// Client errors; a server status keeps its code and message.
@@ -424,6 +424,48 @@ pub fn frame_json(r: &FrameResponse) -> serde_json::Value {
     })
 }
 
+/// The `search:` line of a model in [`models_table`]: the search it serves and how it was chosen.
+fn search_line(q: &SearchInfo) -> String {
+    let calibrated = if q.chosen_by == "calibration" {
+        format!(
+            " (calibrated: agreement {:.3}, predicted {:.1} ms, measured {:.1} ms, budget {} ms{}; {})",
+            q.agreement,
+            q.predicted_ms,
+            q.measured_ms,
+            q.budget_ms,
+            if q.within_budget { "" } else { ", over budget" },
+            q.reason
+        )
+    } else {
+        " (configured)".into()
+    };
+    format!(
+        "  search: start {}, keep {}{}{}, coarse {}{}{}{calibrated}; kernels {}",
+        q.start_level,
+        q.keep,
+        if q.keep_taper == 1.0 {
+            String::new()
+        } else {
+            format!(" ×{}/level", q.keep_taper)
+        },
+        if q.keep_mass > 0.0 {
+            format!(" ({} of the mass)", q.keep_mass)
+        } else {
+            String::new()
+        },
+        q.coarse_precision,
+        if q.rescore_finest {
+            format!(", finest {} rescored in f32", q.coarse_precision)
+        } else {
+            String::new()
+        },
+        q.shape_only_to
+            .map(|l| format!(", ranked by the shape branch to level {l}"))
+            .unwrap_or_default(),
+        q.kernels
+    )
+}
+
 /// Models as a table, then the bundles that were refused.
 pub fn models_table(list: &ListModelsResponse) -> String {
     let models: &[ModelInfo] = &list.models;
@@ -447,45 +489,7 @@ pub fn models_table(list: &ListModelsResponse) -> String {
             t.median_error_deg
         );
         if let Some(q) = &m.search {
-            let calibrated = if q.chosen_by == "calibration" {
-                format!(
-                    " (calibrated: agreement {:.3}, predicted {:.1} ms, measured {:.1} ms, budget {} ms{}; {})",
-                    q.agreement,
-                    q.predicted_ms,
-                    q.measured_ms,
-                    q.budget_ms,
-                    if q.within_budget { "" } else { ", over budget" },
-                    q.reason
-                )
-            } else {
-                " (configured)".into()
-            };
-            let _ = writeln!(
-                s,
-                "  search: start {}, keep {}{}{}, coarse {}{}{}{calibrated}; kernels {}",
-                q.start_level,
-                q.keep,
-                if q.keep_taper == 1.0 {
-                    String::new()
-                } else {
-                    format!(" ×{}/level", q.keep_taper)
-                },
-                if q.keep_mass > 0.0 {
-                    format!(" ({} of the mass)", q.keep_mass)
-                } else {
-                    String::new()
-                },
-                q.coarse_precision,
-                if q.rescore_finest {
-                    format!(", finest {} rescored in f32", q.coarse_precision)
-                } else {
-                    String::new()
-                },
-                q.shape_only_to
-                    .map(|l| format!(", ranked by the shape branch to level {l}"))
-                    .unwrap_or_default(),
-                q.kernels
-            );
+            let _ = writeln!(s, "{}", search_line(q));
         }
         for o in &m.objects {
             let axis = o

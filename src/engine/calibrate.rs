@@ -1,8 +1,9 @@
 //! Calibration at load: the search a model serves, chosen on the CPU it runs on. A search's
 //! agreement with the exhaustive argmax is the model's (the bundle's search study measured it,
 //! [`SearchStudy`]); its latency is the CPU's. The calibration times what a search is made of on
-//! this CPU — the encoder, a start level in full, and rows of the head in each precision (the
-//! minimum of two runs, or one run of a large measurement whose code just ran) — predicts each
+//! this CPU — the encoder, a start level in full, and rows of the head in each precision, by both
+//! branches or by the shape branch alone (the minimum of two runs, or one run of a large
+//! measurement whose code just ran) — predicts each
 //! studied search's latency from the rows it scores (a fixed number per level), and picks, among
 //! the searches whose agreement reaches the target, the most
 //! agreeing one predicted within the budget (agreements one studied image apart count as equal,
@@ -621,7 +622,8 @@ impl<'a> Meter<'a> {
 
 /// The candidate to serve and why: the most agreeing one predicted within `budget_ms` (within
 /// the agreement's tie), else the fastest. Timings are noisy: searches predicted within [`TIE`]
-/// of the fastest of a set count as equally fast, and the one scoring the fewest rows is taken,
+/// of the fastest of a set count as equally fast, and the one scoring the fewest rows (a row of the
+/// shape branch alone counting half) is taken,
 /// so that the choice does not flip between starts; among those the lower prediction (twins in
 /// other precisions score the same rows), then the study's order.
 fn choose(
