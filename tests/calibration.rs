@@ -277,6 +277,27 @@ fn a_coarse_level_out_of_f16_range_is_scored_again_in_f32() {
     assert_eq!(f16.top[0].cell, f32.top[0].cell);
 }
 
+/// Held-out renders of the shipped model's objects (one each, from `seed`) and the options of a
+/// top-10 search to `level`.
+fn shipped_crops_and_top_10(
+    seed: u64,
+    level: u8,
+) -> (Vec<Vec<u8>>, alignist::engine::PredictOptions) {
+    let bundle = alignist::bundle::model::ModelBundle::load(shipped()).unwrap();
+    let crops = alignist::train::data::BundleRenders::of(&bundle, 1)
+        .eval_images(bundle.manifest.network.image_size, 1, seed)
+        .into_iter()
+        .map(|im| im.rgb)
+        .collect();
+    let options = alignist::engine::PredictOptions {
+        top_k: 10,
+        level: Some(level),
+        mode_angle_deg: None,
+        ..Default::default()
+    };
+    (crops, options)
+}
+
 /// A search that rescores its finest level scores that level's rows in the coarse precision and
 /// then its best cells in f32: the answer's cells carry f32's scores (their log-densities differ
 /// from the f32 search's by the normaliser alone, the same shift for every cell), and the
@@ -284,28 +305,12 @@ fn a_coarse_level_out_of_f16_range_is_scored_again_in_f32() {
 #[test]
 fn rescoring_the_finest_level_gives_the_answer_f32s_scores() {
     use alignist::engine::calibrate::rows_per_level;
-    use alignist::engine::{PredictOptions, RESCORED_CELLS, SearchParams};
+    use alignist::engine::{RESCORED_CELLS, SearchParams};
     let model = model();
-    let bundle = alignist::bundle::model::ModelBundle::load(shipped()).unwrap();
-    let crops: Vec<Vec<u8>> = alignist::train::data::BundleRenders::of(&bundle, 1)
-        .eval_images(bundle.manifest.network.image_size, 1, 11)
-        .into_iter()
-        .map(|im| im.rgb)
-        .collect();
-    let options = PredictOptions {
-        top_k: 10,
-        level: Some(4),
-        mode_angle_deg: None,
-        ..Default::default()
-    };
+    let (crops, options) = shipped_crops_and_top_10(11, 4);
     let exact = SearchParams {
-        start_level: 2,
-        keep: 128,
-        keep_mass: None,
         keep_taper: 1.0,
-        coarse_precision: Precision::I8,
-        rescore_finest: false,
-        shape_only_to: None,
+        ..SearchParams::halving(2, 128, Precision::I8)
     };
     let rescored = SearchParams {
         rescore_finest: true,
@@ -357,29 +362,13 @@ fn rescoring_the_finest_level_gives_the_answer_f32s_scores() {
 /// the shape branch's up to its level and as both's at the finest, even when asked for more.
 #[test]
 fn ranking_by_the_shape_branch_still_answers_with_both_branches() {
+    use alignist::engine::SearchParams;
     use alignist::engine::calibrate::rows_per_level;
-    use alignist::engine::{PredictOptions, SearchParams};
     let model = model();
-    let bundle = alignist::bundle::model::ModelBundle::load(shipped()).unwrap();
-    let crops: Vec<Vec<u8>> = alignist::train::data::BundleRenders::of(&bundle, 1)
-        .eval_images(bundle.manifest.network.image_size, 1, 12)
-        .into_iter()
-        .map(|im| im.rgb)
-        .collect();
-    let options = PredictOptions {
-        top_k: 10,
-        level: Some(3),
-        mode_angle_deg: None,
-        ..Default::default()
-    };
+    let (crops, options) = shipped_crops_and_top_10(12, 3);
     let both = SearchParams {
-        start_level: 2,
-        keep: 4608,
-        keep_mass: None,
         keep_taper: 1.0,
-        coarse_precision: Precision::F32,
-        rescore_finest: false,
-        shape_only_to: None,
+        ..SearchParams::halving(2, 4608, Precision::F32)
     };
     let shape = SearchParams {
         shape_only_to: Some(2),

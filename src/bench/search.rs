@@ -150,13 +150,8 @@ pub fn candidates() -> Vec<SearchParams> {
 /// level 2.
 fn shape_ranked() -> Vec<SearchParams> {
     let halving = |start_level, keep, to, coarse_precision| SearchParams {
-        start_level,
-        keep,
-        keep_mass: None,
-        keep_taper: 0.5,
-        coarse_precision,
-        rescore_finest: false,
         shape_only_to: Some(to),
+        ..SearchParams::halving(start_level, keep, coarse_precision)
     };
     let mut out = Vec::new();
     for keep in [256, 384, 512] {

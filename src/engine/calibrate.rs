@@ -692,15 +692,7 @@ mod tests {
 
     fn search(start_level: u8, keep: usize, coarse_precision: Precision) -> Candidate {
         Candidate {
-            params: SearchParams {
-                start_level,
-                keep,
-                keep_mass: None,
-                keep_taper: 0.5,
-                coarse_precision,
-                rescore_finest: false,
-                shape_only_to: None,
-            },
+            params: SearchParams::halving(start_level, keep, coarse_precision),
             agreement: Some(1.0),
         }
     }

@@ -115,6 +115,21 @@ impl SearchParams {
 }
 
 impl SearchParams {
+    /// Start at `start_level`, keep `keep` cells at the first refinement and half as many at
+    /// each finer one, the coarse levels in `coarse_precision` and by both branches, the finest
+    /// in f32.
+    pub fn halving(start_level: u8, keep: usize, coarse_precision: Precision) -> SearchParams {
+        SearchParams {
+            start_level,
+            keep,
+            keep_mass: None,
+            keep_taper: 0.5,
+            coarse_precision,
+            rescore_finest: false,
+            shape_only_to: None,
+        }
+    }
+
     /// The cells it keeps, in words: `128`, `0.99 mass ≤512`, `512 ×0.5/level`.
     pub fn keep_description(&self) -> String {
         let mut keep = match self.keep_mass {
