@@ -92,13 +92,18 @@ async fn a_part_becomes_a_served_model_within_its_budget() {
     let sampling = &m["provenance"]["train"]["method"]["sampling"];
     assert_eq!(sampling["focused"], 192);
     assert_eq!(sampling["focused_end"], 12);
-    // The recipe's default warm start, on record with its checksum.
+    // The recipe's twins: half the focused share, the network's own searched on 32 crops.
+    assert_eq!(sampling["twin_share"], 0.5);
+    assert_eq!(
+        sampling["own_twins"],
+        serde_json::json!({ "crops": 32, "every": 250 })
+    );
+    assert_eq!(m["network"]["image_size"], 48);
+    assert_eq!(m["network"]["layout"], "tiny_deep");
+    // The recipe's default warm start, the shipped model, on record with its checksum.
     let init = &m["provenance"]["train"]["init"];
     assert!(
-        init["path"]
-            .as_str()
-            .unwrap()
-            .contains("training/warm-starts/symsol1-realistic"),
+        init["path"].as_str().unwrap().contains("models/symsol1"),
         "{init}"
     );
     assert_eq!(init["file"]["sha256"].as_str().unwrap().len(), 64);
@@ -204,7 +209,7 @@ fn a_killed_job_resumes_to_the_same_model() {
     assert!(!refused.status.success());
     assert!(String::from_utf8_lossy(&refused.stderr).contains("--resume"));
     // Nor is it resumed with another recipe than it was started with.
-    let other = [&resumed[..], &["--image-size", "48"]].concat();
+    let other = [&resumed[..], &["--image-size", "32"]].concat();
     let refused = Command::new(env!("CARGO_BIN_EXE_alignist-train"))
         .args(&other)
         .output()
@@ -271,7 +276,12 @@ fn a_warm_start_is_checked_before_any_work_and_recorded() {
     // twins from the same 32 px `tiny` warm start; own twins without a twin share are refused.
     let out48 = s(&root.path().join("models/blocks48"));
     let refused = Command::new(env!("CARGO_BIN_EXE_alignist-train"))
-        .args(new_args(&part_s, &out48, "20m", &["--own-twins", "4"]))
+        .args(new_args(
+            &part_s,
+            &out48,
+            "20m",
+            &["--twin-share", "0", "--own-twins", "4"],
+        ))
         .output()
         .unwrap();
     assert!(!refused.status.success());

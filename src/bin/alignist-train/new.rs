@@ -45,16 +45,17 @@ pub(crate) struct NewArgs {
     /// Start the network from this bundle's weights (a warm start; it must have the recipe's
     /// encoding and head, and the layout asked for or one it deepens; the crop size may differ),
     /// or `none` to start from random weights.
-    /// The default, the SYMSOL network trained on realistic renders that ships in the repository
-    /// (read from the working directory: run from the repository's root), was measured to learn a
-    /// part in 45 minutes where a random start stays at chance (docs/RESULTS.md).
+    /// The default, the shipped SYMSOL model (read from the working directory: run from the
+    /// repository's root), has seen the most realistic crops; a warm start was measured to learn a
+    /// part in 45 minutes where a random start stays at chance, and this one at 48 px to learn it
+    /// fastest (docs/RESULTS.md).
     #[arg(long, default_value = DEFAULT_INIT, value_parser = parse_init)]
     init: InitArg,
-    /// The image encoder's layout (for experiments; the recipe's is `tiny`). A warm start must
+    /// The image encoder's layout (for experiments; the recipe's is `tiny-deep`). A warm start must
     /// have this layout or one this layout deepens (`tiny` for `tiny-deep`).
     #[arg(long, value_enum, default_value_t = RECIPE.layout)]
     layout: ResNetLayout,
-    /// Crop side in pixels (for experiments; the recipe's is 32). A warm start may have been
+    /// Crop side in pixels (for experiments; the recipe's is 48). A warm start may have been
     /// trained at another size.
     #[arg(long, default_value_t = RECIPE.image_size, value_parser = clap::value_parser!(u32).range(16..=256))]
     image_size: u32,
@@ -67,16 +68,16 @@ pub(crate) struct NewArgs {
     /// Peak learning rate (for experiments; the recipe's is 1e-3).
     #[arg(long, default_value_t = RECIPE.lr, value_parser = parse_lr)]
     lr: f64,
-    /// Share of the focused rotations drawn around the pose's twins under the part's
-    /// near-symmetry (for experiments, in [0, 1]; the recipe's is 0). A part with no
-    /// near-symmetry has no twins.
+    /// Share of the focused rotations drawn around the pose's twins: the part's near-symmetry's
+    /// and the network's own (in [0, 1]; the recipe's is 0.5; 0 is the paper's sampling). A part
+    /// with neither has no twins.
     #[arg(long, default_value_t = RECIPE.twin_share, value_parser = parse_share)]
     twin_share: f64,
     /// Also draw the twin share around the network's own half-turn misses, searched on this many
-    /// fresh crops per part every 250 steps (for experiments; needs --twin-share above 0; the
-    /// recipe's is 0, none).
-    #[arg(long, default_value_t = RECIPE.own_twins as u32, value_parser = clap::value_parser!(u32).range(0..=4096))]
-    own_twins: u32,
+    /// fresh crops per part every 250 steps (needs --twin-share above 0; the recipe's is 32, or
+    /// none with --twin-share 0; 0 for none).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(0..=4096))]
+    own_twins: Option<u32>,
 }
 
 /// A share in [0, 1].
@@ -96,7 +97,7 @@ pub(crate) fn parse_lr(s: &str) -> Result<f64, String> {
 }
 
 /// The recipe's warm start (`--init`'s default), relative to the repository's root.
-const DEFAULT_INIT: &str = "training/warm-starts/symsol1-realistic";
+const DEFAULT_INIT: &str = "models/symsol1";
 
 /// `--init`: a bundle folder, or none.
 #[derive(Debug, Clone, PartialEq)]
@@ -142,13 +143,15 @@ pub(crate) fn new_cmd(args: &NewArgs) -> Result<()> {
     if args.eval_images == 0 {
         bail!("--eval-images must be at least 1: the model is judged on held-out crops");
     }
-    if args.own_twins > 0 && args.twin_share == 0.0 {
-        bail!(
-            "--own-twins {} needs a --twin-share above 0: the share of the focused rotations \
-             drawn around the twins it finds",
-            args.own_twins
-        );
-    }
+    let own_twins = match args.own_twins {
+        Some(n) if n > 0 && args.twin_share == 0.0 => bail!(
+            "--own-twins {n} needs a --twin-share above 0: the share of the focused rotations \
+             drawn around the twins it finds"
+        ),
+        Some(n) => n as usize,
+        None if args.twin_share == 0.0 => 0,
+        None => RECIPE.own_twins,
+    };
     let model = NewModel {
         meshes: args.mesh.clone(),
         units: parse_units(&args.units)?,
@@ -166,7 +169,7 @@ pub(crate) fn new_cmd(args: &NewArgs) -> Result<()> {
             k: args.k as usize,
             lr: args.lr,
             twin_share: args.twin_share,
-            own_twins: args.own_twins as usize,
+            own_twins,
             ..RECIPE
         },
         command: std::env::args().collect::<Vec<_>>().join(" "),
