@@ -534,3 +534,57 @@ fn calibrate_folds_a_recorded_temperature_into_a_new_bundle_and_refuses_twice() 
     assert!(!again.status.success());
     assert!(String::from_utf8_lossy(&again.stderr).contains("calibrated already"));
 }
+
+/// `calibrate --per-branch` records a factor per branch and folds each into its own branch: the
+/// calibrated network's shape and feature log-weights are the input's times those factors.
+#[test]
+fn calibrate_per_branch_scales_each_branch_by_its_own_recorded_factor() {
+    use alignist::net::{ProjectedGrid, images_tensor};
+    let model = common::models_dir().join("tiny");
+    let root = tempfile::tempdir().unwrap();
+    let out = root.path().join("tiny-per-branch");
+    let printed = run(&[
+        "calibrate",
+        "--model",
+        s(&model),
+        "--out",
+        s(&out),
+        "--per-branch",
+        "--images",
+        "4",
+        "--level",
+        "2",
+        "--supersample",
+        "1",
+        "--eval-images",
+        "0",
+    ]);
+    let text = String::from_utf8_lossy(&printed.stdout);
+    assert!(text.contains("branch scales"), "{text}");
+    let before = ModelBundle::load(&model).unwrap();
+    let after = ModelBundle::load(&out).unwrap();
+    let fit = after.manifest.calibration.clone().expect("recorded");
+    let [shape, feature] = fit.branch_scales.expect("the branch scales are recorded");
+    assert!(fit.ll_after >= fit.ll_before - 1e-6, "{fit:?}");
+    let config = &before.manifest.network;
+    let size = config.image_size as usize;
+    let crop: Vec<u8> = (0..size * size * 3).map(|i| (i * 37 % 251) as u8).collect();
+    let device = alignist::backend::device_for(alignist::backend::Workload::Conv);
+    let branches = |bundle: &ModelBundle| {
+        let grid = ProjectedGrid::new(&bundle.network, config, 1).unwrap();
+        let features = bundle
+            .network
+            .encoder
+            .forward(images_tensor(&[&crop], size, &device));
+        grid.branch_log_weights_of_features(features).remove(0)
+    };
+    let ((s0, f0), (s1, f1)) = (branches(&before), branches(&after));
+    for (x0, x1, factor) in [(&s0, &s1, shape), (&f0, &f1, feature)] {
+        for (a, b) in x0.iter().zip(x1) {
+            assert!(
+                (a * factor as f32 - b).abs() < 1e-3 * (1.0 + a.abs()),
+                "{a} × {factor} ≠ {b}"
+            );
+        }
+    }
+}

@@ -156,11 +156,16 @@ pub struct BudgetPlan {
 /// calibration crops from the training distribution (`train::calibrate`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TemperatureFit {
-    /// The factor applied to the combined log-density (`1 / T`).
+    /// The factor applied to the combined log-density (`1 / T`); with `branch_scales`, the best
+    /// single factor, for comparison (not applied).
     pub scale: f64,
+    /// The factors applied to the shape and the feature branch each, when each branch got its
+    /// own (`calibrate --per-branch`): a product of the two experts at their own temperatures.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub branch_scales: Option<[f64; 2]>,
     /// Mean LL of the calibration crops before (scale 1).
     pub ll_before: f64,
-    /// Mean LL of the calibration crops at `scale`.
+    /// Mean LL of the calibration crops at the factors applied.
     pub ll_after: f64,
     /// Calibration crops.
     pub images: usize,

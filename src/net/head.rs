@@ -167,9 +167,16 @@ impl DualHead {
     /// Both branches' outputs multiplied by `scale` (their output weights and biases): the
     /// combined log-density `s_θ + s_φ` times `scale`, a temperature of `1 / scale`
     /// (`train::calibrate`).
-    pub fn with_output_scale(mut self, scale: f32) -> Self {
-        self.shape_branch = self.shape_branch.scaled(scale);
-        self.feature_branch = self.feature_branch.scaled(scale);
+    pub fn with_output_scale(self, scale: f32) -> Self {
+        self.with_branch_output_scales(scale, scale)
+    }
+
+    /// The shape branch's output multiplied by `shape` and the feature branch's by `feature`: the
+    /// log-density `shape·s_θ + feature·s_φ`, each expert at its own temperature
+    /// (`train::calibrate::fit_branch_scales`).
+    pub fn with_branch_output_scales(mut self, shape: f32, feature: f32) -> Self {
+        self.shape_branch = self.shape_branch.scaled(shape);
+        self.feature_branch = self.feature_branch.scaled(feature);
         self
     }
 

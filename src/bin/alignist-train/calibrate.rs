@@ -32,12 +32,17 @@ pub(crate) struct CalibrateArgs {
     /// `fit`'s; 0 skips it and drops the stale evaluation).
     #[arg(long, default_value_t = 50)]
     eval_images: usize,
+    /// Give each branch its own scale (the shape expert's and the feature expert's temperature),
+    /// chosen by the same LL, instead of one for their sum. Unlike one temperature, this can
+    /// change which rotation is the most probable.
+    #[arg(long)]
+    per_branch: bool,
 }
 
 pub(crate) fn calibrate_cmd(args: &CalibrateArgs) -> Result<()> {
     use alignist::bundle::model::ModelBundle;
     use alignist::data::realism::Realism;
-    use alignist::train::calibrate::fit_temperature;
+    use alignist::train::calibrate::{fit_branch_scales, fit_temperature};
     use alignist::train::data::BundleRenders;
 
     if args.level > alignist::train::eval::MAX_EVAL_LEVEL || args.level == 0 {
@@ -73,7 +78,12 @@ pub(crate) fn calibrate_cmd(args: &CalibrateArgs) -> Result<()> {
         crops.len(),
         args.seed
     );
-    let fit = fit_temperature(
+    let fit = if args.per_branch {
+        fit_branch_scales
+    } else {
+        fit_temperature
+    };
+    let fit = fit(
         &bundle.network,
         &bundle.manifest.network,
         &crops,
@@ -84,21 +94,17 @@ pub(crate) fn calibrate_cmd(args: &CalibrateArgs) -> Result<()> {
         ),
         std::env::args().collect::<Vec<_>>().join(" "),
     )?;
-    println!(
-        "temperature {:.3} (scale {:.3}): calibration LL {:.3} → {:.3} at level {}",
-        1.0 / fit.scale,
-        fit.scale,
-        fit.ll_before,
-        fit.ll_after,
-        args.level
-    );
+    print_fit(&fit);
+    let [shape, feature] = fit.branch_scales.unwrap_or([fit.scale; 2]);
     let ModelBundle {
         mut manifest,
         network,
         experts: _,
     } = bundle;
     let network = alignist::net::Network {
-        head: network.head.with_output_scale(fit.scale as f32),
+        head: network
+            .head
+            .with_branch_output_scales(shape as f32, feature as f32),
         ..network
     };
     manifest.calibration = Some(fit);
@@ -125,4 +131,23 @@ pub(crate) fn calibrate_cmd(args: &CalibrateArgs) -> Result<()> {
         .with_context(|| format!("writing the bundle to {}", args.out.display()))?;
     eprintln!("calibrated bundle written to {}", args.out.display());
     Ok(())
+}
+
+/// Prints what a calibration chose and the calibration crops' LL before and after.
+fn print_fit(fit: &alignist::bundle::record::TemperatureFit) {
+    match fit.branch_scales {
+        Some([shape, feature]) => println!(
+            "branch scales: shape {shape:.3}, feature {feature:.3} (the best single scale {:.3}): \
+             calibration LL {:.3} → {:.3} at level {}",
+            fit.scale, fit.ll_before, fit.ll_after, fit.level
+        ),
+        None => println!(
+            "temperature {:.3} (scale {:.3}): calibration LL {:.3} → {:.3} at level {}",
+            1.0 / fit.scale,
+            fit.scale,
+            fit.ll_before,
+            fit.ll_after,
+            fit.level
+        ),
+    }
 }
