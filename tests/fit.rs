@@ -485,26 +485,31 @@ fn a_corrupt_network_is_refused(p: &Pipeline) {
     );
 }
 
-#[test]
-fn calibrate_folds_a_recorded_temperature_into_a_new_bundle_and_refuses_twice() {
-    let model = common::models_dir().join("tiny");
-    let root = tempfile::tempdir().unwrap();
-    let out = root.path().join("tiny-calibrated");
-    let printed = run(&[
+/// `alignist-train calibrate` of `model` into `out` on 4 crops at level 2, with `extra` flags.
+fn calibrate_tiny(model: &Path, out: &Path, extra: &[&str]) -> Output {
+    let mut args = vec![
         "calibrate",
         "--model",
-        s(&model),
+        s(model),
         "--out",
-        s(&out),
+        s(out),
         "--images",
         "4",
         "--level",
         "2",
         "--supersample",
         "1",
-        "--eval-images",
-        "2",
-    ]);
+    ];
+    args.extend_from_slice(extra);
+    run(&args)
+}
+
+#[test]
+fn calibrate_folds_a_recorded_temperature_into_a_new_bundle_and_refuses_twice() {
+    let model = common::models_dir().join("tiny");
+    let root = tempfile::tempdir().unwrap();
+    let out = root.path().join("tiny-calibrated");
+    let printed = calibrate_tiny(&model, &out, &["--eval-images", "2"]);
     let text = String::from_utf8_lossy(&printed.stdout);
     assert!(text.contains("temperature"), "{text}");
     let before = ModelBundle::load(&model).unwrap();
@@ -543,22 +548,7 @@ fn calibrate_per_branch_scales_each_branch_by_its_own_recorded_factor() {
     let model = common::models_dir().join("tiny");
     let root = tempfile::tempdir().unwrap();
     let out = root.path().join("tiny-per-branch");
-    let printed = run(&[
-        "calibrate",
-        "--model",
-        s(&model),
-        "--out",
-        s(&out),
-        "--per-branch",
-        "--images",
-        "4",
-        "--level",
-        "2",
-        "--supersample",
-        "1",
-        "--eval-images",
-        "0",
-    ]);
+    let printed = calibrate_tiny(&model, &out, &["--per-branch", "--eval-images", "0"]);
     let text = String::from_utf8_lossy(&printed.stdout);
     assert!(text.contains("branch scales"), "{text}");
     let before = ModelBundle::load(&model).unwrap();

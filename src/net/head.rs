@@ -173,7 +173,7 @@ impl DualHead {
 
     /// The shape branch's output multiplied by `shape` and the feature branch's by `feature`: the
     /// log-density `shape·s_θ + feature·s_φ`, each expert at its own temperature
-    /// (`train::calibrate::fit_branch_scales`).
+    /// (`train::calibrate::fit_temperature`).
     pub fn with_branch_output_scales(mut self, shape: f32, feature: f32) -> Self {
         self.shape_branch = self.shape_branch.scaled(shape);
         self.feature_branch = self.feature_branch.scaled(feature);

@@ -139,50 +139,28 @@ fn score(
     Ok(scored)
 }
 
-/// The scale in [`SCALE_RANGE`] that maximises the mean LL of `images` at `level` (`crops` and
-/// `command` say what they were and what ran, for the record).
+/// The scale in [`SCALE_RANGE`] that maximises the mean LL of `images` at `level`; with
+/// `per_branch`, the scales `(β_θ, β_φ)`, each in that range, that maximise it when each branch's
+/// log-weight is multiplied by its own (a product of experts, each at its own temperature), and
+/// `scale` in the fit is then the best single scale, for comparison. `crops` and `command` say
+/// what the crops were and what ran, for the record.
 pub fn fit_temperature(
     network: &Network,
     config: &NetworkConfig,
     images: &[EvalImage],
     level: u8,
+    per_branch: bool,
     crops: String,
     command: String,
 ) -> Result<TemperatureFit, So3Error> {
     let scored = score(network, config, images, level)?;
     let scale = best_scale(&scored);
+    let branch_scales = per_branch.then(|| best_branch_scales(&scored, scale));
     Ok(TemperatureFit {
         scale,
-        branch_scales: None,
+        branch_scales,
         ll_before: mean_ll(&scored, 1.0),
-        ll_after: mean_ll(&scored, scale),
-        images: images.len(),
-        level,
-        crops,
-        command,
-    })
-}
-
-/// The scales `(β_θ, β_φ)`, each in [`SCALE_RANGE`], that maximise the mean LL of `images` at
-/// `level` when each branch's log-weight is multiplied by its own: a product of experts, each at
-/// its own temperature (`crops` and `command` say what they were and what ran, for the record).
-/// `scale` in the fit is then the best single scale, for comparison.
-pub fn fit_branch_scales(
-    network: &Network,
-    config: &NetworkConfig,
-    images: &[EvalImage],
-    level: u8,
-    crops: String,
-    command: String,
-) -> Result<TemperatureFit, So3Error> {
-    let scored = score(network, config, images, level)?;
-    let single = best_scale(&scored);
-    let branch = best_branch_scales(&scored, single);
-    Ok(TemperatureFit {
-        scale: single,
-        branch_scales: Some(branch),
-        ll_before: mean_ll(&scored, 1.0),
-        ll_after: mean_moments(&scored, branch).ll,
+        ll_after: mean_moments(&scored, branch_scales.unwrap_or([scale; 2])).ll,
         images: images.len(),
         level,
         crops,

@@ -42,7 +42,7 @@ pub(crate) struct CalibrateArgs {
 pub(crate) fn calibrate_cmd(args: &CalibrateArgs) -> Result<()> {
     use alignist::bundle::model::ModelBundle;
     use alignist::data::realism::Realism;
-    use alignist::train::calibrate::{fit_branch_scales, fit_temperature};
+    use alignist::train::calibrate::fit_temperature;
     use alignist::train::data::BundleRenders;
 
     if args.level > alignist::train::eval::MAX_EVAL_LEVEL || args.level == 0 {
@@ -78,16 +78,12 @@ pub(crate) fn calibrate_cmd(args: &CalibrateArgs) -> Result<()> {
         crops.len(),
         args.seed
     );
-    let fit = if args.per_branch {
-        fit_branch_scales
-    } else {
-        fit_temperature
-    };
-    let fit = fit(
+    let fit = fit_temperature(
         &bundle.network,
         &bundle.manifest.network,
         &crops,
         args.level,
+        args.per_branch,
         format!(
             "{} realistic crops per object of the training split (seed {}, {}x supersampled)",
             args.images, args.seed, args.supersample
