@@ -177,6 +177,14 @@ pub struct TemperatureFit {
     pub command: String,
 }
 
+impl TemperatureFit {
+    /// The factors applied to the shape and the feature branch: `branch_scales` when recorded,
+    /// else `scale` on both.
+    pub fn applied(&self) -> [f64; 2] {
+        self.branch_scales.unwrap_or([self.scale; 2])
+    }
+}
+
 /// A cap on a bundle's grid levels: the server serves it up to these at most
 /// (`EngineConfig::within`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]

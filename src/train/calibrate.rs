@@ -155,17 +155,18 @@ pub fn fit_temperature(
 ) -> Result<TemperatureFit, So3Error> {
     let scored = score(network, config, images, level)?;
     let scale = best_scale(&scored);
-    let branch_scales = per_branch.then(|| best_branch_scales(&scored, scale));
-    Ok(TemperatureFit {
+    let mut fit = TemperatureFit {
         scale,
-        branch_scales,
+        branch_scales: per_branch.then(|| best_branch_scales(&scored, scale)),
         ll_before: mean_ll(&scored, 1.0),
-        ll_after: mean_moments(&scored, branch_scales.unwrap_or([scale; 2])).ll,
+        ll_after: 0.0,
         images: images.len(),
         level,
         crops,
         command,
-    })
+    };
+    fit.ll_after = mean_moments(&scored, fit.applied()).ll;
+    Ok(fit)
 }
 
 /// Damped Newton ascent of the concave mean LL over `(β_θ, β_φ)` in the box [`SCALE_RANGE`]²,

@@ -91,7 +91,7 @@ pub(crate) fn calibrate_cmd(args: &CalibrateArgs) -> Result<()> {
         std::env::args().collect::<Vec<_>>().join(" "),
     )?;
     print_fit(&fit);
-    let [shape, feature] = fit.branch_scales.unwrap_or([fit.scale; 2]);
+    let [shape, feature] = fit.applied();
     let ModelBundle {
         mut manifest,
         network,
