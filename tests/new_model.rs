@@ -43,6 +43,8 @@ fn new_args<'a>(mesh: &'a str, out: &'a str, budget: &'a str, extra: &[&'a str])
         "30",
         "--eval-images",
         "4",
+        "--calibration-images",
+        "3",
     ];
     args.extend_from_slice(extra);
     args
@@ -80,7 +82,22 @@ async fn a_part_becomes_a_served_model_within_its_budget() {
         .iter()
         .map(|s| s[0].as_str().unwrap())
         .collect();
-    assert_eq!(stages, ["probe", "experts", "fit", "evaluation"]);
+    assert_eq!(
+        stages,
+        ["probe", "experts", "fit", "calibration", "evaluation"]
+    );
+    // One temperature, fitted on realistic crops of the training split and folded in: the LL of
+    // those crops is at least what it was at T = 1 (the search's range holds scale 1).
+    let calibration = &m["calibration"];
+    assert_eq!(calibration["images"], 3);
+    assert!(calibration.get("branch_scales").is_none(), "{calibration}");
+    let scale = calibration["scale"].as_f64().unwrap();
+    assert!((0.125..=4.0).contains(&scale), "{scale}");
+    assert!(
+        calibration["ll_after"].as_f64().unwrap()
+            >= calibration["ll_before"].as_f64().unwrap() - 1e-3,
+        "{calibration}"
+    );
     let plan = &m["budget"]["plan"];
     assert!(plan["first_fit_steps"].as_u64().unwrap() >= 20);
     // The schedule trained is the plan's last (re-planned to the pace measured, or the first).

@@ -9,7 +9,10 @@
 //! 3. **fit**: one schedule of [`RECIPE`] (realistic fresh renders, the focused share annealed
 //!    from 3/4 to 1/20) sized to the time left, checkpointed; stopped early only if the machine
 //!    turns out slower than the probe said;
-//! 4. **evaluation** on held-out realistic crops (another background source, light and
+//! 4. **calibration**: one temperature folded into the network, the one that maximises the LL of
+//!    realistic crops of the *training* split ([`super::calibrate`]; measured to raise the
+//!    held-out realistic LL, docs/RESULTS.md);
+//! 5. **evaluation** on held-out realistic crops (another background source, light and
 //!    material ranges, seed), and the bundle, with the plan and the time of every stage.
 //!
 //! The time spent is kept in the job's state across kills and resumes, so the budget is the
@@ -111,6 +114,14 @@ const PROBE_MIN_STEPS: usize = 8;
 /// Evaluation level of the held-out set.
 pub const EVAL_LEVEL: u8 = 3;
 
+/// Realistic crops per object of the training split the calibration stage fits its temperature
+/// on, unless a job says otherwise ([`NewModel::calibration_images`]).
+pub const CALIBRATION_IMAGES: usize = 100;
+
+/// Added to the job's seed for the calibration crops: apart from the training renders' seeds and
+/// the held-out set's (`seed + 2⁴⁰`).
+const CALIBRATION_SEED: u64 = 3 << 40;
+
 /// Seconds kept back for writing the bundle and the job's state.
 const WRITE_RESERVE_S: f64 = 3.0;
 
@@ -191,6 +202,9 @@ pub struct NewModel {
     pub budget_seconds: f64,
     /// Held-out realistic test crops per object.
     pub eval_images: usize,
+    /// Realistic crops per object of the training split that the calibration stage fits a
+    /// temperature on ([`CALIBRATION_IMAGES`]; 0: no calibration, the network served as trained).
+    pub calibration_images: usize,
     /// At most this many training steps (experiments and tests; `None`: what the budget buys).
     pub max_steps: Option<usize>,
     /// At most this many steps of each expert (experiments and tests).
@@ -681,28 +695,17 @@ fn fit_and_write(
         eval_images: 0,
     };
     let mut data = FitData::load(&inputs, 1, model.recipe.batch)?;
-    let names: Vec<String> = data
-        .sets
-        .iter()
-        .map(|s| s.manifest.object.name.clone())
-        .collect();
-    let symmetries: Vec<_> = data.sets.iter().map(ExpertSet::symmetries).collect();
-    let tests = data
-        .fresh
-        .as_ref()
-        .expect("fresh renders")
-        .realistic_eval_images(
-            &names,
-            &symmetries,
-            model.recipe.image_size,
-            model.eval_images,
-            model.seed.wrapping_add(1 << 40),
-            Realism::HELD_OUT,
-        );
+    let [tests, calibration] = [
+        (model.eval_images, 1 << 40, Realism::HELD_OUT),
+        (model.calibration_images, CALIBRATION_SEED, Realism::TRAIN),
+    ]
+    .map(|(per_object, seed, realism)| realistic_crops(&data, model, per_object, seed, realism));
     let training = data.training_set()?;
+    // The images scored after the fit: the calibration's and the evaluation's.
+    let scored = tests.len() + calibration.len();
     if plan.fit_steps == 0 {
         plan = job.stage("probe", |job| {
-            size_fit(job, plan.clone(), model, &training, &tests)
+            size_fit(job, plan.clone(), model, &training, (&tests, scored))
         })?;
         job.state.plan = Some(plan.clone());
         job.save()?;
@@ -715,7 +718,7 @@ fn fit_and_write(
         config.warmup = super::config::warmup_steps(plan.first_fit_steps);
     }
     job.say(progress, &fit_line(&plan, &model.recipe, &config));
-    let reserve = plan.probe_eval_image * tests.len() as f64 * 1.2 + WRITE_RESERVE_S;
+    let reserve = plan.probe_eval_image * scored as f64 * 1.2 + WRITE_RESERVE_S;
     let (network, report) = run_fit(
         job,
         &config,
@@ -728,6 +731,8 @@ fn fit_and_write(
     // The schedule the fit ended with (re-planned to its pace).
     let plan = job.state.plan.clone().unwrap_or(plan);
     config.steps = plan.fit_steps;
+    let (network, calibration) =
+        calibrate_stage(job, network, &config, &calibration, model, progress)?;
     let evaluation = evaluate_stage(job, &network, &config, &tests, progress)?;
     let name = model
         .out
@@ -743,6 +748,7 @@ fn fit_and_write(
         report,
         evaluation,
     );
+    manifest.calibration = calibration;
     manifest.budget = Some(BudgetRecord {
         budget_seconds: job.clock.budget,
         spent_seconds: job.clock.spent(),
@@ -757,6 +763,34 @@ fn fit_and_write(
         &format!("bundle written to {}", model.out.display()),
     );
     Ok(manifest)
+}
+
+/// `per_object` realistic crops of every part at the recipe's size, drawn with the job's seed plus
+/// `seed` from the ranges of `realism`.
+fn realistic_crops(
+    data: &FitData,
+    model: &NewModel,
+    per_object: usize,
+    seed: u64,
+    realism: Realism,
+) -> Vec<super::eval::EvalImage> {
+    let names: Vec<String> = data
+        .sets
+        .iter()
+        .map(|s| s.manifest.object.name.clone())
+        .collect();
+    let symmetries: Vec<_> = data.sets.iter().map(ExpertSet::symmetries).collect();
+    data.fresh
+        .as_ref()
+        .expect("fresh renders")
+        .realistic_eval_images(
+            &names,
+            &symmetries,
+            model.recipe.image_size,
+            per_object,
+            model.seed.wrapping_add(seed),
+            realism,
+        )
 }
 
 /// The progress line that opens the fit: its schedule, its probe's pace and its warm start.
@@ -790,6 +824,67 @@ fn fit_line(plan: &BudgetPlan, recipe: &Recipe, config: &TrainConfig) -> String 
             .as_ref()
             .map_or(String::new(), |i| format!(", warm start from {}", i.path))
     )
+}
+
+/// The calibration stage: the temperature that maximises the LL of `crops` (realistic, the
+/// training split) at [`EVAL_LEVEL`], folded into the network's output layers; the network as it
+/// is when there are no crops.
+fn calibrate_stage(
+    job: &mut Job,
+    network: crate::net::Network,
+    config: &TrainConfig,
+    crops: &[super::eval::EvalImage],
+    model: &NewModel,
+    progress: &(dyn Fn(&str) + Sync),
+) -> Result<
+    (
+        crate::net::Network,
+        Option<super::calibrate::TemperatureFit>,
+    ),
+    NewModelError,
+> {
+    if crops.is_empty() {
+        return Ok((network, None));
+    }
+    job.stage("calibration", |job| {
+        job.say(
+            progress,
+            &format!(
+                "calibrating a temperature on {} realistic crops of the training split",
+                crops.len()
+            ),
+        );
+        let fit = super::calibrate::fit_temperature(
+            &network,
+            &config.network,
+            crops,
+            EVAL_LEVEL,
+            false,
+            format!(
+                "{} realistic crops per object of the training split (seed {} + 3·2⁴⁰, {}x \
+                 supersampled)",
+                model.calibration_images, model.seed, model.recipe.supersample
+            ),
+            model.command.clone(),
+        )?;
+        job.say(
+            progress,
+            &format!(
+                "calibration: temperature {:.3}, LL of its crops {:.3} → {:.3}",
+                1.0 / fit.scale,
+                fit.ll_before,
+                fit.ll_after
+            ),
+        );
+        let [shape, feature] = fit.applied();
+        let network = crate::net::Network {
+            head: network
+                .head
+                .with_branch_output_scales(shape as f32, feature as f32),
+            ..network
+        };
+        Ok((network, Some(fit)))
+    })
 }
 
 /// The evaluation stage: the network on the held-out realistic crops at [`EVAL_LEVEL`].
@@ -966,7 +1061,7 @@ fn size_fit(
     mut plan: BudgetPlan,
     model: &NewModel,
     training: &super::TrainingSet,
-    tests: &[super::eval::EvalImage],
+    (tests, scored): (&[super::eval::EvalImage], usize),
 ) -> Result<BudgetPlan, NewModelError> {
     // The probe runs steps until its window has passed after the second (the first ones start
     // threads and the prefetch; at 64 px the next few were measured still slower: 8 steps
@@ -1000,8 +1095,7 @@ fn size_fit(
     }
     plan.probe_eval_image = t.elapsed().as_secs_f64() / few.len().max(1) as f64;
     plan.eval_images = model.eval_images;
-    let reserve =
-        plan.probe_eval_image * tests.len() as f64 * 1.2 + 2.0 * WRITE_RESERVE_S + start_up;
+    let reserve = plan.probe_eval_image * scored as f64 * 1.2 + 2.0 * WRITE_RESERVE_S + start_up;
     let for_steps = job.clock.left() - reserve;
     let steps = (for_steps / plan.probe_fit_step).floor().max(0.0) as usize;
     if steps < MIN_STEPS {

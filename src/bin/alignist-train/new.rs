@@ -7,7 +7,7 @@ use anyhow::{Context, Result, bail};
 use crate::eval::print_eval;
 use crate::object::parse_units;
 use alignist::net::ResNetLayout;
-use alignist::train::new_model::{NewModel, RECIPE, Recipe, new_model};
+use alignist::train::new_model::{CALIBRATION_IMAGES, NewModel, RECIPE, Recipe, new_model};
 
 #[derive(clap::Args)]
 pub(crate) struct NewArgs {
@@ -32,6 +32,11 @@ pub(crate) struct NewArgs {
     /// Held-out realistic test crops per object.
     #[arg(long, default_value_t = 50)]
     eval_images: usize,
+    /// Realistic crops per object of the training split on which one temperature is fitted and
+    /// folded into the network after training (0: none; the bundle can then be calibrated later
+    /// with `alignist-train calibrate`, e.g. `--per-branch`).
+    #[arg(long, default_value_t = CALIBRATION_IMAGES)]
+    calibration_images: usize,
     /// At most this many training steps (for experiments; default: what the budget buys).
     #[arg(long)]
     max_steps: Option<usize>,
@@ -158,6 +163,7 @@ pub(crate) fn new_cmd(args: &NewArgs) -> Result<()> {
         out: args.out.clone(),
         budget_seconds: args.budget,
         eval_images: args.eval_images,
+        calibration_images: args.calibration_images,
         max_steps: args.max_steps,
         max_expert_steps: args.max_expert_steps,
         seed: args.seed,
