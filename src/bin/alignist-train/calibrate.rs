@@ -65,7 +65,8 @@ pub(crate) fn calibrate_cmd(args: &CalibrateArgs) -> Result<()> {
         .with_context(|| format!("loading --model {}", args.model.display()))?;
     if let Some(c) = &bundle.manifest.calibration {
         bail!(
-            "--model {} is calibrated already (scale {:.3}); calibrate the bundle it was made from",
+            "--model {} is calibrated already (scale {:.3}); calibrate the bundle it was made \
+             from (`alignist-train new --calibration-images 0` makes one left at T = 1)",
             args.model.display(),
             c.scale
         );
