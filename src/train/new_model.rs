@@ -861,9 +861,10 @@ fn calibrate_stage(
             EVAL_LEVEL,
             false,
             format!(
-                "{} realistic crops per object of the training split (seed {} + 3·2⁴⁰, {}x \
-                 supersampled)",
-                model.calibration_images, model.seed, model.recipe.supersample
+                "{} realistic crops per object of the training split (seed {}, {}x supersampled)",
+                model.calibration_images,
+                model.seed.wrapping_add(CALIBRATION_SEED),
+                model.recipe.supersample
             ),
             model.command.clone(),
         )?;
