@@ -233,6 +233,7 @@ fn summary_gives_accuracy_and_median() {
         log_likelihood: 1.0,
         spread_deg: e,
         argmax_error_deg: e,
+        mode_error_deg: 2.0 * e,
     });
     let s = summarize(&per, &[30.0, 15.0]);
     assert_eq!(s.images, 4);
@@ -240,6 +241,44 @@ fn summary_gives_accuracy_and_median() {
     assert!((s.median_error_deg - 25.0).abs() < 1e-12);
     assert!((s.spread_deg - 38.75).abs() < 1e-12);
     assert_eq!(s.half_turn_wrong, 0.0);
+    // The first mode's errors, 10, 80, 20, 200: its own AR and median.
+    assert_eq!(s.mode_accuracy_at, vec![(30.0, 0.5), (15.0, 0.25)]);
+    assert!((s.mode_median_error_deg - 50.0).abs() < 1e-12);
+}
+
+/// A mode of several cells outweighs one sharper cell 90° away: the argmax answers the sharp
+/// cell, the first mode the massive one; raise the single cell above the group's mass and the
+/// two agree on it.
+#[test]
+fn the_first_mode_weighs_mass_where_the_argmax_takes_the_sharpest_cell() {
+    // Level 3: neighbouring cells about 7.5° apart, so a 15° group holds several.
+    let g = GridLevel::new(3).unwrap();
+    let centres = g.quaternions();
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    for r in haar_rotations(&mut rng, 4) {
+        let b = g.rotation(g.cell_of(&r));
+        let a = g.rotation(g.cell_of(&(b * alignist::so3::rot_x(std::f64::consts::FRAC_PI_2))));
+        let group: Vec<usize> = (0..g.len())
+            .filter(|&i| geodesic_angle(&g.rotation(i as u64), &b).to_degrees() < 14.0)
+            .collect();
+        assert!(group.len() >= 2, "{} cells within 14°", group.len());
+        let spread = |single: f32| {
+            // b's cell a little above the rest of its group: the group's seed (within 15°).
+            let mut w = vec![-10f32; g.len()];
+            group.iter().for_each(|&i| w[i] = 4.0);
+            w[g.cell_of(&b) as usize] = 4.05;
+            w[g.cell_of(&a) as usize] = 4.0 + (group.len() as f32).ln() + single;
+            w
+        };
+        let m = image_metrics(&g, &centres, &spread(-0.3), &[b]).unwrap();
+        assert!(m.argmax_error_deg > 80.0, "argmax {}", m.argmax_error_deg);
+        assert!(m.mode_error_deg < 5.0, "first mode {}", m.mode_error_deg);
+        let m = image_metrics(&g, &centres, &spread(0.3), &[a]).unwrap();
+        assert!(
+            m.argmax_error_deg < 1e-6 && m.mode_error_deg < 1e-6,
+            "{m:?}"
+        );
+    }
 }
 
 #[test]
@@ -249,6 +288,7 @@ fn summary_counts_the_half_turn_twins() {
         log_likelihood: if e > 100.0 { -1.0 } else { 1.0 },
         spread_deg: e,
         argmax_error_deg: e,
+        mode_error_deg: 2.0 * e,
     });
     let s = summarize(&per, &[30.0]);
     assert!((s.half_turn_wrong - 0.4).abs() < 1e-12);

@@ -5,6 +5,7 @@ use rayon::prelude::*;
 
 use super::search::{self, CellProbability, SearchResult, group_modes};
 use super::{CameraPoints, Cancel, EngineError, ModelObject, Prediction, cancel};
+use crate::so3::modes::{MODE_MASS_FRACTION, MODE_MIN_MASS};
 use crate::so3::{GridLevel, to_row_major_f32};
 
 /// The depth points of one image.
@@ -195,7 +196,13 @@ pub(super) fn prediction_of(
     depth: Option<&DepthInput<'_>>,
     fitted: &[(u64, nalgebra::Vector3<f32>)],
 ) -> Prediction {
-    let modes = group_modes(grid, &result.cells, mode_angle, 0.9, 0.01);
+    let modes = group_modes(
+        grid,
+        &result.cells,
+        mode_angle,
+        MODE_MASS_FRACTION,
+        MODE_MIN_MASS,
+    );
     let top: Vec<CellProbability> = result.cells[..top_k.min(result.cells.len())].to_vec();
     let rotations: Vec<_> = top.iter().map(|c| grid.rotation(c.cell)).collect();
     let translations = match depth {

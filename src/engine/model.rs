@@ -2,6 +2,7 @@
 //! coarse-to-fine search (docs/DESIGN.md §2, "Inference"). Features come in as plain rows, one per image,
 //! as the encoder gives them ([`Model::features`]).
 
+pub use crate::so3::modes::DEFAULT_MODE_ANGLE_DEG;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -110,9 +111,6 @@ impl Prediction {
         self
     }
 }
-
-/// The angle within which top cells are grouped into one mode, unless a call gives its own.
-pub const DEFAULT_MODE_ANGLE_DEG: f64 = 15.0;
 
 /// What a prediction asks for beyond the image.
 #[derive(Debug, Clone, Default)]

@@ -7,7 +7,10 @@
 use nalgebra::Rotation3;
 use rayon::prelude::*;
 
-use super::{GridLevel, So3Error, quaternion_angle, quaternion_dot, to_quaternion};
+use super::modes::{self, Mode};
+use super::{
+    GridLevel, So3Error, from_quaternion, quaternion_angle, quaternion_dot, to_quaternion,
+};
 
 /// The metrics of one image.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -18,6 +21,38 @@ pub struct ImageMetrics {
     pub spread_deg: f64,
     /// `min_j angle(R_argmax, G_j)` in degrees.
     pub argmax_error_deg: f64,
+    /// `min_j angle(R_mode, G_j)` in degrees for the first mode's mean rotation `R_mode`: the
+    /// most massive group of the distribution's top cells, grouped as the server groups its
+    /// answer's ([`first_mode`]).
+    pub mode_error_deg: f64,
+}
+
+/// The most probable cells [`first_mode`] groups, at most: the server's answer lists fewer, and
+/// a flat distribution's first mode is not worth grouping tens of thousands of cells for.
+pub const MODE_CELLS: usize = 4096;
+
+/// The first mode of a full distribution `probs` on `grid`: its [`MODE_CELLS`] most probable
+/// cells grouped at the server's defaults ([`modes::group_modes`], 15°, 90 % of their mass).
+/// A point estimate beside the argmax: a mode whose mass is spread over a few cells outweighs a
+/// single sharper cell elsewhere.
+pub fn first_mode(grid: &GridLevel, probs: &[f64]) -> Mode {
+    let mut order: Vec<usize> = (0..probs.len()).collect();
+    let by_mass = |a: &usize, b: &usize| probs[*b].total_cmp(&probs[*a]).then(a.cmp(b));
+    if order.len() > MODE_CELLS {
+        order.select_nth_unstable_by(MODE_CELLS, by_mass);
+        order.truncate(MODE_CELLS);
+    }
+    order.sort_unstable_by(by_mass);
+    let cells: Vec<(u64, f64)> = order.iter().map(|&i| (i as u64, probs[i])).collect();
+    let angle = modes::DEFAULT_MODE_ANGLE_DEG.to_radians();
+    modes::group_modes(
+        grid,
+        &cells,
+        angle,
+        modes::MODE_MASS_FRACTION,
+        modes::MODE_MIN_MASS,
+    )
+    .swap_remove(0)
 }
 
 /// Normalised masses `p = softmax(s)`; errors when the length is not the grid's or a weight is
@@ -90,7 +125,8 @@ fn min_angle(q: &[f64; 4], gts: &[[f64; 4]]) -> f64 {
     nearest.map_or(f64::INFINITY, |g| quaternion_angle(q, g))
 }
 
-/// All metrics of one image: LL, spread and the argmax's error (see the functions above).
+/// All metrics of one image: LL, spread, the argmax's and the first mode's errors (see the
+/// functions above).
 pub fn image_metrics(
     grid: &GridLevel,
     centres: &[[f64; 4]],
@@ -107,10 +143,12 @@ pub fn image_metrics(
         .max_by(|a, b| a.1.total_cmp(b.1))
         .map(|(i, _)| i as u64)
         .unwrap_or(0);
+    let mode = from_quaternion(first_mode(grid, &probs).quaternion)?;
     Ok(ImageMetrics {
         log_likelihood: log_likelihood(grid, &probs, ground_truths),
         spread_deg: spread_deg(&probs, centres, ground_truths),
         argmax_error_deg: error_to_nearest_deg(&grid.rotation(argmax), ground_truths),
+        mode_error_deg: error_to_nearest_deg(&mode, ground_truths),
     })
 }
 
@@ -147,6 +185,27 @@ pub struct MetricsSummary {
     /// apart, not a scattered error.
     #[serde(default)]
     pub half_turn_wrong: f64,
+    /// `AR@θ` of the first mode ([`ImageMetrics::mode_error_deg`]), at the same `θ`s (empty in
+    /// reports written before it).
+    #[serde(default)]
+    pub mode_accuracy_at: Vec<(f64, f64)>,
+    /// Median over images of the first mode's error in degrees (NaN in reports before it).
+    #[serde(default = "not_measured")]
+    pub mode_median_error_deg: f64,
+}
+
+fn not_measured() -> f64 {
+    f64::NAN
+}
+
+/// The median of `values` (NaN when empty), sorting them.
+fn median(values: &mut [f64]) -> f64 {
+    values.sort_by(f64::total_cmp);
+    match values.len() {
+        0 => f64::NAN,
+        k if k % 2 == 1 => values[k / 2],
+        k => 0.5 * (values[k / 2 - 1] + values[k / 2]),
+    }
 }
 
 /// The error in degrees from which an argmax counts as the pose's half-turn twin
@@ -157,23 +216,24 @@ pub const HALF_TURN_DEG: f64 = 150.0;
 pub fn summarize(per_image: &[ImageMetrics], thresholds_deg: &[f64]) -> MetricsSummary {
     let n = per_image.len().max(1) as f64;
     let mut errors: Vec<f64> = per_image.iter().map(|m| m.argmax_error_deg).collect();
-    errors.sort_by(f64::total_cmp);
-    let median = match errors.len() {
-        0 => f64::NAN,
-        k if k % 2 == 1 => errors[k / 2],
-        k => 0.5 * (errors[k / 2 - 1] + errors[k / 2]),
+    let mut mode_errors: Vec<f64> = per_image.iter().map(|m| m.mode_error_deg).collect();
+    let (median_error_deg, mode_median_error_deg) = (median(&mut errors), median(&mut mode_errors));
+    let accuracy = |errors: &[f64]| -> Vec<(f64, f64)> {
+        thresholds_deg
+            .iter()
+            .map(|&t| (t, errors.iter().filter(|&&e| e < t).count() as f64 / n))
+            .collect()
     };
     MetricsSummary {
         images: per_image.len(),
         log_likelihood: per_image.iter().map(|m| m.log_likelihood).sum::<f64>() / n,
         spread_deg: per_image.iter().map(|m| m.spread_deg).sum::<f64>() / n,
-        accuracy_at: thresholds_deg
-            .iter()
-            .map(|&t| (t, errors.iter().filter(|&&e| e < t).count() as f64 / n))
-            .collect(),
-        median_error_deg: median,
+        accuracy_at: accuracy(&errors),
+        median_error_deg,
         confidently_wrong: per_image.iter().filter(|m| m.log_likelihood < 0.0).count() as f64 / n,
         half_turn_wrong: errors.iter().filter(|&&e| e >= HALF_TURN_DEG).count() as f64 / n,
+        mode_accuracy_at: accuracy(&mode_errors),
+        mode_median_error_deg,
     }
 }
 

@@ -3,6 +3,7 @@
 
 pub mod grid;
 pub mod metrics;
+pub mod modes;
 mod rotation;
 mod sample;
 mod symmetry;

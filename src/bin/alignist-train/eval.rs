@@ -37,6 +37,12 @@ pub(crate) fn print_eval(e: &alignist::train::eval::EvalReport) {
             100.0 * m.half_turn_wrong,
             m.images
         );
+        eprintln!(
+            "  {:8} first mode instead of the argmax: AR@30 {:.3}  median {:6.1}°",
+            "",
+            m.mode_accuracy_at.first().map_or(f64::NAN, |a| a.1),
+            m.mode_median_error_deg
+        );
     }
     if let Some((shape, feature)) = &e.per_branch {
         for (name, m) in [("shape branch", shape), ("feature branch", feature)] {
@@ -287,14 +293,15 @@ fn realistic_report(
         args.level, args.images
     );
     eprintln!(
-        "  {:42} {:>7} {:>7} {:>9}",
-        "set", "LL", "AR@30", "wrong&sure"
+        "  {:42} {:>7} {:>7} {:>10} {:>9}",
+        "set", "LL", "AR@30", "mode AR@30", "wrong&sure"
     );
     for (label, r) in &reports {
         eprintln!(
-            "  {label:42} {:7.2} {:7.3} {:8.1} %",
+            "  {label:42} {:7.2} {:7.3} {:10.3} {:8.1} %",
             r.overall.log_likelihood,
             r.overall.accuracy_at.first().map_or(f64::NAN, |a| a.1),
+            r.overall.mode_accuracy_at.first().map_or(f64::NAN, |a| a.1),
             100.0 * r.overall.confidently_wrong
         );
     }
