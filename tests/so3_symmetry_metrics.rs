@@ -1,7 +1,7 @@
 //! Symmetry groups, equivalents, metrics and the encodings.
 
 use alignist::encoding::{CUBE_ENCODING_DIM, RotationEncoding, cube_encoding, ipdf_encoding};
-use alignist::so3::metrics::{ImageMetrics, image_metrics, ll_ceiling, summarize};
+use alignist::so3::metrics::{ImageMetrics, first_mode, image_metrics, ll_ceiling, summarize};
 use alignist::so3::{
     GridLevel, SymmetryGroup, cube_vertices, equivalents, geodesic_angle, haar_rotation,
     haar_rotations, icosahedron_vertices, maps_set_to_itself, rot_z, tetrahedron_vertices,
@@ -279,6 +279,17 @@ fn the_first_mode_weighs_mass_where_the_argmax_takes_the_sharpest_cell() {
             "{m:?}"
         );
     }
+}
+
+/// Every distribution has a first mode, even one whose masses all underflowed to zero; no cells,
+/// none.
+#[test]
+fn a_first_mode_exists_for_any_cells() {
+    let g = GridLevel::new(1).unwrap();
+    let zero = first_mode(&g, &vec![0.0; g.len()]).expect("a mode of zero mass");
+    assert_eq!((zero.cells, zero.probability), (1, 0.0));
+    assert!(zero.quaternion.iter().all(|v| v.is_finite()), "{zero:?}");
+    assert!(first_mode(&g, &[]).is_none());
 }
 
 #[test]

@@ -34,8 +34,8 @@ pub const MODE_CELLS: usize = 4096;
 /// The first mode of a full distribution `probs` on `grid`: its [`MODE_CELLS`] most probable
 /// cells grouped at the server's defaults ([`modes::group_modes`], 15°, 90 % of their mass).
 /// A point estimate beside the argmax: a mode whose mass is spread over a few cells outweighs a
-/// single sharper cell elsewhere.
-pub fn first_mode(grid: &GridLevel, probs: &[f64]) -> Mode {
+/// single sharper cell elsewhere. `None` for no cells.
+pub fn first_mode(grid: &GridLevel, probs: &[f64]) -> Option<Mode> {
     let mut order: Vec<usize> = (0..probs.len()).collect();
     let by_mass = |a: &usize, b: &usize| probs[*b].total_cmp(&probs[*a]).then(a.cmp(b));
     if order.len() > MODE_CELLS {
@@ -52,7 +52,8 @@ pub fn first_mode(grid: &GridLevel, probs: &[f64]) -> Mode {
         modes::MODE_MASS_FRACTION,
         modes::MODE_MIN_MASS,
     )
-    .swap_remove(0)
+    .into_iter()
+    .next()
 }
 
 /// Normalised masses `p = softmax(s)`; errors when the length is not the grid's or a weight is
@@ -143,7 +144,10 @@ pub fn image_metrics(
         .max_by(|a, b| a.1.total_cmp(b.1))
         .map(|(i, _)| i as u64)
         .unwrap_or(0);
-    let mode = from_quaternion(first_mode(grid, &probs).quaternion)?;
+    let mode = match first_mode(grid, &probs) {
+        Some(m) => from_quaternion(m.quaternion)?,
+        None => grid.rotation(argmax),
+    };
     Ok(ImageMetrics {
         log_likelihood: log_likelihood(grid, &probs, ground_truths),
         spread_deg: spread_deg(&probs, centres, ground_truths),

@@ -44,7 +44,8 @@ pub fn group_modes(
     let mut members: Vec<Vec<([f64; 4], f64)>> = Vec::new();
     let mut so_far = 0.0;
     for &(cell, probability) in cells {
-        if so_far >= mass_fraction * total {
+        // The first cell always seeds a mode (even when every mass is zero).
+        if !seeds.is_empty() && so_far >= mass_fraction * total {
             break;
         }
         so_far += probability;
@@ -88,7 +89,13 @@ fn mode_of(seed: &[f64; 4], cells: &[([f64; 4], f64)]) -> Mode {
         }
         mass += p;
     }
-    let mean = UnitQuaternion::from_quaternion(Quaternion::new(sum[0], sum[1], sum[2], sum[3]));
+    // Cells of no mass (underflowed) have no weighted mean: their seed stands for them.
+    let mean = match mass > 0.0 {
+        true => UnitQuaternion::from_quaternion(Quaternion::new(sum[0], sum[1], sum[2], sum[3])),
+        false => {
+            UnitQuaternion::from_quaternion(Quaternion::new(seed[0], seed[1], seed[2], seed[3]))
+        }
+    };
     let mean = to_quaternion(&Rotation3::from(mean));
     let spread = cells
         .iter()
