@@ -3,7 +3,8 @@
 //! training device, on plain NCHW f32 batches, without the autodiff graph's per-op tensors.
 //!
 //! - A convolution (no bias, padding `k / 2`) is one GEMM per image over its im2col columns:
-//!   `Y = W·cols(x)` with `W` as `[C_out, C_in·k·k]`; backward `dW = Σ_images dY·cols(x)ᵀ` and
+//!   `Y = W·cols(x)` with `W` as `[C_out, C_in·k·k]`; backward `dW = Σ_images dY·cols(x)ᵀ`, its
+//!   right operand read from im2row's rows (`cols(x)ᵀ`, one row per output pixel), and
 //!   `dx = col2im(Wᵀ·dY)`.
 //! - BatchNorm uses the batch's statistics (biased variance, as burn) and updates the running
 //!   ones by `momentum`; backward `dx = γ/σ · (dy − mean(dy) − x̂·mean(dy·x̂))`, `dγ = Σ dy·x̂`,
