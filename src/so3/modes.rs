@@ -91,12 +91,11 @@ fn mode_of(seed: &[f64; 4], cells: &[([f64; 4], f64)]) -> Mode {
     }
     // Cells of no mass (underflowed) have no weighted mean: their seed stands for them.
     let mean = match mass > 0.0 {
-        true => UnitQuaternion::from_quaternion(Quaternion::new(sum[0], sum[1], sum[2], sum[3])),
-        false => {
-            UnitQuaternion::from_quaternion(Quaternion::new(seed[0], seed[1], seed[2], seed[3]))
-        }
+        true => to_quaternion(&Rotation3::from(UnitQuaternion::from_quaternion(
+            Quaternion::new(sum[0], sum[1], sum[2], sum[3]),
+        ))),
+        false => *seed,
     };
-    let mean = to_quaternion(&Rotation3::from(mean));
     let spread = cells
         .iter()
         .map(|(q, p)| p * quaternion_angle(&mean, q))
