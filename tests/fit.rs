@@ -281,6 +281,24 @@ fn fresh_renders_fit_with_their_loss_and_sampling(p: &Pipeline) {
     };
     let json = eval_fresh("3", &[]);
     assert_eq!(json["overall"]["images"], 3);
+    assert!(json.get("served").is_none(), "{json}");
+    // With --served: the same crops answered by the serving engine's search, its top-1 and first
+    // mode scored per object and overall.
+    let json = eval_fresh("3", &["--served", "--top-k", "4"]);
+    let served = &json["served"];
+    assert_eq!(served["top_k"], 4, "{json}");
+    assert_eq!(served["overall"]["images"], 3);
+    assert_eq!(served["per_object"][0][0], "cube");
+    assert_eq!(served["per_object"][0][1]["images"], 3);
+    assert!(
+        served["search"].as_str().unwrap().starts_with("start "),
+        "{served}"
+    );
+    for key in ["top1_median_error_deg", "mode_median_error_deg"] {
+        let e = served["overall"][key].as_f64().unwrap();
+        assert!((0.0..=180.0).contains(&e), "{key} {e}");
+    }
+    assert!(served["search_p50_ms"].as_f64().unwrap() > 0.0);
     // With --realistic: clean renders, the held-out split's crops with exact and detector boxes,
     // and the training split's with exact boxes, one report each.
     let json = eval_fresh("2", &["--realistic"]);

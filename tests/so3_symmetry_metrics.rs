@@ -246,6 +246,19 @@ fn summary_gives_accuracy_and_median() {
     assert!((s.mode_median_error_deg - 50.0).abs() < 1e-12);
 }
 
+/// A point estimate's errors alone (the served answers' summary): the share below each `θ` (strictly)
+/// and the median, which for no errors is NaN with no share counted.
+#[test]
+fn point_errors_give_accuracy_and_median() {
+    use alignist::so3::metrics::accuracy_and_median;
+    let (acc, median) = accuracy_and_median(&[50.0, 30.0, 3.0], &[30.0, 60.0]);
+    assert_eq!(acc, vec![(30.0, 1.0 / 3.0), (60.0, 1.0)]);
+    assert_eq!(median, 30.0);
+    let (acc, median) = accuracy_and_median(&[], &[30.0]);
+    assert_eq!(acc, vec![(30.0, 0.0)]);
+    assert!(median.is_nan());
+}
+
 /// A mode of several cells outweighs one sharper cell 90° away: the argmax answers the sharp
 /// cell, the first mode the massive one; raise the single cell above the group's mass and the
 /// two agree on it.

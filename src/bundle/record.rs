@@ -589,4 +589,44 @@ pub struct EvalReport {
     /// LL 0 and this AR@30.
     #[serde(default)]
     pub chance_ar30: Vec<(String, f64)>,
+    /// The same images answered as the server answers them (`eval --served`): absent otherwise
+    /// and in reports written before it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub served: Option<ServedReport>,
+}
+
+/// What the server answers for an evaluation's images: the engine loaded as `alignist-server`
+/// loads it (its search calibrated on the machine that runs the evaluation), one search per
+/// image, the answer's top-1 rotation and its first mode scored like the argmax (docs/DESIGN.md
+/// §2, "served").
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct ServedReport {
+    /// The search the engine ran (the calibration's choice), as the server logs it.
+    pub search: String,
+    /// The search's finest level.
+    pub level: u8,
+    /// Top-k asked of each search.
+    pub top_k: usize,
+    /// Per object.
+    pub per_object: Vec<(String, ServedSummary)>,
+    /// All images.
+    pub overall: ServedSummary,
+    /// Median time of one image's search (the encoder's not included), milliseconds.
+    pub search_p50_ms: f64,
+}
+
+/// The served answers' errors over a set of images.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct ServedSummary {
+    /// Number of images.
+    pub images: usize,
+    /// `AR@θ` of the answer's top-1 rotation (the search's most probable cell), as
+    /// `(θ in degrees, fraction)`.
+    pub top1_accuracy_at: Vec<(f64, f64)>,
+    /// Median error of the top-1 rotation, degrees.
+    pub top1_median_error_deg: f64,
+    /// `AR@θ` of the answer's first mode (`modes[0]`, the most massive group of its cells).
+    pub mode_accuracy_at: Vec<(f64, f64)>,
+    /// Median error of the first mode, degrees.
+    pub mode_median_error_deg: f64,
 }

@@ -216,27 +216,34 @@ fn median(values: &mut [f64]) -> f64 {
 /// ([`MetricsSummary::half_turn_wrong`]).
 pub const HALF_TURN_DEG: f64 = 150.0;
 
+/// `AR@θ` for each `θ` of `thresholds_deg` (the share of `errors_deg` below it, as `(θ,
+/// share)`) and the median error: how a point estimate's errors are summarised.
+pub fn accuracy_and_median(errors_deg: &[f64], thresholds_deg: &[f64]) -> (Vec<(f64, f64)>, f64) {
+    let n = errors_deg.len().max(1) as f64;
+    let accuracy = thresholds_deg
+        .iter()
+        .map(|&t| (t, errors_deg.iter().filter(|&&e| e < t).count() as f64 / n))
+        .collect();
+    (accuracy, median(&mut errors_deg.to_vec()))
+}
+
 /// Averages per-image metrics; `thresholds_deg` are the `θ` of `AR@θ` (e.g. `[30.0]`).
 pub fn summarize(per_image: &[ImageMetrics], thresholds_deg: &[f64]) -> MetricsSummary {
     let n = per_image.len().max(1) as f64;
-    let mut errors: Vec<f64> = per_image.iter().map(|m| m.argmax_error_deg).collect();
-    let mut mode_errors: Vec<f64> = per_image.iter().map(|m| m.mode_error_deg).collect();
-    let (median_error_deg, mode_median_error_deg) = (median(&mut errors), median(&mut mode_errors));
-    let accuracy = |errors: &[f64]| -> Vec<(f64, f64)> {
-        thresholds_deg
-            .iter()
-            .map(|&t| (t, errors.iter().filter(|&&e| e < t).count() as f64 / n))
-            .collect()
-    };
+    let errors: Vec<f64> = per_image.iter().map(|m| m.argmax_error_deg).collect();
+    let mode_errors: Vec<f64> = per_image.iter().map(|m| m.mode_error_deg).collect();
+    let (accuracy_at, median_error_deg) = accuracy_and_median(&errors, thresholds_deg);
+    let (mode_accuracy_at, mode_median_error_deg) =
+        accuracy_and_median(&mode_errors, thresholds_deg);
     MetricsSummary {
         images: per_image.len(),
         log_likelihood: per_image.iter().map(|m| m.log_likelihood).sum::<f64>() / n,
         spread_deg: per_image.iter().map(|m| m.spread_deg).sum::<f64>() / n,
-        accuracy_at: accuracy(&errors),
+        accuracy_at,
         median_error_deg,
         confidently_wrong: per_image.iter().filter(|m| m.log_likelihood < 0.0).count() as f64 / n,
         half_turn_wrong: errors.iter().filter(|&&e| e >= HALF_TURN_DEG).count() as f64 / n,
-        mode_accuracy_at: accuracy(&mode_errors),
+        mode_accuracy_at,
         mode_median_error_deg,
     }
 }

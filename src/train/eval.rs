@@ -6,11 +6,13 @@ use std::time::Instant;
 
 use nalgebra::Rotation3;
 
-pub use crate::bundle::record::EvalReport;
+pub use crate::bundle::record::{EvalReport, ServedReport, ServedSummary};
+use crate::engine::{EngineError, Model, PredictOptions};
 use crate::net::{Network, NetworkConfig, ProjectedGrid, images_tensor};
 use crate::so3::So3Error;
 use crate::so3::metrics::{
-    ImageMetrics, MetricsSummary, chance_accuracy, image_metrics, summarize,
+    ImageMetrics, MetricsSummary, accuracy_and_median, chance_accuracy, error_to_nearest_deg,
+    image_metrics, summarize,
 };
 
 /// A test image: crop and every equivalent ground truth.
@@ -77,7 +79,7 @@ pub fn evaluate(
         }
         progress((n + 1) * 4);
     }
-    let thresholds = [30.0];
+    let thresholds = THRESHOLDS_DEG;
     let mut objects: Vec<String> = per_image.iter().map(|(o, _)| o.clone()).collect();
     objects.sort();
     objects.dedup();
@@ -115,5 +117,79 @@ pub fn evaluate(
             summarize(&feature_only, &thresholds),
         )),
         chance_ar30,
+        served: None,
+    })
+}
+
+/// The thresholds `θ` of the `AR@θ` an evaluation reports.
+const THRESHOLDS_DEG: [f64; 1] = [30.0];
+
+/// Answers `images` as the server does (docs/DESIGN.md §2, "served"): each crop's features,
+/// then one search of `model`'s default (its calibrated search to its default level) with
+/// `top_k`, timed alone; the errors of the answer's top-1 rotation and of its first mode
+/// against the nearest equivalent truth, per object and overall.
+pub fn evaluate_served(
+    model: &Model,
+    images: &[EvalImage],
+    top_k: usize,
+    mut progress: impl FnMut(usize),
+) -> Result<ServedReport, EngineError> {
+    let options = PredictOptions {
+        top_k,
+        ..Default::default()
+    };
+    let checked = model.check_predict(&options)?;
+    // Per image: (object, top-1 error, first mode's error), and each search's seconds.
+    let mut rows: Vec<(&str, f64, f64)> = Vec::with_capacity(images.len());
+    let mut seconds = Vec::with_capacity(images.len());
+    for (n, batch) in images.chunks(4).enumerate() {
+        let crops: Vec<&[u8]> = batch.iter().map(|i| i.rgb.as_slice()).collect();
+        for (im, features) in batch.iter().zip(model.features(&crops)?) {
+            let started = Instant::now();
+            let answer = model
+                .predict_checked(&[features], &checked, &[None])?
+                .swap_remove(0);
+            seconds.push(started.elapsed().as_secs_f64());
+            let error = |q: &[f64; 4]| -> Result<f64, EngineError> {
+                let r = crate::so3::from_quaternion(*q)?;
+                Ok(error_to_nearest_deg(&r, &im.equivalents))
+            };
+            let top1 = answer.rotations.first().map_or(Ok(f64::NAN), error)?;
+            let mode = answer
+                .modes
+                .first()
+                .map_or(Ok(f64::NAN), |m| error(&m.quaternion))?;
+            rows.push((im.object.as_str(), top1, mode));
+        }
+        progress(rows.len().min((n + 1) * 4));
+    }
+    let summary = |keep: &dyn Fn(&str) -> bool| {
+        let picked: Vec<&(&str, f64, f64)> = rows.iter().filter(|r| keep(r.0)).collect();
+        let top1: Vec<f64> = picked.iter().map(|r| r.1).collect();
+        let mode: Vec<f64> = picked.iter().map(|r| r.2).collect();
+        let (top1_accuracy_at, top1_median_error_deg) = accuracy_and_median(&top1, &THRESHOLDS_DEG);
+        let (mode_accuracy_at, mode_median_error_deg) = accuracy_and_median(&mode, &THRESHOLDS_DEG);
+        ServedSummary {
+            images: picked.len(),
+            top1_accuracy_at,
+            top1_median_error_deg,
+            mode_accuracy_at,
+            mode_median_error_deg,
+        }
+    };
+    let mut objects: Vec<&str> = rows.iter().map(|r| r.0).collect();
+    objects.sort_unstable();
+    objects.dedup();
+    let (_, search_p50_ms) = accuracy_and_median(&seconds, &[]);
+    Ok(ServedReport {
+        search: model.config().search().to_string(),
+        level: checked.level(),
+        top_k,
+        per_object: objects
+            .iter()
+            .map(|o| (o.to_string(), summary(&|p| p == *o)))
+            .collect(),
+        overall: summary(&|_| true),
+        search_p50_ms: search_p50_ms * 1e3,
     })
 }

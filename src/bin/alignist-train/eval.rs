@@ -44,6 +44,27 @@ pub(crate) fn print_eval(e: &alignist::train::eval::EvalReport) {
             m.mode_median_error_deg
         );
     }
+    if let Some(s) = &e.served {
+        eprintln!(
+            "  served as alignist-server answers (search {}, to level {}, top-{}; search p50 {:.1} ms):",
+            s.search, s.level, s.top_k, s.search_p50_ms
+        );
+        for (name, m) in s
+            .per_object
+            .iter()
+            .map(|(n, m)| (n.as_str(), m))
+            .chain([("all", &s.overall)])
+        {
+            eprintln!(
+                "  {name:8} top-1 AR@30 {:.3}  median {:6.1}°   first mode AR@30 {:.3}  median {:6.1}°  ({} images)",
+                m.top1_accuracy_at.first().map_or(f64::NAN, |a| a.1),
+                m.top1_median_error_deg,
+                m.mode_accuracy_at.first().map_or(f64::NAN, |a| a.1),
+                m.mode_median_error_deg,
+                m.images
+            );
+        }
+    }
     if let Some((shape, feature)) = &e.per_branch {
         for (name, m) in [("shape branch", shape), ("feature branch", feature)] {
             eprintln!(
@@ -116,6 +137,15 @@ pub(crate) struct EvalArgs {
     /// Fraction of the object's depth pixels dropped.
     #[arg(long, default_value_t = 0.1, requires = "depth")]
     depth_missing: f64,
+    /// Also answer every test crop as `alignist-server` does: the bundle loaded into the serving
+    /// engine (its search calibrated on this machine), one search per crop with --top-k; prints
+    /// the AR@30 and median error of the answer's top-1 rotation and of its first mode beside
+    /// the full grid's argmax, and writes them in the report (`served`).
+    #[arg(long, conflicts_with_all = ["depth", "frames"])]
+    served: bool,
+    /// With --served: the top-k asked of each search (the `alignist` client's default).
+    #[arg(long, default_value_t = 10, requires = "served")]
+    top_k: usize,
 }
 
 /// `eval --fresh --depth`: image only against fused with clean and spoiled depth.
@@ -189,22 +219,44 @@ fn depth_report(args: &EvalArgs, renders: &alignist::train::data::BundleRenders)
     Ok(())
 }
 
-/// Evaluates `bundle` on `tests` at `level` with a progress bar.
+/// Evaluates `bundle` on `tests` at `level` with a progress bar; with `served` (the bundle as
+/// the serving engine loaded it, and the top-k), also the server's answers.
 fn evaluate_shown(
     bundle: &alignist::bundle::model::ModelBundle,
     tests: &[alignist::train::eval::EvalImage],
     level: u8,
+    served: Option<(&alignist::engine::Model, usize)>,
 ) -> Result<alignist::train::eval::EvalReport> {
     let bar = ProgressBar::new(tests.len() as u64);
-    let report = alignist::train::eval::evaluate(
+    let mut report = alignist::train::eval::evaluate(
         &bundle.network,
         &bundle.manifest.network,
         tests,
         level,
         |n| bar.set_position(n as u64),
     )?;
+    if let Some((model, top_k)) = served {
+        bar.set_position(0);
+        report.served = Some(alignist::train::eval::evaluate_served(
+            model,
+            tests,
+            top_k,
+            |n| bar.set_position(n as u64),
+        )?);
+    }
     bar.finish_and_clear();
     Ok(report)
+}
+
+/// With `--served`: the bundle loaded as `alignist-server` loads it (search calibrated here).
+fn served_model(args: &EvalArgs) -> Result<Option<alignist::engine::Model>> {
+    use alignist::engine::{Engine, EngineConfig};
+    if !args.served {
+        return Ok(None);
+    }
+    let model = Engine::load_model(&args.model, EngineConfig::default())
+        .with_context(|| format!("loading --model {} for the engine", args.model.display()))?;
+    Ok(Some(model))
 }
 
 /// `eval --fresh --frames`: the same poses as directly rendered crops, as perspective crops of
@@ -222,7 +274,7 @@ fn frames_report(
     let mut reports = Vec::new();
     for (label, tests) in labels.iter().zip(&sets) {
         eprintln!("{label}: {} images", tests.len());
-        let report = evaluate_shown(bundle, tests, args.level)?;
+        let report = evaluate_shown(bundle, tests, args.level, None)?;
         reports.push(serde_json::json!({ "crops": label, "report": report }));
     }
     let text = serde_json::to_string_pretty(&reports)?;
@@ -281,10 +333,12 @@ fn realistic_report(
             }),
         ),
     ];
+    let model = served_model(args)?;
+    let served = model.as_ref().map(|m| (m, args.top_k));
     let mut reports = Vec::new();
     for (label, tests) in &sets {
         eprintln!("{label}: {} images", tests.len());
-        let report = evaluate_shown(bundle, tests, args.level)?;
+        let report = evaluate_shown(bundle, tests, args.level, served)?;
         print_eval(&report);
         reports.push((label, report));
     }
@@ -293,16 +347,24 @@ fn realistic_report(
         args.level, args.images
     );
     eprintln!(
-        "  {:42} {:>7} {:>7} {:>10} {:>9}",
-        "set", "LL", "AR@30", "mode AR@30", "wrong&sure"
+        "  {:42} {:>7} {:>7} {:>10} {:>9} {:>12} {:>12}",
+        "set", "LL", "AR@30", "mode AR@30", "wrong&sure", "served top-1", "served mode"
     );
     for (label, r) in &reports {
+        let served = |pick: fn(&alignist::train::eval::ServedSummary) -> &Vec<(f64, f64)>| {
+            r.served
+                .as_ref()
+                .and_then(|s| pick(&s.overall).first())
+                .map_or(f64::NAN, |a| a.1)
+        };
         eprintln!(
-            "  {label:42} {:7.2} {:7.3} {:10.3} {:8.1} %",
+            "  {label:42} {:7.2} {:7.3} {:10.3} {:8.1} % {:12.3} {:12.3}",
             r.overall.log_likelihood,
             r.overall.accuracy_at.first().map_or(f64::NAN, |a| a.1),
             r.overall.mode_accuracy_at.first().map_or(f64::NAN, |a| a.1),
-            100.0 * r.overall.confidently_wrong
+            100.0 * r.overall.confidently_wrong,
+            served(|s| &s.top1_accuracy_at),
+            served(|s| &s.mode_accuracy_at),
         );
     }
     let json: Vec<_> = reports
@@ -318,7 +380,6 @@ pub(crate) fn eval_cmd(args: &EvalArgs) -> Result<()> {
     use alignist::bundle::model::ModelBundle;
     use alignist::data::BopDataset;
     use alignist::train::data::eval_images;
-    use alignist::train::eval::evaluate;
 
     if args.level > alignist::train::eval::MAX_EVAL_LEVEL {
         bail!(
@@ -380,15 +441,13 @@ pub(crate) fn eval_cmd(args: &EvalArgs) -> Result<()> {
         }
         tests.extend(eval_images(&ds, name, size, args.images)?);
     }
-    let bar = ProgressBar::new(tests.len() as u64);
-    let report = evaluate(
-        &bundle.network,
-        &bundle.manifest.network,
+    let model = served_model(args)?;
+    let report = evaluate_shown(
+        &bundle,
         &tests,
         args.level,
-        |n| bar.set_position(n as u64),
+        model.as_ref().map(|m| (m, args.top_k)),
     )?;
-    bar.finish_and_clear();
     let text = serde_json::to_string_pretty(&report)?;
     std::fs::write(&args.out, text).with_context(|| format!("writing {}", args.out.display()))?;
     print_eval(&report);
