@@ -268,6 +268,15 @@ fn fresh_renders_fit_with_their_loss_and_sampling(p: &Pipeline) {
         "{table}"
     );
     assert!(table.contains("fresh renders"), "{table}");
+    // The first mode's AR@30 closes every row of the metrics table: an evaluated share.
+    assert!(table.contains("| median ° | first mode AR@30 |"), "{table}");
+    let rows: Vec<&str> = table.lines().filter(|l| l.contains("| cube |")).collect();
+    assert!(!rows.is_empty(), "{table}");
+    for row in rows {
+        let cells: Vec<&str> = row.trim_end_matches('|').split('|').collect();
+        let share: f64 = cells.last().unwrap().trim().parse().unwrap();
+        assert!((0.0..=1.0).contains(&share), "{row}");
+    }
     // eval --fresh renders its own test crops of every object of the bundle.
     let eval_fresh = |images: &str, extra: &[&str]| -> serde_json::Value {
         let args = [

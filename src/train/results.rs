@@ -1,6 +1,6 @@
 //! The results tables of evaluated bundles (`alignist-train results`, `docs/RESULTS.md`): per
 //! object and model, LL beside the grid's ceiling, spread, AR@30 beside the symmetry group's
-//! chance, median error; then how each model was trained.
+//! chance, median error, the first mode's AR@30; then how each model was trained.
 
 use std::fmt::Write;
 
@@ -21,6 +21,13 @@ fn ar30(s: &MetricsSummary) -> f64 {
     s.accuracy_at.first().map_or(f64::NAN, |a| a.1)
 }
 
+/// The first mode's AR@30 (DESIGN §2), blank for evaluations written before it was measured.
+fn mode_ar30(s: &MetricsSummary) -> String {
+    s.mode_accuracy_at
+        .first()
+        .map_or(String::new(), |a| format!("{:.2}", a.1))
+}
+
 /// Per object, then the mean: one row per model.
 fn metrics_table(rows: &[(String, ModelManifest)]) -> String {
     let mut objects: Vec<String> = Vec::new();
@@ -32,8 +39,8 @@ fn metrics_table(rows: &[(String, ModelManifest)]) -> String {
         }
     }
     let mut out = String::from(
-        "| model | object | images | LL | ceiling | spread ° | AR@30 | chance AR@30 | median ° |\n\
-         |---|---|---|---|---|---|---|---|---|\n",
+        "| model | object | images | LL | ceiling | spread ° | AR@30 | chance AR@30 | median ° | first mode AR@30 |\n\
+         |---|---|---|---|---|---|---|---|---|---|\n",
     );
     for object in objects.iter().map(Some).chain([None]) {
         for (name, m) in rows {
@@ -58,14 +65,15 @@ fn metrics_table(rows: &[(String, ModelManifest)]) -> String {
             };
             let _ = writeln!(
                 out,
-                "| {name} | {} | {} | {:.2} | {ceiling} | {:.1} | {:.2} | {} | {:.1} |",
+                "| {name} | {} | {} | {:.2} | {ceiling} | {:.1} | {:.2} | {} | {:.1} | {} |",
                 object.map_or("**mean**", |o| o.as_str()),
                 summary.images,
                 summary.log_likelihood,
                 summary.spread_deg,
                 ar30(summary),
                 chance.map_or(String::new(), |c| format!("{c:.2}")),
-                summary.median_error_deg
+                summary.median_error_deg,
+                mode_ar30(summary)
             );
         }
     }
