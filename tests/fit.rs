@@ -223,7 +223,6 @@ fn resume_and_stop_at_finish_a_run(p: &Pipeline) {
 /// Fresh renders instead of --data, with the L1 loss and half of K from the mode table.
 fn fresh_renders_fit_with_their_loss_and_sampling(p: &Pipeline) {
     let (bundle, dir) = (&p.bundle, &p.dir);
-    let report = dir.path().join("report.json");
     // Fresh renders instead of --data, with the L1 loss and half of K from the mode table: the
     // results table names each bundle's method as it was trained (it once printed
     // "alignist (GKL)" for every alignist bundle).
@@ -277,16 +276,21 @@ fn fresh_renders_fit_with_their_loss_and_sampling(p: &Pipeline) {
         let share: f64 = cells.last().unwrap().trim().parse().unwrap();
         assert!((0.0..=1.0).contains(&share), "{row}");
     }
-    // eval --fresh renders its own test crops of every object of the bundle.
+    eval_fresh_renders_its_own_crops(&fresh, &dir.path().join("report.json"));
+}
+
+/// `eval --fresh` renders its own test crops of every object of the bundle `fresh`; with
+/// `--served` it also answers them as the server does; with `--realistic` it scores four sets.
+fn eval_fresh_renders_its_own_crops(fresh: &Path, report: &Path) {
     let eval_fresh = |images: &str, extra: &[&str]| -> serde_json::Value {
         let args = [
-            &["eval", "--model", s(&fresh), "--fresh", "--images", images][..],
+            &["eval", "--model", s(fresh), "--fresh", "--images", images][..],
             extra,
-            &["--level", "1", "--out", s(&report)],
+            &["--level", "1", "--out", s(report)],
         ]
         .concat();
         run(&args);
-        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap()
+        serde_json::from_str(&std::fs::read_to_string(report).unwrap()).unwrap()
     };
     let json = eval_fresh("3", &[]);
     assert_eq!(json["overall"]["images"], 3);

@@ -142,7 +142,7 @@ pub fn evaluate_served(
     // Per image: (object, top-1 error, first mode's error), and each search's seconds.
     let mut rows: Vec<(&str, f64, f64)> = Vec::with_capacity(images.len());
     let mut seconds = Vec::with_capacity(images.len());
-    for (n, batch) in images.chunks(4).enumerate() {
+    for batch in images.chunks(4) {
         let crops: Vec<&[u8]> = batch.iter().map(|i| i.rgb.as_slice()).collect();
         for (im, features) in batch.iter().zip(model.features(&crops)?) {
             let started = Instant::now();
@@ -161,7 +161,7 @@ pub fn evaluate_served(
                 .map_or(Ok(f64::NAN), |m| error(&m.quaternion))?;
             rows.push((im.object.as_str(), top1, mode));
         }
-        progress(rows.len().min((n + 1) * 4));
+        progress(rows.len());
     }
     let summary = |keep: &dyn Fn(&str) -> bool| {
         let picked: Vec<&(&str, f64, f64)> = rows.iter().filter(|r| keep(r.0)).collect();
