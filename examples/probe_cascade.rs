@@ -9,10 +9,10 @@
 //! `cargo run --release --example probe_cascade -- TEACHER STUDENT [IMAGES]`
 use std::time::Instant;
 
-use alignist::client::load::quantile;
 use alignist::engine::search::{Keep, coarse_to_fine_many};
 use alignist::engine::{Engine, EngineConfig, Model};
 use alignist::net::Precision;
+use alignist::so3::metrics::quantile;
 use alignist::so3::{GridLevel, covering_radius, geodesic_angle, to_row_major_f32};
 
 /// One cascade: start level 1, `keep` cells tapered ×0.5 a level (never fewer than `floor`),

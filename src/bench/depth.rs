@@ -9,12 +9,12 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use crate::cad::{RenderOptions, render};
-use crate::client::load::quantile;
 use crate::data::virtual_crop::{frame_camera, object_pixel_box, random_placement};
 use crate::engine::{
     CropBox, DepthInput, DepthRequest, ImageRequest, Intrinsics, Model, PredictOptions, SeenPoints,
     back_project, decode_depth,
 };
+use crate::so3::metrics::quantile;
 use crate::train::data::BundleRenders;
 
 /// One rendered RGB-D frame of one object.

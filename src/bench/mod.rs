@@ -14,12 +14,12 @@ use std::time::{Duration, Instant};
 
 use rayon::prelude::*;
 
-use crate::client::load::quantile;
 use crate::engine::{Engine, EngineConfig, ImageRequest, Model, PredictOptions};
 use crate::net::Precision;
 use crate::serve::BatchConfig;
 use crate::serve::proto::{ImageInput, PredictRequest};
 use crate::serve::server::{ServerConfig, run};
+use crate::so3::metrics::quantile;
 
 /// Best-of-`reps` seconds of `f`.
 fn best_of(reps: usize, mut f: impl FnMut()) -> f64 {

@@ -8,9 +8,9 @@
 use std::time::Instant;
 
 use crate::bundle::study::{SearchStudy, StudiedSearch};
-use crate::client::load::quantile;
 use crate::engine::{EngineError, Model, PredictOptions, RESCORED_CELLS, SearchParams};
 use crate::net::Precision;
+use crate::so3::metrics::quantile;
 use crate::so3::{covering_radius, geodesic_angle};
 
 /// What one candidate search scored.

@@ -7,6 +7,7 @@ use std::time::{Duration, Instant};
 use super::ClientError;
 use crate::serve::proto::PredictRequest;
 use crate::serve::proto::alignist_client::AlignistClient;
+use crate::so3::metrics::quantile;
 
 /// What a load run measured.
 #[derive(Debug, Clone, PartialEq)]
@@ -71,16 +72,6 @@ pub fn is_loopback(url: &str) -> bool {
         || host
             .parse::<std::net::IpAddr>()
             .is_ok_and(|ip| ip.is_loopback())
-}
-
-/// The `q`-quantile (nearest rank) of `values`, in any order.
-pub fn quantile(values: &[f64], q: f64) -> f64 {
-    if values.is_empty() {
-        return f64::NAN;
-    }
-    let mut sorted = values.to_vec();
-    sorted.sort_by(f64::total_cmp);
-    sorted[((sorted.len() - 1) as f64 * q).round() as usize]
 }
 
 /// Sends `requests` copies of `request`, `concurrency` at a time, over `channels` (round-robin).

@@ -212,6 +212,17 @@ fn median(values: &mut [f64]) -> f64 {
     }
 }
 
+/// The `q`-quantile (nearest rank) of `values`, in any order: every latency figure's p50/p99
+/// (the benches, the load client, `eval --served`).
+pub fn quantile(values: &[f64], q: f64) -> f64 {
+    if values.is_empty() {
+        return f64::NAN;
+    }
+    let mut sorted = values.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    sorted[((sorted.len() - 1) as f64 * q).round() as usize]
+}
+
 /// The error in degrees from which an argmax counts as the pose's half-turn twin
 /// ([`MetricsSummary::half_turn_wrong`]).
 pub const HALF_TURN_DEG: f64 = 150.0;

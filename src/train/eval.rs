@@ -189,6 +189,6 @@ pub fn evaluate_served(
             .map(|o| (o.to_string(), summary(&|p| p == *o)))
             .collect(),
         overall: summary(&|_| true),
-        search_p50_ms: crate::client::load::quantile(&seconds, 0.5) * 1e3,
+        search_p50_ms: crate::so3::metrics::quantile(&seconds, 0.5) * 1e3,
     })
 }
