@@ -10,7 +10,7 @@
 //! icosahedron and cylinder (whose flip is a half-turn about the line of sight).
 //! `cargo run --release --example probe_flips [BUNDLE] [IMAGES_PER_OBJECT] [LEVEL]`
 use alignist::bundle::model::ModelBundle;
-use alignist::data::realism::Realism;
+use alignist::data::realism::Split;
 use alignist::net::{ProjectedGrid, images_tensor};
 use alignist::train::data::BundleRenders;
 use nalgebra::{Matrix3, Rotation3};
@@ -41,12 +41,7 @@ fn main() -> anyhow::Result<()> {
     let bundle = ModelBundle::load(&path)?;
     let config = &bundle.manifest.network;
     let renders = BundleRenders::of(&bundle, 2);
-    let images = renders.realistic_eval_images(
-        config.image_size,
-        per_object,
-        (1u64 << 40).wrapping_add(1),
-        Realism::HELD_OUT,
-    );
+    let images = renders.eval_realistic_images(config.image_size, per_object, Split::HeldOut);
     let device = alignist::backend::device_for(alignist::backend::Workload::Conv);
     let projected = ProjectedGrid::new(&bundle.network, config, level)?;
     let depth_mirror = Matrix3::from_diagonal(&nalgebra::Vector3::new(1.0, 1.0, -1.0));

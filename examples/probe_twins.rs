@@ -12,7 +12,7 @@
 //! help when the misses sit there.
 //! `cargo run --release --example probe_twins BUNDLE [IMAGES_PER_PART] [LEVEL] [train|held-out]`
 use alignist::bundle::model::ModelBundle;
-use alignist::data::realism::{Realism, Split};
+use alignist::data::realism::Split;
 use alignist::net::{ProjectedGrid, images_tensor};
 use alignist::so3::metrics::HALF_TURN_DEG;
 use alignist::train::data::BundleRenders;
@@ -157,23 +157,15 @@ fn main() -> anyhow::Result<()> {
     };
     let per_part: usize = args.get(2).map_or(Ok(50), |s| s.parse())?;
     let level: u8 = args.get(3).map_or(Ok(3), |s| s.parse())?;
-    let split = match args.get(4).map_or("held-out", |s| s.as_str()) {
-        "train" => Split::Train,
-        "held-out" => Split::HeldOut,
-        other => anyhow::bail!("the split is train or held-out, not {other}"),
-    };
+    let split: Split = args
+        .get(4)
+        .map_or("held-out", |s| s.as_str())
+        .parse()
+        .map_err(anyhow::Error::msg)?;
     let bundle = ModelBundle::load(&path)?;
     let config = &bundle.manifest.network;
     let renders = BundleRenders::of(&bundle, 2);
-    let images = renders.realistic_eval_images(
-        config.image_size,
-        per_part,
-        (1u64 << 40).wrapping_add(1),
-        Realism {
-            split,
-            ..Realism::HELD_OUT
-        },
-    );
+    let images = renders.eval_realistic_images(config.image_size, per_part, split);
     let device = alignist::backend::device_for(alignist::backend::Workload::Conv);
     let projected = ProjectedGrid::new(&bundle.network, config, level)?;
     println!(

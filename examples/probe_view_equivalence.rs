@@ -24,8 +24,8 @@
 //! `cargo run --release --example probe_view_equivalence BUNDLE [IMAGES_PER_PART] [LEVEL] [train|held-out] [VSD_SAME] [TAU]`
 use alignist::bundle::model::ModelBundle;
 use alignist::cad::Mesh;
-use alignist::cad::render::{Camera, Pose, Render, RenderOptions, render};
-use alignist::data::realism::{Realism, Split};
+use alignist::cad::{Camera, Pose, Render, RenderOptions, render};
+use alignist::data::realism::Split;
 use alignist::net::{ProjectedGrid, images_tensor};
 use nalgebra::{Rotation3, Vector3};
 
@@ -93,25 +93,17 @@ fn main() -> anyhow::Result<()> {
     };
     let per_part: usize = args.get(2).map_or(Ok(100), |s| s.parse())?;
     let level: u8 = args.get(3).map_or(Ok(3), |s| s.parse())?;
-    let split = match args.get(4).map_or("held-out", |s| s.as_str()) {
-        "train" => Split::Train,
-        "held-out" => Split::HeldOut,
-        other => anyhow::bail!("the split is train or held-out, not {other}"),
-    };
+    let split: Split = args
+        .get(4)
+        .map_or("held-out", |s| s.as_str())
+        .parse()
+        .map_err(anyhow::Error::msg)?;
     let same: f64 = args.get(5).map_or(Ok(VSD_SAME), |s| s.parse())?;
     let tau_of_diameter: f64 = args.get(6).map_or(Ok(TAU_OF_DIAMETER), |s| s.parse())?;
     let bundle = ModelBundle::load(&path)?;
     let config = &bundle.manifest.network;
     let renders = alignist::train::data::BundleRenders::of(&bundle, 2);
-    let images = renders.realistic_eval_images(
-        config.image_size,
-        per_part,
-        (1u64 << 40).wrapping_add(1),
-        Realism {
-            split,
-            ..Realism::HELD_OUT
-        },
-    );
+    let images = renders.eval_realistic_images(config.image_size, per_part, split);
     let device = alignist::backend::device_for(alignist::backend::Workload::Conv);
     let projected = ProjectedGrid::new(&bundle.network, config, level)?;
     println!(

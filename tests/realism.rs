@@ -233,6 +233,11 @@ fn train_and_held_out_splits_draw_from_disjoint_bands() {
         let lights = random_lighting(&mut rng, Split::Train);
         assert!((1..=3).contains(&lights.lights.len()));
     }
+    // The splits by the names the probes take.
+    assert_eq!("train".parse::<Split>(), Ok(Split::Train));
+    assert_eq!("held-out".parse::<Split>(), Ok(Split::HeldOut));
+    let err = "heldout".parse::<Split>().unwrap_err();
+    assert!(err.contains("heldout"), "{err}");
     // Each split has its own photographs, all decoded.
     let (train, held) = (
         alignist::data::realism::photos(Split::Train),

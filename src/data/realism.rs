@@ -37,6 +37,19 @@ pub enum Split {
     HeldOut,
 }
 
+impl std::str::FromStr for Split {
+    type Err = String;
+
+    /// `train` or `held-out`, as the probes and reports name the splits.
+    fn from_str(s: &str) -> Result<Split, String> {
+        match s {
+            "train" => Ok(Split::Train),
+            "held-out" => Ok(Split::HeldOut),
+            other => Err(format!("the split is train or held-out, not {other}")),
+        }
+    }
+}
+
 /// How realistic crops are made.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Realism {

@@ -9,13 +9,17 @@ use rand_chacha::ChaCha8Rng;
 
 use crate::bundle::model::ModelBundle;
 use crate::cad::{Mesh, RenderOptions};
-use crate::data::realism::{Realism, RealisticCrop, SceneAssets, realistic_crop};
+use crate::data::realism::{Realism, RealisticCrop, SceneAssets, Split, realistic_crop};
 use crate::data::virtual_crop::{RenderedCrop, frame_camera, random_placement, render_crop};
 use crate::data::{BopDataset, DataError};
 use crate::experts::energy::visible_points;
 use crate::experts::select::{VISIBLE_POINTS, visible_points_at};
 
 use super::eval::EvalImage;
+
+/// The default seed of `alignist-train eval`'s fresh crops (its `--seed`); its realistic sets
+/// place their looks from the next one. No training run draws from either.
+pub const EVAL_SEED: u64 = 1 << 40;
 
 /// One training image: its crop, ground truth, object, and visible canonical points.
 #[derive(Debug, Clone)]
@@ -332,6 +336,21 @@ impl BundleRenders {
     pub fn eval_images(&self, size: u32, per_object: usize, seed: u64) -> Vec<EvalImage> {
         self.fresh
             .eval_images(&self.names, &self.symmetries, size, per_object, seed)
+    }
+
+    /// The realistic crops `alignist-train eval --fresh --realistic` scores by default (seed
+    /// [`EVAL_SEED`] + 1, exact boxes), with the looks of `split`: the probes' test set.
+    pub fn eval_realistic_images(
+        &self,
+        size: u32,
+        per_object: usize,
+        split: Split,
+    ) -> Vec<EvalImage> {
+        let realism = Realism {
+            split,
+            ..Realism::HELD_OUT
+        };
+        self.realistic_eval_images(size, per_object, EVAL_SEED.wrapping_add(1), realism)
     }
 
     /// `per_object` realistic evaluation crops of `size` of every object from `seed`, made as

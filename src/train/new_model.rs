@@ -696,7 +696,7 @@ fn fit_and_write(
     };
     let mut data = FitData::load(&inputs, 1, model.recipe.batch)?;
     let [tests, calibration] = [
-        (model.eval_images, 1 << 40, Realism::HELD_OUT),
+        (model.eval_images, super::data::EVAL_SEED, Realism::HELD_OUT),
         (model.calibration_images, CALIBRATION_SEED, Realism::TRAIN),
     ]
     .map(|(per_object, seed, realism)| realistic_crops(&data, model, per_object, seed, realism));

@@ -107,7 +107,7 @@ pub(crate) fn calibrate_cmd(args: &CalibrateArgs) -> Result<()> {
     manifest.calibration = Some(fit);
     manifest.evaluation = None;
     if args.eval_images > 0 {
-        let tests = renders.eval_images(size, args.eval_images, 1 << 40);
+        let tests = renders.eval_images(size, args.eval_images, alignist::train::data::EVAL_SEED);
         let report = alignist::train::eval::evaluate(
             &network,
             &manifest.network,

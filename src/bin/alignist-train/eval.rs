@@ -94,7 +94,7 @@ pub(crate) struct EvalArgs {
     #[arg(long)]
     fresh: bool,
     /// Seed of the fresh test renders: use one that no training run used.
-    #[arg(long, default_value_t = 1 << 40)]
+    #[arg(long, default_value_t = alignist::train::data::EVAL_SEED)]
     seed: u64,
     /// Supersampling per axis of fresh test renders.
     #[arg(long, default_value_t = 4)]

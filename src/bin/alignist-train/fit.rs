@@ -34,7 +34,7 @@ pub(crate) struct FitArgs {
     #[arg(long, default_value_t = 4)]
     supersample: u32,
     /// Seed of the fresh evaluation renders (keep it apart from training seeds).
-    #[arg(long, default_value_t = 1 << 40)]
+    #[arg(long, default_value_t = alignist::train::data::EVAL_SEED)]
     eval_seed: u64,
     /// Print the time per step in each stage at the end.
     #[arg(long)]
