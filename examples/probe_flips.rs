@@ -11,7 +11,7 @@
 //! `cargo run --release --example probe_flips [BUNDLE] [IMAGES_PER_OBJECT] [LEVEL]`
 use alignist::bundle::model::ModelBundle;
 use alignist::data::realism::Split;
-use alignist::net::{ProjectedGrid, images_tensor};
+use alignist::net::ProjectedGrid;
 use alignist::train::data::BundleRenders;
 use nalgebra::{Matrix3, Rotation3};
 
@@ -42,34 +42,30 @@ fn main() -> anyhow::Result<()> {
     let config = &bundle.manifest.network;
     let renders = BundleRenders::of(&bundle, 2);
     let images = renders.eval_realistic_images(config.image_size, per_object, Split::HeldOut);
-    let device = alignist::backend::device_for(alignist::backend::Workload::Conv);
     let projected = ProjectedGrid::new(&bundle.network, config, level)?;
     let depth_mirror = Matrix3::from_diagonal(&nalgebra::Vector3::new(1.0, 1.0, -1.0));
     // Per object: images, right, flipped (not right), right up to the flip.
     let mut tally: std::collections::BTreeMap<String, [usize; 4]> = Default::default();
     let mut misses: std::collections::BTreeMap<String, Vec<f64>> = Default::default();
-    for batch in images.chunks(4) {
-        let crops: Vec<&[u8]> = batch.iter().map(|i| i.rgb.as_slice()).collect();
-        let tensor = images_tensor(&crops, config.image_size as usize, &device);
-        let features = bundle.network.encoder.forward(tensor);
-        for (im, guess) in batch.iter().zip(projected.argmax_rotations(features)) {
-            let t = tally.entry(im.object.clone()).or_default();
-            t[0] += 1;
-            let error = nearest_deg(&guess, &im.equivalents);
-            misses.entry(im.object.clone()).or_default().push(error);
-            let right = error <= 30.0;
-            let flipped = mirror_symmetry(&im.object).is_some_and(|s| {
-                let flips: Vec<Rotation3<f64>> = im
-                    .equivalents
-                    .iter()
-                    .map(|g| Rotation3::from_matrix_unchecked(depth_mirror * g.matrix() * s))
-                    .collect();
-                nearest_deg(&guess, &flips) <= 30.0
-            });
-            t[1] += right as usize;
-            t[2] += (flipped && !right) as usize;
-            t[3] += (right || flipped) as usize;
-        }
+    let crops: Vec<&[u8]> = images.iter().map(|i| i.rgb.as_slice()).collect();
+    let guesses = projected.argmax_of_crops(&bundle.network, &crops, config.image_size as usize);
+    for (im, guess) in images.iter().zip(guesses) {
+        let t = tally.entry(im.object.clone()).or_default();
+        t[0] += 1;
+        let error = nearest_deg(&guess, &im.equivalents);
+        misses.entry(im.object.clone()).or_default().push(error);
+        let right = error <= 30.0;
+        let flipped = mirror_symmetry(&im.object).is_some_and(|s| {
+            let flips: Vec<Rotation3<f64>> = im
+                .equivalents
+                .iter()
+                .map(|g| Rotation3::from_matrix_unchecked(depth_mirror * g.matrix() * s))
+                .collect();
+            nearest_deg(&guess, &flips) <= 30.0
+        });
+        t[1] += right as usize;
+        t[2] += (flipped && !right) as usize;
+        t[3] += (right || flipped) as usize;
     }
     println!(
         "{} held-out realistic crops per object, level {level}, argmax of {}:",

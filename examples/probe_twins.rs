@@ -13,7 +13,7 @@
 //! `cargo run --release --example probe_twins BUNDLE [IMAGES_PER_PART] [LEVEL] [train|held-out]`
 use alignist::bundle::model::ModelBundle;
 use alignist::data::realism::Split;
-use alignist::net::{ProjectedGrid, images_tensor};
+use alignist::net::ProjectedGrid;
 use alignist::so3::metrics::HALF_TURN_DEG;
 use alignist::train::data::BundleRenders;
 use nalgebra::{Matrix3, Rotation3, SymmetricEigen, Vector3};
@@ -166,7 +166,6 @@ fn main() -> anyhow::Result<()> {
     let config = &bundle.manifest.network;
     let renders = BundleRenders::of(&bundle, 2);
     let images = renders.eval_realistic_images(config.image_size, per_part, split);
-    let device = alignist::backend::device_for(alignist::backend::Workload::Conv);
     let projected = ProjectedGrid::new(&bundle.network, config, level)?;
     println!(
         "{} {split:?} realistic crops per part, exact boxes, level {level}, argmax of {}",
@@ -177,13 +176,10 @@ fn main() -> anyhow::Result<()> {
         let twins = bundle.experts[part].near_twins();
         let crops: Vec<_> = images.iter().filter(|im| im.object == *name).collect();
         let mut tally = Tally::default();
-        for batch in crops.chunks(4) {
-            let rgb: Vec<&[u8]> = batch.iter().map(|i| i.rgb.as_slice()).collect();
-            let tensor = images_tensor(&rgb, config.image_size as usize, &device);
-            let features = bundle.network.encoder.forward(tensor);
-            for (im, guess) in batch.iter().zip(projected.argmax_rotations(features)) {
-                tally.add(&guess, &im.equivalents, &twins);
-            }
+        let rgb: Vec<&[u8]> = crops.iter().map(|i| i.rgb.as_slice()).collect();
+        let guesses = projected.argmax_of_crops(&bundle.network, &rgb, config.image_size as usize);
+        for (im, guess) in crops.iter().zip(guesses) {
+            tally.add(&guess, &im.equivalents, &twins);
         }
         tally.print(name, &twins, crops.len() as f64);
     }

@@ -26,7 +26,7 @@ use alignist::bundle::model::ModelBundle;
 use alignist::cad::Mesh;
 use alignist::cad::{Camera, Pose, Render, RenderOptions, render};
 use alignist::data::realism::Split;
-use alignist::net::{ProjectedGrid, images_tensor};
+use alignist::net::ProjectedGrid;
 use nalgebra::{Rotation3, Vector3};
 
 /// Side of the probe's renders in pixels.
@@ -104,7 +104,6 @@ fn main() -> anyhow::Result<()> {
     let config = &bundle.manifest.network;
     let renders = alignist::train::data::BundleRenders::of(&bundle, 2);
     let images = renders.eval_realistic_images(config.image_size, per_part, split);
-    let device = alignist::backend::device_for(alignist::backend::Workload::Conv);
     let projected = ProjectedGrid::new(&bundle.network, config, level)?;
     println!(
         "{per_part} {split:?} realistic crops per part, exact boxes, level {level}, argmax of {}; \
@@ -126,34 +125,30 @@ fn main() -> anyhow::Result<()> {
         let twins = bundle.experts[part].near_twins();
         let crops: Vec<_> = images.iter().filter(|im| im.object == *name).collect();
         let mut tally = Tally::default();
-        for batch in crops.chunks(4) {
-            let rgb: Vec<&[u8]> = batch.iter().map(|i| i.rgb.as_slice()).collect();
-            let tensor = images_tensor(&rgb, config.image_size as usize, &device);
-            let features = bundle.network.encoder.forward(tensor);
-            for (im, guess) in batch.iter().zip(projected.argmax_rotations(features)) {
-                let truth = im
-                    .equivalents
-                    .iter()
-                    .min_by(|a, b| angle_deg(a, &guess).total_cmp(&angle_deg(b, &guess)))
-                    .expect("every crop has a truth");
-                let seen = view(mesh, radius, truth);
-                let looks_same =
-                    |r: &Rotation3<f64>| vsd(&seen, &view(mesh, radius, r), tau) < same;
-                let alike: Vec<Rotation3<f64>> = twins
-                    .iter()
-                    .map(|s| truth * s)
-                    .filter(|r| looks_same(r))
-                    .collect();
-                let apart: Vec<f64> = alike.iter().map(|r| angle_deg(truth, r)).collect();
-                let near = 1 + apart.iter().filter(|&&a| a <= 30.0).count();
-                tally.crops += 1;
-                tally.ambiguous += apart.iter().any(|&a| a > 30.0) as usize;
-                tally.bound += near as f64 / (1 + alike.len()) as f64;
-                let strict = angle_deg(truth, &guess) <= 30.0;
-                let near_alike = alike.iter().any(|r| angle_deg(r, &guess) <= 30.0);
-                tally.strict += strict as usize;
-                tally.view += (strict || near_alike || looks_same(&guess)) as usize;
-            }
+        let rgb: Vec<&[u8]> = crops.iter().map(|i| i.rgb.as_slice()).collect();
+        let guesses = projected.argmax_of_crops(&bundle.network, &rgb, config.image_size as usize);
+        for (im, guess) in crops.iter().zip(guesses) {
+            let truth = im
+                .equivalents
+                .iter()
+                .min_by(|a, b| angle_deg(a, &guess).total_cmp(&angle_deg(b, &guess)))
+                .expect("every crop has a truth");
+            let seen = view(mesh, radius, truth);
+            let looks_same = |r: &Rotation3<f64>| vsd(&seen, &view(mesh, radius, r), tau) < same;
+            let alike: Vec<Rotation3<f64>> = twins
+                .iter()
+                .map(|s| truth * s)
+                .filter(|r| looks_same(r))
+                .collect();
+            let apart: Vec<f64> = alike.iter().map(|r| angle_deg(truth, r)).collect();
+            let near = 1 + apart.iter().filter(|&&a| a <= 30.0).count();
+            tally.crops += 1;
+            tally.ambiguous += apart.iter().any(|&a| a > 30.0) as usize;
+            tally.bound += near as f64 / (1 + alike.len()) as f64;
+            let strict = angle_deg(truth, &guess) <= 30.0;
+            let near_alike = alike.iter().any(|r| angle_deg(r, &guess) <= 30.0);
+            tally.strict += strict as usize;
+            tally.view += (strict || near_alike || looks_same(&guess)) as usize;
         }
         let n = tally.crops.max(1) as f64;
         println!(

@@ -266,6 +266,24 @@ impl ProjectedGrid {
             .collect()
     }
 
+    /// The argmax rotation of every crop (RGB8, `size`² each), encoded by `network` eight at a
+    /// time on the convolution device: how the probes and the own-twin search score a set.
+    pub fn argmax_of_crops(
+        &self,
+        network: &Network,
+        crops: &[&[u8]],
+        size: usize,
+    ) -> Vec<nalgebra::Rotation3<f64>> {
+        let device = crate::backend::device_for(crate::backend::Workload::Conv);
+        crops
+            .chunks(8)
+            .flat_map(|batch| {
+                let features = network.encoder.forward(images_tensor(batch, size, &device));
+                self.argmax_rotations(features)
+            })
+            .collect()
+    }
+
     /// Each branch's log-weights `(s_θ, s_φ)` of every cell, per image, from image features.
     pub fn branch_log_weights_of_features(&self, features: Tensor<2>) -> Vec<(Vec<f32>, Vec<f32>)> {
         feature_rows(features)

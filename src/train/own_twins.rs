@@ -11,7 +11,7 @@ use nalgebra::Rotation3;
 use super::TrainError;
 use super::data::FreshRenders;
 use super::sampling::OwnTwins;
-use crate::net::{Network, NetworkConfig, ProjectedGrid, images_tensor};
+use crate::net::{Network, NetworkConfig, ProjectedGrid};
 use crate::so3::metrics::HALF_TURN_DEG;
 
 /// The level of the grid whose argmax is compared with the truth (4 608 cells, about 15° apart:
@@ -46,18 +46,13 @@ pub fn own_twins(
     };
     let projected = ProjectedGrid::new(network, config, OWN_TWINS_LEVEL)
         .map_err(|e| TrainError::Data(format!("the own twins' grid: {e}")))?;
-    let device = crate::backend::device_for(crate::backend::Workload::Conv);
+    let rgb: Vec<&[u8]> = crops.iter().map(|(_, c, _)| c.as_slice()).collect();
+    let guesses = projected.argmax_of_crops(network, &rgb, size as usize);
     let mut twins = vec![Vec::new(); fresh.meshes.len()];
-    for batch in crops.chunks(8) {
-        let rgb: Vec<&[u8]> = batch.iter().map(|(_, c, _)| c.as_slice()).collect();
-        let features = network
-            .encoder
-            .forward(images_tensor(&rgb, size as usize, &device));
-        for ((object, _, r_gt), guess) in batch.iter().zip(projected.argmax_rotations(features)) {
-            let group = symmetries.get(*object).map_or(&[][..], |g| g.as_slice());
-            if let Some(turn) = half_turn_miss(&guess, r_gt, group) {
-                twins[*object].push(turn);
-            }
+    for ((object, _, r_gt), guess) in crops.iter().zip(guesses) {
+        let group = symmetries.get(*object).map_or(&[][..], |g| g.as_slice());
+        if let Some(turn) = half_turn_miss(&guess, r_gt, group) {
+            twins[*object].push(turn);
         }
     }
     Ok(twins)
