@@ -23,20 +23,12 @@ fn main() {
     let renders = alignist::train::data::BundleRenders::of(&bundle, 2);
     let model = Engine::load_model(dir, EngineConfig::default()).unwrap();
     let size = model.input_size();
-    let seed: u64 = 1 << 40;
+    let seed = alignist::train::data::EVAL_SEED;
     let images = match set {
         "clean" => renders.eval_images(size, n, seed),
-        "held-out" => renders.realistic_eval_images(size, n, seed + 1, Realism::HELD_OUT),
+        "held-out" => renders.eval_realistic_images(size, n, Split::HeldOut),
         "boxes" => renders.realistic_eval_images(size, n, seed + 1, Realism::held_out_boxes(0.08)),
-        "train" => renders.realistic_eval_images(
-            size,
-            n,
-            seed + 1,
-            Realism {
-                split: Split::Train,
-                ..Realism::HELD_OUT
-            },
-        ),
+        "train" => renders.eval_realistic_images(size, n, Split::Train),
         other => panic!("set {other}: clean, train, held-out or boxes"),
     };
     let grid = model.grid(3).unwrap().clone();
