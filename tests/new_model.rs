@@ -217,6 +217,13 @@ fn a_killed_job_resumes_to_the_same_model() {
     child.kill().unwrap();
     child.wait().unwrap();
     assert!(!out.exists(), "killed before its bundle");
+    // The fit is on record as under way, with the time it began, so the resume times it whole.
+    let state: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(job.join("job.json")).unwrap()).unwrap();
+    assert_eq!(state["running"][0], "fit", "{state}");
+    let fit_began = state["running"][1].as_f64().unwrap();
+    let spent_at_kill = state["spent_seconds"].as_f64().unwrap();
+    assert!(fit_began > 0.0 && fit_began <= spent_at_kill, "{state}");
     let resumed = [&args[..], &["--resume"]].concat();
     // Without --resume the job's folder is not overwritten.
     let refused = Command::new(env!("CARGO_BIN_EXE_alignist-train"))
@@ -237,6 +244,14 @@ fn a_killed_job_resumes_to_the_same_model() {
     let first = tensors(&out.join("network.safetensors"));
     let m = manifest(&out);
     assert_eq!(m["provenance"]["report"]["resumed_from"], 50);
+    let stages = m["budget"]["stages"].as_array().unwrap();
+    let fit = stages.iter().find(|s| s[0] == "fit").unwrap()[1]
+        .as_f64()
+        .unwrap();
+    assert!(
+        fit >= spent_at_kill - fit_began,
+        "the fit's time before the kill is counted: {stages:?}"
+    );
     assert_eq!(
         manifest(&out.join("experts/block"))["object"]["normalisation"]["units"],
         "millimetre"

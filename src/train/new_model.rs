@@ -236,6 +236,10 @@ pub struct JobState {
     pub plan: Option<BudgetPlan>,
     /// `(stage, seconds)` of the stages finished.
     pub stages: Vec<(String, f64)>,
+    /// `(stage, spent seconds when it began)` of the stage under way, so that a stage a kill
+    /// interrupted is timed from its first start, not from the resume.
+    #[serde(default)]
+    pub running: Option<(String, f64)>,
     /// The schedule the job trains by (jobs from before it was recorded trained by the recipe
     /// of then, [`FIRST_RECIPE`]).
     #[serde(default = "first_recipe")]
@@ -300,15 +304,25 @@ impl Job {
         std::fs::rename(&tmp, &path).map_err(io)
     }
 
-    /// Runs `stage` unless it is done, recording its time.
+    /// Runs `stage` unless it is done, recording its time: from when it began, in this run or in
+    /// the run a kill interrupted (the job's clock counts neither the time between runs nor twice).
     fn stage<T>(
         &mut self,
         name: &str,
         run: impl FnOnce(&mut Job) -> Result<T, NewModelError>,
     ) -> Result<T, NewModelError> {
-        let started = self.clock.spent();
+        let started = match &self.state.running {
+            Some((n, began)) if n == name => *began,
+            _ => {
+                let now = self.clock.spent();
+                self.state.running = Some((name.to_string(), now));
+                self.save()?;
+                now
+            }
+        };
         let out = run(self)?;
         let seconds = self.clock.spent() - started;
+        self.state.running = None;
         match self.state.stages.iter_mut().find(|(n, _)| n == name) {
             Some((_, s)) => *s += seconds,
             None => self.state.stages.push((name.to_string(), seconds)),
@@ -371,6 +385,7 @@ fn open_job(model: &NewModel, resume: bool) -> Result<Job, NewModelError> {
             spent_seconds: 0.0,
             plan: None,
             stages: Vec::new(),
+            running: None,
             recipe: model.recipe,
         }
     };
@@ -1116,7 +1131,53 @@ fn size_fit(
 
 #[cfg(test)]
 mod tests {
-    use super::{PACE_MIN_S, PACE_WINDOW_S, Pace, replanned_steps};
+    use super::{
+        Clock, FIRST_RECIPE, Job, JobState, PACE_MIN_S, PACE_WINDOW_S, Pace, replanned_steps,
+    };
+
+    #[test]
+    fn a_stage_a_kill_interrupted_is_timed_from_its_first_start() {
+        let dir = tempfile::tempdir().unwrap();
+        // A job killed 60 s into its fit, which began when the job had spent 40 s.
+        let state = JobState {
+            command: String::new(),
+            meshes: Vec::new(),
+            budget_seconds: 1_000.0,
+            spent_seconds: 100.0,
+            plan: None,
+            stages: vec![("experts".into(), 35.0)],
+            running: Some(("fit".into(), 40.0)),
+            recipe: FIRST_RECIPE,
+        };
+        let clock = Clock {
+            before: state.spent_seconds,
+            started: std::time::Instant::now(),
+            budget: state.budget_seconds,
+        };
+        let mut job = Job {
+            dir: dir.path().to_path_buf(),
+            state,
+            clock,
+        };
+        job.stage("fit", |_| Ok(())).unwrap();
+        let fit = job.state.stages[1].1;
+        assert!((60.0..61.0).contains(&fit), "{fit}");
+        assert_eq!(job.state.running, None);
+        // A stage that begins in this run is timed from now; while it runs it is on record.
+        job.stage("evaluation", |job| {
+            let (name, began) = job.state.running.clone().unwrap();
+            assert_eq!(name, "evaluation");
+            assert!((100.0..101.0).contains(&began), "{began}");
+            let saved: JobState =
+                serde_json::from_slice(&std::fs::read(dir.path().join("job.json")).unwrap())
+                    .unwrap();
+            assert_eq!(saved.running, job.state.running);
+            Ok(())
+        })
+        .unwrap();
+        assert!(job.state.stages[2].1 < 1.0);
+        assert_eq!(job.state.running, None);
+    }
 
     #[test]
     fn a_slower_pace_shortens_the_schedule_and_a_faster_one_lengthens_it() {
