@@ -360,6 +360,33 @@ fn a_warm_start_may_change_the_crop_side_and_deepen_the_encoder(p: &Pipeline) {
     assert_eq!(init.image_size, Some(32));
     assert!(init.path.contains("models/tiny"), "{}", init.path);
 
+    // A bundle's manifest and weights alone (as `training/warm-starts/` may keep them) start a
+    // run too; the loader the server uses, which needs the experts, refuses such a folder.
+    let weights_only = dir.path().join("weights-only");
+    std::fs::create_dir_all(&weights_only).unwrap();
+    for file in ["manifest.json", "network.safetensors"] {
+        std::fs::copy(bundle.join(file), weights_only.join(file)).unwrap();
+    }
+    assert!(ModelBundle::load(&weights_only).is_err());
+    let from_weights = dir.path().join("warm-from-weights");
+    let args = ["--init", s(&weights_only), "--eval-images", "0"];
+    let out = p.fresh_fit(&from_weights, &args);
+    assert!(out.status.success(), "{out:?}");
+    let init = ModelBundle::load(&from_weights)
+        .unwrap()
+        .manifest
+        .provenance
+        .train
+        .init
+        .unwrap();
+    assert!(init.path.contains("weights-only"), "{}", init.path);
+    // Weights that are not the ones the manifest names are refused, naming the file.
+    std::fs::write(weights_only.join("network.safetensors"), b"not the weights").unwrap();
+    let refused = p.fresh_fit(&from_weights, &args);
+    assert!(!refused.status.success());
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(err.contains("network.safetensors"), "{err}");
+
     let refused = fit("ipdf");
     assert!(!refused.status.success());
     let err = String::from_utf8_lossy(&refused.stderr);

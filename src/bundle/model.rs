@@ -12,7 +12,7 @@ use super::experts::ExpertSet;
 pub use super::record::{
     BundleObject, GridLevels, INPUT_CONVENTION, MODEL_FORMAT_VERSION, ModelManifest, Provenance,
 };
-use super::{BundleError, load_weights, save_weights, sha256_file};
+use super::{BundleError, FileEntry, load_weights, save_weights, sha256_file};
 use crate::net::Network;
 
 /// A loaded bundle.
@@ -81,29 +81,12 @@ impl ModelBundle {
     /// Loads and validates a bundle: format version, every file's checksum, every tensor's shape,
     /// every expert set (each validated by [`ExpertSet::load`]).
     pub fn load(dir: &Path) -> Result<ModelBundle, BundleError> {
+        let manifest = Self::checked_manifest(dir)?;
         let manifest_path = dir.join(MANIFEST_FILE);
-        let manifest: ModelManifest = super::read_versioned_manifest(
-            &manifest_path,
-            MODEL_FORMAT_VERSION,
-            |m: &ModelManifest| m.format_version,
-        )?;
         let field = |message: String| BundleError::Manifest {
             path: manifest_path.display().to_string(),
             message,
         };
-        if manifest.objects.is_empty() {
-            return Err(field("objects: the bundle names no object".into()));
-        }
-        manifest.network.validate().map_err(field)?;
-        if let Some(levels) = manifest.levels {
-            for (name, level) in [
-                ("levels.full_max", levels.full_max),
-                ("levels.search_max", levels.search_max),
-            ] {
-                crate::net::check_range(name, level, &(0..=crate::so3::MAX_LEVEL))
-                    .map_err(field)?;
-            }
-        }
         for (rel, entry) in &manifest.files {
             let path = super::inside(dir, rel).map_err(|e| field(format!("files: {e}")))?;
             super::verify_file(&path, entry)?;
@@ -136,5 +119,56 @@ impl ModelBundle {
             network,
             experts,
         })
+    }
+
+    /// The manifest of the bundle in `dir` and its weights file's entry, checked as [`load`]
+    /// checks them (format version, fields, the weights file's checksum), without the experts:
+    /// what a warm start or a teacher needs (`fit --init`, `new --init`, `fit --teacher`). A
+    /// folder that holds a bundle's manifest and weights alone passes (`training/warm-starts/`
+    /// keeps some so); it is no bundle to serve, and [`load`] refuses it.
+    ///
+    /// [`load`]: ModelBundle::load
+    pub fn load_weights_entry(dir: &Path) -> Result<(ModelManifest, FileEntry), BundleError> {
+        let manifest = Self::checked_manifest(dir)?;
+        let entry =
+            manifest
+                .files
+                .get(NETWORK_FILE)
+                .cloned()
+                .ok_or_else(|| BundleError::Manifest {
+                    path: dir.join(MANIFEST_FILE).display().to_string(),
+                    message: format!("files: no entry for {NETWORK_FILE}"),
+                })?;
+        super::verify_file(&dir.join(NETWORK_FILE), &entry)?;
+        Ok((manifest, entry))
+    }
+
+    /// The manifest in `dir`, read at its format version, naming an object, with valid network
+    /// fields and grid levels.
+    fn checked_manifest(dir: &Path) -> Result<ModelManifest, BundleError> {
+        let manifest_path = dir.join(MANIFEST_FILE);
+        let manifest: ModelManifest = super::read_versioned_manifest(
+            &manifest_path,
+            MODEL_FORMAT_VERSION,
+            |m: &ModelManifest| m.format_version,
+        )?;
+        let field = |message: String| BundleError::Manifest {
+            path: manifest_path.display().to_string(),
+            message,
+        };
+        if manifest.objects.is_empty() {
+            return Err(field("objects: the bundle names no object".into()));
+        }
+        manifest.network.validate().map_err(field)?;
+        if let Some(levels) = manifest.levels {
+            for (name, level) in [
+                ("levels.full_max", levels.full_max),
+                ("levels.search_max", levels.search_max),
+            ] {
+                crate::net::check_range(name, level, &(0..=crate::so3::MAX_LEVEL))
+                    .map_err(field)?;
+            }
+        }
+        Ok(manifest)
     }
 }

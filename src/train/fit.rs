@@ -310,22 +310,16 @@ pub fn init_weights(dir: &Path, network: &NetworkConfig) -> Result<InitWeights, 
     })
 }
 
-/// The bundle in `dir` (its path for messages, its manifest) and its weights file's entry.
+/// The bundle in `dir` (its path for messages, its manifest) and its weights file's entry,
+/// checked; its experts need not be there ([`ModelBundle::load_weights_entry`]).
 fn bundle_weights(dir: &Path) -> Result<(String, ModelManifest, FileEntry), FitError> {
     let path = dir.display().to_string();
-    let bundle = ModelBundle::load(dir).map_err(|source| FitError::Bundle {
-        path: path.clone(),
-        source,
-    })?;
-    let file = bundle
-        .manifest
-        .files
-        .get(NETWORK_FILE)
-        .cloned()
-        .ok_or_else(|| {
-            FitError::Invalid(format!("{path}: the manifest lists no {NETWORK_FILE}"))
+    let (manifest, file) =
+        ModelBundle::load_weights_entry(dir).map_err(|source| FitError::Bundle {
+            path: path.clone(),
+            source,
         })?;
-    Ok((path, bundle.manifest, file))
+    Ok((path, manifest, file))
 }
 
 /// The weights of the bundle in `dir` as the teacher of a distilled head
