@@ -60,12 +60,14 @@ async fn a_part_becomes_a_served_model_within_its_budget() {
     let part = write_part(root.path(), "block", 0.04);
     let models = root.path().join("models");
     let out = models.join("blocks");
-    let budget = 120.0;
+    // Room for the experts and 20 steps when the binary's other tests share the 2 cores: at 120 s
+    // an Intel Xeon (model 207) ran out of it (88 s to probes and experts, 1 s a step).
+    let budget = 180.0;
     let started = Instant::now();
     train(&new_args(
         part.to_str().unwrap(),
         out.to_str().unwrap(),
-        "120s",
+        "180s",
         &[],
     ));
     let wall = started.elapsed().as_secs_f64();
