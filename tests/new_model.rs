@@ -67,7 +67,7 @@ async fn a_part_becomes_a_served_model_within_its_budget() {
     train(&new_args(
         part.to_str().unwrap(),
         out.to_str().unwrap(),
-        "180s",
+        &format!("{budget}s"),
         &[],
     ));
     let wall = started.elapsed().as_secs_f64();
