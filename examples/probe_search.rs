@@ -1,12 +1,15 @@
 //! Where a coarse-to-fine search's time goes: runs one search (start level, keep, coarse
 //! precision, keep taper from the arguments) to level 5 on held-out renders of a bundle,
 //! repeatedly, prints its p50, then times its parts alone with the same numbers of rotations: the
-//! encoder, the start level in full, each refined level, and the rest (cell rotations, softmax,
-//! selection, modes) as the difference.
+//! encoder, the start level in full, each refined level (from its precomputed projections up to
+//! the highest full level, above it from encoded rotations), and the rest (cell rotations,
+//! softmax, selection, modes) as the difference.
 //! `cargo run --release --example probe_search [BUNDLE] [START] [KEEP] [f32|bf16|f16|i8] [REPEATS]
-//! [TAPER] [KEEP_MASS|-] [RESCORE_FINEST: true|false] [SHAPE_ONLY_TO|-]` (with a keep by mass,
-//! the parts are timed at the most cells kept; `-`: no keep by mass, both branches at every
-//! level).
+//! [TAPER] [KEEP_MASS|-] [RESCORE_FINEST: true|false] [SHAPE_ONLY_TO|-] [FULL_LEVEL]` (with a
+//! keep by mass, the parts are timed at the most cells kept; `-`: no keep by mass, both branches
+//! at every level; FULL_LEVEL: also time the same search, calls alternating, on the model loaded
+//! with this highest full level, whose projections are precomputed (FULL_LEVEL = START scores
+//! every refined level from encodings)).
 use std::time::Instant;
 
 use alignist::engine::{Engine, EngineConfig, Model, PredictOptions, RESCORED_CELLS, SearchParams};
@@ -49,26 +52,49 @@ fn main() -> anyhow::Result<()> {
         .map(|im| im.rgb)
         .collect();
     let model = Engine::load_model(&path, EngineConfig::default())?;
+    // With FULL_LEVEL, a second model with that highest full level, its calls alternating with
+    // the first's (a paired comparison: both meet the same moments of the machine).
+    let other = match args.get(10) {
+        Some(full) => {
+            let mut config = EngineConfig {
+                max_full_level: full.parse()?,
+                ..EngineConfig::default()
+            };
+            // The engine's own search must start from a full level too.
+            config.search.start_level = config.search.start_level.min(config.max_full_level);
+            Some((config.max_full_level, Engine::load_model(&path, config)?))
+        }
+        None => None,
+    };
     let options = PredictOptions {
         top_k: 10,
         level: Some(FINEST),
         mode_angle_deg: None,
         ..Default::default()
     };
-    let total = median(
-        (0..repeats)
-            .flat_map(|_| &images)
-            .map(|im| {
-                let t = Instant::now();
-                let f = model.features(&[im]).expect("crops of the input side");
-                model
-                    .predict_searching(&f, &options, &search, &[None])
-                    .expect("search");
-                t.elapsed().as_secs_f64() * 1e3
-            })
-            .collect(),
-    );
+    let call = |model: &Model, im: &[u8]| {
+        let t = Instant::now();
+        let f = model.features(&[im]).expect("crops of the input side");
+        model
+            .predict_searching(&f, &options, &search, &[None])
+            .expect("search");
+        t.elapsed().as_secs_f64() * 1e3
+    };
+    let (mut times, mut others) = (Vec::new(), Vec::new());
+    for im in (0..repeats).flat_map(|_| &images) {
+        times.push(call(&model, im));
+        if let Some((_, other)) = &other {
+            others.push(call(other, im));
+        }
+    }
+    let total = median(times);
     println!("{search:?}, top-10 to level {FINEST}: p50 {total:.1} ms");
+    if let Some((full, _)) = &other {
+        println!(
+            "  the same search with the highest full level {full} (calls alternating): p50 {:.1} ms",
+            median(others)
+        );
+    }
     let parts = time_parts(&model, &search, &images[0], repeats * images.len());
     println!(
         "  the rest (cell rotations, softmax, selection, modes): {:.1} ms",
@@ -119,22 +145,37 @@ fn time_parts(model: &Model, search: &SearchParams, crop: &[u8], runs: usize) ->
     for (i, level) in (search.start_level + 1..=FINEST).enumerate() {
         let keep = (search.keep as f64 * search.keep_taper.powi(i as i32)).round() as usize;
         let grid = model.grid(level).expect("grid");
-        let rotations: Vec<[f32; 9]> = (0..8 * keep as u64)
-            .map(|c| to_row_major_f32(&grid.rotation(c * 97 % grid.len() as u64)))
+        let cells: Vec<u64> = (0..8 * keep as u64)
+            .map(|c| c * 97 % grid.len() as u64)
             .collect();
         let precision = search.precision_at(level, search.start_level, FINEST);
         let branches = search.branches_at(level, FINEST);
-        let t = timed(&mut || {
-            model.score_rotations_by(
-                &features,
-                std::slice::from_ref(&rotations),
-                precision,
-                branches,
-            );
-        });
+        let (t, source) = match model.projected(level) {
+            Some(projected) => (
+                timed(&mut || {
+                    projected.log_weights_of_cells_by(precision, branches, &features[0], &cells);
+                }),
+                "projections gathered",
+            ),
+            None => {
+                let rotations: Vec<[f32; 9]> = cells
+                    .iter()
+                    .map(|&c| to_row_major_f32(&grid.rotation(c)))
+                    .collect();
+                let t = timed(&mut || {
+                    model.score_rotations_by(
+                        &features,
+                        std::slice::from_ref(&rotations),
+                        precision,
+                        branches,
+                    );
+                });
+                (t, "encodings included")
+            }
+        };
         println!(
-            "  level {level} ({} rotations, {precision}, {branches:?}, encodings included): {t:.1} ms",
-            rotations.len()
+            "  level {level} ({} rotations, {precision}, {branches:?}, {source}): {t:.1} ms",
+            cells.len()
         );
         parts += t;
     }

@@ -353,6 +353,56 @@ fn the_default_search_finds_the_exhaustive_maximum_at_level_3() {
     }
 }
 
+/// A refined level of the search at or below the full levels scores its cells from the level's
+/// projections, precomputed at load: the gathered cells' scores are the full level's at those
+/// cells in every precision, and in f32 those of the cells' rotations encoded, to rounding.
+#[test]
+fn a_full_levels_cells_score_from_its_projections_as_from_their_rotations() {
+    use alignist::engine::{Engine, EngineConfig};
+    use alignist::net::Branches;
+    let path = std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/models/symsol1"));
+    let bundle = alignist::bundle::model::ModelBundle::load(path).unwrap();
+    let image = alignist::train::data::BundleRenders::of(&bundle, 2)
+        .eval_images(bundle.manifest.network.image_size, 1, 5)
+        .swap_remove(0);
+    let model = Engine::load_model(path, EngineConfig::default()).unwrap();
+    let features = model.features(&[&image.rgb]).unwrap();
+    let projected = model.projected(3).expect("level 3 is a full level");
+    let cells: Vec<u64> = (0..1000u64)
+        .map(|i| i * 37 % projected.grid.len() as u64)
+        .collect();
+    for precision in [
+        Precision::F32,
+        Precision::Bf16,
+        Precision::F16,
+        Precision::I8,
+    ] {
+        for branches in [Branches::Both, Branches::Shape] {
+            let all = projected.log_weights_of_row_by(precision, branches, &features[0]);
+            let some = projected.log_weights_of_cells_by(precision, branches, &features[0], &cells);
+            assert_eq!(some.len(), cells.len());
+            for (&c, s) in cells.iter().zip(&some) {
+                let full = all[c as usize];
+                assert!(
+                    (full - s).abs() <= 1e-5 * full.abs().max(1.0),
+                    "{precision} {branches:?} cell {c}: {s} gathered, {full} in full"
+                );
+            }
+        }
+    }
+    let grid = model.grid(3).unwrap();
+    let rotations: Vec<[f32; 9]> = cells
+        .iter()
+        .map(|&c| alignist::so3::to_row_major_f32(&grid.rotation(c)))
+        .collect();
+    let encoded = model.score_rotations_many(&features, &[rotations], Precision::F32);
+    let gathered =
+        projected.log_weights_of_cells_by(Precision::F32, Branches::Both, &features[0], &cells);
+    for ((&c, e), g) in cells.iter().zip(&encoded[0]).zip(&gathered) {
+        assert!((e - g).abs() <= 1e-3, "cell {c}: {g} gathered, {e} encoded");
+    }
+}
+
 /// A bundle is served up to the grid levels its manifest sets, never above: the shipped one,
 /// its manifest set to search level 5, is refused a level-6 search by an engine allowing 6.
 /// Without a cap (what the trainer writes) the server's own settings decide.

@@ -2,7 +2,8 @@
 //! agreement with the exhaustive argmax is the model's (the bundle's search study measured it,
 //! [`SearchStudy`]); its latency is the CPU's. The calibration times what a search is made of on
 //! this CPU — the encoder, a start level in full, and rows of the head in each precision, by both
-//! branches or by the shape branch alone (the minimum of two runs, or one run of a large
+//! branches or by the shape branch alone, gathered from a full level's projections or (above the
+//! full levels) encoded from their rotations (the minimum of two runs, or one run of a large
 //! measurement whose code just ran) — predicts each
 //! studied search's latency from the rows it scores (a fixed number per level), and picks, among
 //! the searches whose agreement reaches the target, the most
@@ -114,12 +115,20 @@ impl std::fmt::Display for Spent {
 /// The arithmetic of a level's rows: its precision, and the branches that score them.
 type Arithmetic = (Precision, Branches);
 
-/// A measurement a prediction needs: a start level in full, or the head's rows, in an
-/// arithmetic.
+/// Where a refined level's rows come from: a full level's precomputed projections, gathered,
+/// or (above the full levels) the cells' rotations, encoded and projected.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+enum Source {
+    Projected,
+    Encoded,
+}
+
+/// A measurement a prediction needs: a start level in full, or the head's rows from a source,
+/// in an arithmetic.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
 enum Need {
     Start(u8, Arithmetic),
-    Rows(Arithmetic),
+    Rows(Source, Arithmetic),
 }
 
 /// The costs measured so far, in milliseconds.
@@ -127,9 +136,9 @@ struct Rates {
     encoder: f64,
     /// Per start level and arithmetic: scoring the level in full from its projections.
     start: BTreeMap<(u8, Arithmetic), f64>,
-    /// Per arithmetic: a level's fixed cost and one row's, from encodings (a line through the
-    /// times of [`SMALL_ROWS`] and [`TIMED_ROWS`] rows).
-    row: BTreeMap<Arithmetic, (f64, f64)>,
+    /// Per source and arithmetic: a level's fixed cost and one row's (a line through the times
+    /// of [`SMALL_ROWS`] and [`TIMED_ROWS`] rows).
+    row: BTreeMap<(Source, Arithmetic), (f64, f64)>,
 }
 
 impl Rates {
@@ -149,12 +158,17 @@ impl Rates {
         let mut missing = None;
         for (l, rows, precision, branches) in rows_per_level(model, search, level) {
             let is_start = l == search.start_level.min(level);
+            let source = if (l as usize) < model.projected.len() {
+                Source::Projected
+            } else {
+                Source::Encoded
+            };
             let cost = |p: Precision| {
                 if is_start {
                     self.start.get(&(l, (p, branches))).copied()
                 } else {
                     self.row
-                        .get(&(p, branches))
+                        .get(&(source, (p, branches)))
                         .map(|(fixed, per_row)| fixed + rows as f64 * per_row)
                 }
             };
@@ -162,7 +176,7 @@ impl Rates {
                 if is_start {
                     Need::Start(l, (p, branches))
                 } else {
-                    Need::Rows((p, branches))
+                    Need::Rows(source, (p, branches))
                 }
             };
             match cost(precision) {
@@ -542,6 +556,10 @@ struct Meter<'a> {
     /// [`TIMED_ROWS`] rotations spread over the search level, and the first [`SMALL_ROWS`].
     many: Vec<Vec<[f32; 9]>>,
     few: Vec<Vec<[f32; 9]>>,
+    /// [`TIMED_ROWS`] cells spread over the finest full level up to the search level, and the
+    /// first [`SMALL_ROWS`], with that level.
+    many_cells: (usize, Vec<u64>),
+    few_cells: (usize, Vec<u64>),
     rates: Rates,
     spent: Spent,
 }
@@ -555,15 +573,23 @@ impl<'a> Meter<'a> {
             let _ = model.features(&[grey]);
         });
         let grid = model.grid_at(level)?;
-        let step = (grid.len() / TIMED_ROWS).max(1) as u64;
-        let many: Vec<[f32; 9]> = (0..TIMED_ROWS as u64)
-            .map(|i| crate::so3::to_row_major_f32(&grid.rotation((i * step) % grid.len() as u64)))
+        let spread = |len: usize| {
+            let step = (len / TIMED_ROWS).max(1) as u64;
+            (0..TIMED_ROWS as u64).map(move |i| (i * step) % len.max(1) as u64)
+        };
+        let many: Vec<[f32; 9]> = spread(grid.len())
+            .map(|c| crate::so3::to_row_major_f32(&grid.rotation(c)))
             .collect();
+        let full = (level as usize).min(model.projected.len().saturating_sub(1));
+        let cells: Vec<u64> =
+            spread(model.projected.get(full).map_or(0, |p| p.grid.len())).collect();
         Ok(Meter {
             model,
             features,
             few: vec![many[..SMALL_ROWS].to_vec()],
             many: vec![many],
+            few_cells: (full, cells[..SMALL_ROWS.min(cells.len())].to_vec()),
+            many_cells: (full, cells),
             rates: Rates {
                 encoder,
                 start: BTreeMap::new(),
@@ -578,7 +604,7 @@ impl<'a> Meter<'a> {
 
     /// Whether a measurement in `precision` has run here (its code is warm).
     fn ran(&self, precision: Precision) -> bool {
-        self.rates.row.keys().any(|&(p, _)| p == precision)
+        self.rates.row.keys().any(|&(_, (p, _))| p == precision)
             || self.rates.start.keys().any(|&(_, (p, _))| p == precision)
     }
 
@@ -600,19 +626,35 @@ impl<'a> Meter<'a> {
                 self.rates.start.insert((l, (precision, branches)), ms);
                 self.spent.starts_ms += clock.elapsed().as_secs_f64() * 1e3;
             }
-            Need::Rows((precision, branches)) => {
-                let time = |rows: &[Vec<[f32; 9]>], runs: usize| {
-                    min_ms(runs, || {
-                        let _ = model.score_rotations_by(features, rows, precision, branches);
+            Need::Rows(source, (precision, branches)) => {
+                let time = |few: bool, runs: usize| {
+                    let (rotations, cells) = match few {
+                        true => (&self.few, &self.few_cells),
+                        false => (&self.many, &self.many_cells),
+                    };
+                    min_ms(runs, || match source {
+                        Source::Encoded => {
+                            let _ =
+                                model.score_rotations_by(features, rotations, precision, branches);
+                        }
+                        Source::Projected => {
+                            let (level, cells) = cells;
+                            let _ = model.projected[*level].log_weights_of_cells_by(
+                                precision,
+                                branches,
+                                &features[0],
+                                cells,
+                            );
+                        }
                     })
                 };
-                let few = time(&self.few, RUNS);
-                let many = time(&self.many, runs(TIMED_ROWS, true));
+                let few = time(true, RUNS);
+                let many = time(false, runs(TIMED_ROWS, true));
                 let per_row = ((many - few) / (TIMED_ROWS - SMALL_ROWS) as f64).max(0.0);
                 let fixed = (few - per_row * SMALL_ROWS as f64).max(0.0);
                 self.rates
                     .row
-                    .insert((precision, branches), (fixed, per_row));
+                    .insert((source, (precision, branches)), (fixed, per_row));
                 self.spent.rows_ms += clock.elapsed().as_secs_f64() * 1e3;
             }
         }
@@ -678,7 +720,7 @@ fn choose(
 
 #[cfg(test)]
 mod tests {
-    use super::{Agreement, Candidate, Need, choose, next_need, without_emulated_twins};
+    use super::{Agreement, Candidate, Need, Source, choose, next_need, without_emulated_twins};
     use crate::engine::SearchParams;
     use crate::net::{Branches, Precision};
 
@@ -751,7 +793,10 @@ mod tests {
     #[test]
     fn a_search_is_measured_only_while_its_bound_may_still_win() {
         let start = Some(Need::Start(2, (Precision::I8, Branches::Both)));
-        let rows = Some(Need::Rows((Precision::Bf16, Branches::Both)));
+        let rows = Some(Need::Rows(
+            Source::Encoded,
+            (Precision::Bf16, Branches::Both),
+        ));
         // (estimates, agreement, the measurement expected next), budget 25 ms.
         let cases = [
             // An exact search at 10 ms: a bound beyond TIE × 10 with the same agreement is ruled

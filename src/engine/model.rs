@@ -663,13 +663,13 @@ impl Model {
             // A level boundary: a call whose caller went away stops here.
             options.cancel.check()?;
             let (mut logits, mats) =
-                self.search_logits(features, grid, cells, start, (precision, branches));
+                self.search_logits(features, grid, cells, (precision, branches));
             let network = rescore.then(|| logits.clone());
             fusion.add_terms(grid, cells, &mats, &mut logits, &options.cancel)?;
             if let Some(network) = network {
                 options.cancel.check()?;
                 let rescored = options.top_k.max(RESCORED_CELLS);
-                self.rescore(features, &mats, &network, &mut logits, rescored);
+                self.rescore(features, (grid, cells), &network, &mut logits, rescored);
             }
             Ok::<_, EngineError>(logits)
         })?;
@@ -690,7 +690,7 @@ impl Model {
     fn rescore(
         &self,
         features: &[Vec<f32>],
-        mats: &[Vec<[f32; 9]>],
+        (grid, cells): (&GridLevel, &[Vec<u64>]),
         network: &[Vec<f32>],
         logits: &mut [Vec<f32>],
         count: usize,
@@ -702,12 +702,17 @@ impl Model {
                 search::top_indices(&l, count)
             })
             .collect();
-        let rotations: Vec<Vec<[f32; 9]>> = best
+        let best_cells: Vec<Vec<u64>> = best
             .iter()
-            .zip(mats)
-            .map(|(best, mats)| best.iter().map(|&j| mats[j]).collect())
+            .zip(cells)
+            .map(|(best, cells)| best.iter().map(|&j| cells[j]).collect())
             .collect();
-        let exact = self.score_rotations_many(features, &rotations, Precision::F32);
+        let (exact, _) = self.search_logits(
+            features,
+            grid,
+            &best_cells,
+            (Precision::F32, Branches::Both),
+        );
         for (((logits, network), best), exact) in
             logits.iter_mut().zip(network).zip(&best).zip(exact)
         {
@@ -718,28 +723,29 @@ impl Model {
     }
 
     /// `s_θ + s_φ` (or `s_θ` alone, by `branches`) of each search's `cells` of `grid` in
-    /// `precision`: read from the precomputed projections at the start level, scored on their
-    /// rotations above it. Also returns those rotations (row-major; empty at the start level,
+    /// `precision`: at a full level (up to [`EngineConfig::max_full_level`]) from the
+    /// projections precomputed at load (the level in full when `cells` are all its cells in
+    /// order, else the cells' projections gathered); above them from the
+    /// cells' rotations, encoded. Also returns those rotations (row-major; empty at a full level,
     /// which does not compute them).
     fn search_logits(
         &self,
         features: &[Vec<f32>],
         grid: &GridLevel,
         cells: &[Vec<u64>],
-        start: u8,
         (precision, branches): (Precision, Branches),
     ) -> (Vec<Vec<f32>>, Vec<Vec<[f32; 9]>>) {
-        if grid.level() == start && (start as usize) < self.projected.len() {
-            let projected = &self.projected[start as usize];
+        if let Some(projected) = self.projected.get(grid.level() as usize) {
             let logits = features
                 .iter()
                 .zip(cells)
                 .map(|(f, cells)| {
-                    let all = projected.log_weights_of_row_by(precision, branches, f);
-                    if cells.len() == all.len() {
-                        all
+                    let every = cells.len() == projected.grid.len()
+                        && cells.iter().enumerate().all(|(i, &c)| c == i as u64);
+                    if every {
+                        projected.log_weights_of_row_by(precision, branches, f)
                     } else {
-                        cells.iter().map(|&c| all[c as usize]).collect()
+                        projected.log_weights_of_cells_by(precision, branches, f, cells)
                     }
                 })
                 .collect();
@@ -803,6 +809,11 @@ impl Model {
     /// The kernel a reduced `precision` runs on, in words.
     pub fn kernel_name(&self, precision: Precision) -> &'static str {
         self.fused.kernel_name(precision)
+    }
+
+    /// The precomputed projections of a full `level` (up to [`EngineConfig::max_full_level`]).
+    pub fn projected(&self, level: u8) -> Option<&ProjectedGrid> {
+        self.projected.get(level as usize)
     }
 
     /// The grid of `level` (up to the highest level this model serves).

@@ -250,6 +250,30 @@ impl ProjectedGrid {
         )
     }
 
+    /// [`ProjectedGrid::log_weights_of_row_by`] of some `cells` of the level only (in their
+    /// order): their projections gathered, so a search's refined level skips the encoding and
+    /// the rotation layer of the rows it scores. Panics on a cell outside the level.
+    pub fn log_weights_of_cells_by(
+        &self,
+        precision: Precision,
+        branches: Branches,
+        features: &[f32],
+        cells: &[u64],
+    ) -> Vec<f32> {
+        let width = self.head.width();
+        let mut rows = Vec::with_capacity(cells.len() * width);
+        for &c in cells {
+            let at = c as usize * width;
+            rows.extend_from_slice(&self.projected[at..at + width]);
+        }
+        self.head.scores_of(
+            precision,
+            &self.head.image_term(features),
+            Rows::Projected(&rows),
+            branches,
+        )
+    }
+
     /// The rotation of the cell with the highest combined log-weight, per image, from image
     /// features `[B, D]` (the point estimate AR@30 scores).
     pub fn argmax_rotations(&self, features: Tensor<2>) -> Vec<nalgebra::Rotation3<f64>> {
