@@ -556,10 +556,10 @@ struct Meter<'a> {
     /// [`TIMED_ROWS`] rotations spread over the search level, and the first [`SMALL_ROWS`].
     many: Vec<Vec<[f32; 9]>>,
     few: Vec<Vec<[f32; 9]>>,
-    /// [`TIMED_ROWS`] cells spread over the finest full level up to the search level, and the
-    /// first [`SMALL_ROWS`], with that level.
-    many_cells: (usize, Vec<u64>),
-    few_cells: (usize, Vec<u64>),
+    /// The finest full level up to the search level; [`TIMED_ROWS`] cells spread over it, of
+    /// which the first [`SMALL_ROWS`] are the few.
+    full: usize,
+    cells: Vec<u64>,
     rates: Rates,
     spent: Spent,
 }
@@ -588,8 +588,8 @@ impl<'a> Meter<'a> {
             features,
             few: vec![many[..SMALL_ROWS].to_vec()],
             many: vec![many],
-            few_cells: (full, cells[..SMALL_ROWS.min(cells.len())].to_vec()),
-            many_cells: (full, cells),
+            full,
+            cells,
             rates: Rates {
                 encoder,
                 start: BTreeMap::new(),
@@ -629,8 +629,8 @@ impl<'a> Meter<'a> {
             Need::Rows(source, (precision, branches)) => {
                 let time = |few: bool, runs: usize| {
                     let (rotations, cells) = match few {
-                        true => (&self.few, &self.few_cells),
-                        false => (&self.many, &self.many_cells),
+                        true => (&self.few, &self.cells[..SMALL_ROWS.min(self.cells.len())]),
+                        false => (&self.many, &self.cells[..]),
                     };
                     min_ms(runs, || match source {
                         Source::Encoded => {
@@ -638,8 +638,7 @@ impl<'a> Meter<'a> {
                                 model.score_rotations_by(features, rotations, precision, branches);
                         }
                         Source::Projected => {
-                            let (level, cells) = cells;
-                            let _ = model.projected[*level].log_weights_of_cells_by(
+                            let _ = model.projected[self.full].log_weights_of_cells_by(
                                 precision,
                                 branches,
                                 &features[0],
