@@ -553,9 +553,9 @@ fn next_need(
 struct Meter<'a> {
     model: &'a Model,
     features: Vec<Vec<f32>>,
-    /// [`TIMED_ROWS`] rotations spread over the search level, and the first [`SMALL_ROWS`].
+    /// [`TIMED_ROWS`] rotations spread over the search level (one image's); the first
+    /// [`SMALL_ROWS`] of them are the few.
     many: Vec<Vec<[f32; 9]>>,
-    few: Vec<Vec<[f32; 9]>>,
     /// The finest full level up to the search level; [`TIMED_ROWS`] cells spread over it, of
     /// which the first [`SMALL_ROWS`] are the few.
     full: usize,
@@ -586,7 +586,6 @@ impl<'a> Meter<'a> {
         Ok(Meter {
             model,
             features,
-            few: vec![many[..SMALL_ROWS].to_vec()],
             many: vec![many],
             full,
             cells,
@@ -628,14 +627,14 @@ impl<'a> Meter<'a> {
             }
             Need::Rows(source, (precision, branches)) => {
                 let time = |few: bool, runs: usize| {
-                    let (rotations, cells) = match few {
-                        true => (&self.few, &self.cells[..SMALL_ROWS.min(self.cells.len())]),
-                        false => (&self.many, &self.cells[..]),
-                    };
+                    let rows = if few { SMALL_ROWS } else { TIMED_ROWS };
+                    let rotations: Vec<&[[f32; 9]]> =
+                        self.many.iter().map(|m| &m[..rows.min(m.len())]).collect();
+                    let cells = &self.cells[..rows.min(self.cells.len())];
                     min_ms(runs, || match source {
                         Source::Encoded => {
                             let _ =
-                                model.score_rotations_by(features, rotations, precision, branches);
+                                model.score_rotations_by(features, &rotations, precision, branches);
                         }
                         Source::Projected => {
                             let _ = model.projected[self.full].log_weights_of_cells_by(

@@ -778,10 +778,10 @@ impl Model {
     }
 
     /// [`Model::score_rotations_many`] by `branches`: `s_θ + s_φ`, or `s_θ` alone.
-    pub fn score_rotations_by(
+    pub fn score_rotations_by<R: AsRef<[[f32; 9]]>>(
         &self,
         features: &[Vec<f32>],
-        rotations: &[Vec<[f32; 9]>],
+        rotations: &[R],
         precision: Precision,
         branches: Branches,
     ) -> Vec<Vec<f32>> {
@@ -790,7 +790,7 @@ impl Model {
             .iter()
             .zip(rotations)
             .map(|(f, rotations)| {
-                let encodings = encoding.encode(rotations);
+                let encodings = encoding.encode(rotations.as_ref());
                 self.fused.scores_of(
                     precision,
                     &self.fused.image_term(f),
