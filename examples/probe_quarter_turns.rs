@@ -3,7 +3,8 @@
 //! centre by k quarter turns (exact: no resampling) shows the object at `Q^k · R`, `Q` a quarter
 //! turn about the camera's line of sight (z); so the crop's log-density at `R` can be read from
 //! each turned crop at `Q^k · R`, and the views combined: their sum (a product of the densities)
-//! or their log-mean-exp (a mixture). For every crop of a set (`eval --fresh`'s crops: clean, or
+//! or their log-mean-exp (a mixture), or the surest view taken alone (the one whose most probable
+//! cell is the most probable). For every crop of a set (`eval --fresh`'s crops: clean, or
 //! realistic `train` / `held-out`), this scores a full grid level in each view with the engine's
 //! f32 head at the turned rotations, and prints the project's metrics (`so3::metrics::image_metrics`: AR@30 of
 //! the argmax and of the first mode, LL, median error) of: the crop alone, each turned view alone,
@@ -50,28 +51,50 @@ fn normalised(logits: &[f64]) -> Vec<f64> {
     logits.iter().map(|l| l - lse).collect()
 }
 
-/// One way of combining views: its name, the views it takes, and whether as a mixture (else a
-/// product).
-struct Combination(&'static str, &'static [usize], bool);
+/// How a combination reads its views.
+#[derive(Clone, Copy, PartialEq)]
+enum Rule {
+    /// The sum of their log-probabilities: a product of the densities.
+    Product,
+    /// Their log-mean-exp: a mixture.
+    Mixture,
+    /// The one view whose most probable cell is the most probable.
+    Surest,
+}
 
-const COMBINATIONS: [Combination; 7] = [
-    Combination("the crop alone", &[0], false),
-    Combination("turned 1/4 alone", &[1], false),
-    Combination("turned 1/2 alone", &[2], false),
-    Combination("turned 3/4 alone", &[3], false),
-    Combination("0 + 1/2, product", &[0, 2], false),
-    Combination("all four, product", &[0, 1, 2, 3], false),
-    Combination("all four, mixture", &[0, 1, 2, 3], true),
+/// One way of combining views: its name, the views it takes, and how.
+struct Combination(&'static str, &'static [usize], Rule);
+
+const COMBINATIONS: [Combination; 9] = [
+    Combination("the crop alone", &[0], Rule::Product),
+    Combination("turned 1/4 alone", &[1], Rule::Product),
+    Combination("turned 1/2 alone", &[2], Rule::Product),
+    Combination("turned 3/4 alone", &[3], Rule::Product),
+    Combination("0 + 1/2, product", &[0, 2], Rule::Product),
+    Combination("all four, product", &[0, 1, 2, 3], Rule::Product),
+    Combination("all four, mixture", &[0, 1, 2, 3], Rule::Mixture),
+    Combination("0 or 1/2, the surer", &[0, 2], Rule::Surest),
+    Combination("all four, the surest", &[0, 1, 2, 3], Rule::Surest),
 ];
 
 impl Combination {
     /// The combined log-weights of every cell from each view's log-probabilities.
     fn of(&self, views: &[Vec<f64>]) -> Vec<f32> {
+        if self.2 == Rule::Surest {
+            let peak = |k: usize| views[k].iter().copied().fold(f64::MIN, f64::max);
+            let surest = self
+                .1
+                .iter()
+                .copied()
+                .max_by(|&a, &b| peak(a).total_cmp(&peak(b)))
+                .expect("a combination has views");
+            return views[surest].iter().map(|&v| v as f32).collect();
+        }
         let n = self.1.len() as f64;
         (0..views[0].len())
             .map(|i| {
                 let terms: Vec<f64> = self.1.iter().map(|&k| views[k][i]).collect();
-                (if self.2 {
+                (if self.2 == Rule::Mixture {
                     log_sum_exp(&terms) - n.ln()
                 } else {
                     terms.iter().sum()
