@@ -4,7 +4,7 @@
 //! turn about the camera's line of sight (z); so the crop's log-density at `R` can be read from
 //! each turned crop at `Q^k · R`, and the views combined: their sum (a product of the densities)
 //! or their log-mean-exp (a mixture), or the surest view taken alone (the one whose most probable
-//! cell is the most probable). For every crop of a set (`eval --fresh`'s crops: clean, or
+//! cell is the most probable), or a vote among the views' answers. For every crop of a set (`eval --fresh`'s crops: clean, or
 //! realistic `train` / `held-out`), this scores a full grid level in each view with the engine's
 //! f32 head at the turned rotations, and prints the project's metrics (`so3::metrics::image_metrics`: AR@30 of
 //! the argmax and of the first mode, LL, median error) of: the crop alone, each turned view alone,
@@ -60,12 +60,16 @@ enum Rule {
     Mixture,
     /// The one view whose most probable cell is the most probable.
     Surest,
+    /// The one view whose most probable cell the most other views' most probable cells lie
+    /// within 30° of (a vote; ties to the earlier view). Angles without the part's symmetries:
+    /// for parts without one.
+    Vote,
 }
 
 /// One way of combining views: its name, the views it takes, and how.
 struct Combination(&'static str, &'static [usize], Rule);
 
-const COMBINATIONS: [Combination; 9] = [
+const COMBINATIONS: [Combination; 11] = [
     Combination("the crop alone", &[0], Rule::Product),
     Combination("turned 1/4 alone", &[1], Rule::Product),
     Combination("turned 1/2 alone", &[2], Rule::Product),
@@ -75,11 +79,35 @@ const COMBINATIONS: [Combination; 9] = [
     Combination("all four, mixture", &[0, 1, 2, 3], Rule::Mixture),
     Combination("0 or 1/2, the surer", &[0, 2], Rule::Surest),
     Combination("all four, the surest", &[0, 1, 2, 3], Rule::Surest),
+    Combination("all four, a vote", &[0, 1, 2, 3], Rule::Vote),
+    Combination("0, 1/2, 1/4: a vote", &[0, 2, 1], Rule::Vote),
 ];
 
 impl Combination {
     /// The combined log-weights of every cell from each view's log-probabilities.
-    fn of(&self, views: &[Vec<f64>]) -> Vec<f32> {
+    fn of(&self, views: &[Vec<f64>], cells: &[Rotation3<f64>]) -> Vec<f32> {
+        if self.2 == Rule::Vote {
+            let best = |k: usize| {
+                let v = &views[k];
+                let i = (0..v.len())
+                    .max_by(|&a, &b| v[a].total_cmp(&v[b]))
+                    .expect("a grid has cells");
+                cells[i]
+            };
+            let answers: Vec<Rotation3<f64>> = self.1.iter().map(|&k| best(k)).collect();
+            let support = |a: &Rotation3<f64>| {
+                answers
+                    .iter()
+                    .filter(|b| (a.inverse() * *b).angle().to_degrees() <= 30.0)
+                    .count()
+            };
+            // The first of the most supported (max_by keeps the last of equals, so reversed).
+            let chosen = (0..answers.len())
+                .rev()
+                .max_by_key(|&i| support(&answers[i]))
+                .expect("a combination has views");
+            return views[self.1[chosen]].iter().map(|&v| v as f32).collect();
+        }
         if self.2 == Rule::Surest {
             let peak = |k: usize| views[k].iter().copied().fold(f64::MIN, f64::max);
             let surest = self
@@ -211,7 +239,7 @@ impl Study {
         for im in crops {
             let views = self.views(im, sign, &[0, 1, 2, 3])?;
             for (c, tally) in COMBINATIONS.iter().zip(&mut tallies) {
-                self.score(tally, &c.of(&views), im)?;
+                self.score(tally, &c.of(&views, &self.cells), im)?;
             }
         }
         let alone = tallies[0].right();
