@@ -553,9 +553,9 @@ fn next_need(
 struct Meter<'a> {
     model: &'a Model,
     features: Vec<Vec<f32>>,
-    /// [`TIMED_ROWS`] rotations spread over the search level (one image's); the first
-    /// [`SMALL_ROWS`] of them are the few.
-    many: Vec<Vec<[f32; 9]>>,
+    /// [`TIMED_ROWS`] rotations spread over the search level; the first [`SMALL_ROWS`] of them
+    /// are the few.
+    many: Vec<[f32; 9]>,
     /// The finest full level up to the search level; [`TIMED_ROWS`] cells spread over it, of
     /// which the first [`SMALL_ROWS`] are the few.
     full: usize,
@@ -586,7 +586,7 @@ impl<'a> Meter<'a> {
         Ok(Meter {
             model,
             features,
-            many: vec![many],
+            many,
             full,
             cells,
             rates: Rates {
@@ -628,8 +628,8 @@ impl<'a> Meter<'a> {
             Need::Rows(source, (precision, branches)) => {
                 let time = |few: bool, runs: usize| {
                     let rows = if few { SMALL_ROWS } else { TIMED_ROWS };
-                    let rotations: Vec<&[[f32; 9]]> =
-                        self.many.iter().map(|m| &m[..rows.min(m.len())]).collect();
+                    // One image's rows (the grey image's features).
+                    let rotations = [&self.many[..rows.min(self.many.len())]];
                     let cells = &self.cells[..rows.min(self.cells.len())];
                     min_ms(runs, || match source {
                         Source::Encoded => {
