@@ -2,8 +2,8 @@
 //! level: AVX-512 VNNI (`--kernels avx512`), AVX-VNNI (`--kernels avx2`) and AVX2's `VPMADDWD`
 //! pairs, each where the core has it, the shape branch alone and both branches, in rounds that
 //! alternate the kernels (best of `REPEATS` calls each a round), so that a window's slowdown
-//! meets all of them. Prints each round's milliseconds and GOP/s (the head's FLOP count of
-//! `bench::head_flops_per_rotation`, as integer operations), then the medians.
+//! meets all of them. Prints each round's milliseconds, then the medians with their GOP/s (the
+//! operations counted as `bench::head_flops_per_rotation` counts the f32 head's FLOPs).
 //! `cargo run --release --example probe_i8 [BUNDLE] [LEVEL] [ROUNDS] [REPEATS]`
 use std::time::Instant;
 
@@ -27,22 +27,22 @@ fn main() -> anyhow::Result<()> {
     );
     let loaded = alignist::bundle::model::ModelBundle::load(std::path::Path::new(bundle))?;
     let grid = GridLevel::new(level)?;
-    let f32_head = FusedHead::with_kernels(&loaded.network.head, Kernels::Avx512);
-    let projected = f32_head.project_rotations(
+    // Each kernel's head once; the 512-bit one also projects the grid (f32) and the image.
+    let avx512 = FusedHead::with_kernels(&loaded.network.head, Kernels::Avx512);
+    let avx2 = FusedHead::with_kernels(&loaded.network.head, Kernels::Avx2);
+    let pairs = ReducedHead::i8_avx2_pairs(&avx2);
+    let projected = avx512.project_rotations(
         &loaded
             .manifest
             .network
             .encoding
             .encode(&grid.matrices_f32()),
     );
-    let features: Vec<f32> = (0..f32_head.image_dim())
+    let features: Vec<f32> = (0..avx512.image_dim())
         .map(|i| ((i * 37 % 101) as f32 / 50.0 - 1.0).max(0.0))
         .collect();
-    let image = f32_head.image_term(&features);
-    // Each kernel once: (name, head scoring `branches`).
-    let avx512 = FusedHead::with_kernels(&loaded.network.head, Kernels::Avx512);
-    let avx2 = FusedHead::with_kernels(&loaded.network.head, Kernels::Avx2);
-    let pairs = ReducedHead::i8_avx2_pairs(&avx2);
+    let image = avx512.image_term(&features);
+    // Each kernel: (name, its head scoring `branches`).
     type Score<'a> = Box<dyn Fn(Branches) -> (Vec<f32>, Vec<f32>) + 'a>;
     let mut kernels: Vec<(&str, Score)> = Vec::new();
     for (head, name) in [(&avx512, "avx512"), (&avx2, "avx2")] {

@@ -15,6 +15,7 @@ use std::f64::consts::FRAC_PI_2;
 
 use alignist::bundle::model::ModelBundle;
 use alignist::data::realism::Split;
+use alignist::engine::search::log_sum_exp;
 use alignist::engine::{Engine, EngineConfig, Model};
 use alignist::net::Precision;
 use alignist::so3::metrics::{ImageMetrics, image_metrics};
@@ -37,18 +38,6 @@ fn quarter_turns(rgb: &[u8], size: usize, k: usize) -> Vec<u8> {
         }
     }
     out
-}
-
-/// `log Σ exp(v)`.
-fn log_sum_exp(v: &[f64]) -> f64 {
-    let max = v.iter().copied().fold(f64::MIN, f64::max);
-    max + v.iter().map(|x| (x - max).exp()).sum::<f64>().ln()
-}
-
-/// Log-probabilities of `logits`.
-fn normalised(logits: &[f64]) -> Vec<f64> {
-    let lse = log_sum_exp(logits);
-    logits.iter().map(|l| l - lse).collect()
 }
 
 /// How a combination reads its views.
@@ -121,11 +110,11 @@ impl Combination {
         let n = self.1.len() as f64;
         (0..views[0].len())
             .map(|i| {
-                let terms: Vec<f64> = self.1.iter().map(|&k| views[k][i]).collect();
+                let terms = self.1.iter().map(|&k| views[k][i]);
                 (if self.2 == Rule::Mixture {
-                    log_sum_exp(&terms) - n.ln()
+                    log_sum_exp(&terms.map(|t| t as f32).collect::<Vec<_>>()) - n.ln()
                 } else {
-                    terms.iter().sum()
+                    terms.sum()
                 }) as f32
             })
             .collect()
@@ -198,7 +187,10 @@ impl Study {
             .model
             .score_rotations_many(&features, &rotations, Precision::F32)
             .into_iter()
-            .map(|l| normalised(&l.iter().map(|&v| v as f64).collect::<Vec<_>>()))
+            .map(|l| {
+                let lse = log_sum_exp(&l);
+                l.iter().map(|&v| v as f64 - lse).collect()
+            })
             .collect())
     }
 
