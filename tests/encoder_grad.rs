@@ -40,14 +40,19 @@ fn stream(seed: u64, n: usize) -> Vec<f32> {
         .collect()
 }
 
-/// Two encoders of `layout` with the same weights and statistics, each with its own running
-/// state (a copy through the record: two seeded inits do not draw the same weights). A
-/// `tiny_deep` one is a `tiny` one deepened, its added blocks at their identity start.
-fn encoders(device: &Device, seed: u64, layout: ResNetLayout) -> (Encoder, Encoder) {
+/// Two encoders of `layout`, pooled over a `grid × grid` grid, with the same weights and
+/// statistics, each with its own running state (a copy through the record: two seeded inits do
+/// not draw the same weights). A `tiny_deep` one is a `tiny` one deepened, its added blocks at
+/// their identity start.
+fn encoders(device: &Device, seed: u64, layout: ResNetLayout, grid: usize) -> (Encoder, Encoder) {
     device.seed(seed);
     let tiny = EncoderConfig::new(ResNetLayout::Tiny).init(device);
-    let reference = tiny.deepened(ResNetLayout::Tiny, layout, device).unwrap();
+    let reference = tiny
+        .deepened(ResNetLayout::Tiny, layout, device)
+        .unwrap()
+        .with_pool_grid(grid);
     let copy = EncoderConfig::new(layout)
+        .with_pool_grid(grid)
         .init(device)
         .load_record(reference.clone().into_record());
     (reference, copy)
@@ -57,15 +62,24 @@ fn encoders(device: &Device, seed: u64, layout: ResNetLayout) -> (Encoder, Encod
 fn the_hand_written_encoder_trains_as_burns_autodiff() {
     // 16 px: every stage halves evenly; 9 px: odd sides, windows cut by the edges (9, 5, 3, 2).
     for size in [SIZE, 9] {
-        check(size, ResNetLayout::Tiny);
+        check(size, ResNetLayout::Tiny, 1);
     }
     // Blocks at their identity start: zero scale and shift, gradients through them all the same.
-    check(SIZE, ResNetLayout::TinyDeep);
+    check(SIZE, ResNetLayout::TinyDeep, 1);
 }
 
-fn check(size: usize, layout: ResNetLayout) {
+#[test]
+fn the_hand_written_grid_pooling_trains_as_burns_autodiff() {
+    // 32 px ends in a 4 × 4 map: 2 × 2 cells of 2 × 2 pixels. On the 2 × 2 map of 16 px, a 3 × 3
+    // grid's cells overlap (burn's adaptive bins), and a 2 × 2 grid keeps every pixel.
+    check(32, ResNetLayout::Tiny, 2);
+    check(SIZE, ResNetLayout::Tiny, 3);
+    check(9, ResNetLayout::TinyDeep, 2);
+}
+
+fn check(size: usize, layout: ResNetLayout, grid: usize) {
     let device = alignist::backend::device_for(alignist::backend::Workload::Conv).autodiff();
-    let (reference, ours) = encoders(&device, 5, layout);
+    let (reference, ours) = encoders(&device, 5, layout, grid);
     let crops: Vec<Vec<u8>> = (0..IMAGES)
         .map(|i| {
             stream(i as u64 + 1, size * size * 3)
@@ -75,7 +89,9 @@ fn check(size: usize, layout: ResNetLayout) {
         })
         .collect();
     let crops: Vec<&[u8]> = crops.iter().map(|c| c.as_slice()).collect();
-    let dim = ResNetLayout::Tiny.feature_dim();
+    let dim = EncoderConfig::new(layout)
+        .with_pool_grid(grid)
+        .feature_dim();
     let d: Vec<f32> = stream(99, IMAGES * dim).iter().map(|v| v - 0.5).collect();
 
     // burn: the loss Σ F ⊙ d, whose gradient with respect to the features is d.
@@ -89,7 +105,10 @@ fn check(size: usize, layout: ResNetLayout) {
         TrainingEncoder::of(&ours, Kernels::default()).expect("the tiny layout runs by hand");
     let pass = model.forward(&crops, size);
     let e = relative(pass.features(), &burn_features, 1e-6);
-    assert!(e <= 1e-4, "{layout:?} {size} px: features off by {e:.2e}");
+    assert!(
+        e <= 1e-4,
+        "{layout:?} {size} px, grid {grid}: features off by {e:.2e}"
+    );
     let grads = model.backward(&pass, &d);
     let mut our_grads = GradientsParams::new();
     let ours_ids = model.param_ids();
@@ -126,7 +145,7 @@ fn check(size: usize, layout: ResNetLayout) {
             let e = relative(&o, &r, 1e-3);
             assert!(
                 e <= 1e-4,
-                "{layout:?} {size} px, unit {unit}: {which} gradient off by {e:.2e}"
+                "{layout:?} {size} px, grid {grid}, unit {unit}: {which} gradient off by {e:.2e}"
             );
         }
     }
@@ -158,7 +177,7 @@ fn layouts_with_a_stem_pool_are_left_to_burn() {
 #[test]
 fn the_encoder_gradients_do_not_depend_on_the_thread_count() {
     let device = alignist::backend::device_for(alignist::backend::Workload::Conv).autodiff();
-    let (a, b) = encoders(&device, 8, ResNetLayout::Tiny);
+    let (a, b) = encoders(&device, 8, ResNetLayout::Tiny, 1);
     let crops: Vec<Vec<u8>> = (0..7)
         .map(|i| {
             stream(i + 40, SIZE * SIZE * 3)

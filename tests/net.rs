@@ -909,9 +909,16 @@ fn the_folded_inference_encoder_computes_burns_eval_features() {
         let _ = fresh.forward(network::images_tensor(&refs, 32, &train));
     }
     let fresh = burn::module::Module::valid(&fresh);
+    // Pooled over 2 × 2 cells of its 4 × 4 map, and over 3 × 3 overlapping cells.
+    let (grid2, grid3) = (
+        fresh.clone().with_pool_grid(2),
+        fresh.clone().with_pool_grid(3),
+    );
     for (encoder, side, what) in [
         (&bundle.network.encoder, side, "shipped"),
         (&fresh, 32, "fresh tiny"),
+        (&grid2, 32, "fresh tiny, 2 × 2 grid"),
+        (&grid3, 32, "fresh tiny, 3 × 3 grid"),
     ] {
         for kernels in [Kernels::Widest, Kernels::Avx2] {
             let folded = InferenceEncoder::of(encoder, kernels).expect("a CPU layout");

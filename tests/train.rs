@@ -494,6 +494,7 @@ fn a_warm_restart_starts_from_the_given_weights_and_checks_them() {
             trained_by: "the test's first run".into(),
             image_size: None,
             layout: None,
+            pool_grid: None,
         }),
         ..cfg.clone()
     };
@@ -527,6 +528,81 @@ fn a_warm_restart_starts_from_the_given_weights_and_checks_them() {
     other.init.as_mut().unwrap().file.sha256 = "0".repeat(64);
     let err = go(&other).unwrap_err().to_string();
     assert!(err.contains("network.safetensors"), "{err}");
+}
+
+/// A globally pooled network warm-starts one pooled over a grid of cells: at learning rate 0 the
+/// grid's network scores as the same warm restart pooled globally (its head's image projection
+/// spread over the cells); trained, it departs from it; a grid does not start another grid.
+#[test]
+fn a_globally_pooled_network_warm_starts_a_grid_pooled_one_with_the_same_scores() {
+    use alignist::train::config::InitWeights;
+    let set = tiny_set();
+    let cfg = config(alignist_method());
+    let go = |c: &TrainConfig| train(c, &set, None, false, |_, _, _| ControlFlow::Continue(()));
+    let (a, _) = go(&cfg).unwrap();
+    let files = tempfile::tempdir().unwrap();
+    let path = files.path().join("network.safetensors");
+    let entry = alignist::bundle::save_weights(&a, &path).unwrap();
+    let init = InitWeights {
+        path: path.display().to_string(),
+        file: entry,
+        trained_by: "the test's first run".into(),
+        image_size: None,
+        layout: None,
+        pool_grid: Some(1),
+    };
+    let grid = TrainConfig {
+        lr: 0.0,
+        network: cfg.network.clone().pooled_over(2),
+        init: Some(init.clone()),
+        ..cfg.clone()
+    };
+    let (g, _) = go(&grid).unwrap();
+    assert_eq!(g.encoder.pool_grid(), 2);
+    // Against the same warm restart pooled globally (BatchNorm's running statistics move at lr 0
+    // too, the same in both).
+    let (w, _) = go(&TrainConfig {
+        network: cfg.network.clone(),
+        ..grid.clone()
+    })
+    .unwrap();
+    let (fa, fg) = (fingerprint(&w, &set), fingerprint(&g, &set));
+    let scale = fa.iter().fold(1f32, |m, v| m.max(v.abs()));
+    let worst = fa
+        .iter()
+        .zip(&fg)
+        .fold(0f32, |m, (x, y)| m.max((x - y).abs()));
+    assert!(
+        worst <= 1e-4 * scale,
+        "scores moved by {worst} (of {scale})"
+    );
+    // Trained on, the cells are weighed apart: the scores leave the global network's.
+    let (h, _) = go(&TrainConfig {
+        lr: 1e-2,
+        ..grid.clone()
+    })
+    .unwrap();
+    let fh = fingerprint(&h, &set);
+    assert!(
+        fa.iter()
+            .zip(&fh)
+            .any(|(x, y)| (x - y).abs() > 1e-3 * scale)
+    );
+    // A grid does not warm-start another grid.
+    let entry = alignist::bundle::save_weights(&g, &files.path().join("g.safetensors")).unwrap();
+    let err = go(&TrainConfig {
+        network: cfg.network.clone().pooled_over(3),
+        init: Some(InitWeights {
+            path: files.path().join("g.safetensors").display().to_string(),
+            file: entry,
+            pool_grid: Some(2),
+            ..init
+        }),
+        ..cfg.clone()
+    })
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("2×2") && err.contains("3×3"), "{err}");
 }
 
 #[test]
@@ -746,6 +822,7 @@ fn a_distilled_head_keeps_the_teachers_encoder_and_learns_its_scores() {
             trained_by: "the test's student".into(),
             image_size: None,
             layout: None,
+            pool_grid: None,
         }),
         ..student(0.0)
     };

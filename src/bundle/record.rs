@@ -324,6 +324,10 @@ pub struct InitWeights {
     /// blocks start as identities).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub layout: Option<crate::net::ResNetLayout>,
+    /// The encoder's pooling grid the weights were trained with (1, global pooling), when this
+    /// run pools over a grid (the head's image projection is spread over the cells).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pool_grid: Option<usize>,
 }
 
 /// The model a distilled head learns from: its weights file, checked before loading, and the

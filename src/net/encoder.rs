@@ -1,5 +1,6 @@
 //! Image encoders of the ResNet family (He et al. 2016): a configurable stack of basic or
-//! bottleneck residual blocks with BatchNorm, global average pooling, and a feature vector.
+//! bottleneck residual blocks with BatchNorm, average pooling over a grid of cells (one cell:
+//! global average pooling), and a feature vector.
 //!
 //! Layouts: `tiny` (the CPU default: basic blocks [1, 1, 1, 1], widths 16…128, a 3×3 stem for
 //! 64×64 crops), `tiny_deep` (the same with two blocks per stage: a trained `tiny` encoder
@@ -83,6 +84,52 @@ impl ResNetLayout {
 pub struct EncoderConfig {
     /// The layout.
     pub layout: ResNetLayout,
+    /// Side of the grid the last feature map is averaged over: 1 is global average pooling;
+    /// `g` keeps where in the crop each of `g × g` cells' features lie (`g²` times the features).
+    #[config(default = 1)]
+    pub pool_grid: usize,
+}
+
+impl EncoderConfig {
+    /// Length of the feature vector: the layout's channels times the pooling grid's cells.
+    pub fn feature_dim(&self) -> usize {
+        self.layout.feature_dim() * self.pool_grid * self.pool_grid
+    }
+}
+
+/// The rows (or columns) `[start, end)` of a side of `side` pixels that cell `i` of `g` averages:
+/// burn's adaptive average pooling's bins (cells overlap where `g` does not divide `side`).
+fn pool_bin(i: usize, g: usize, side: usize) -> std::ops::Range<usize> {
+    let start = ((i as f32 * side as f32) / g as f32).floor() as usize;
+    let end = (((i + 1) as f32 * side as f32) / g as f32).ceil() as usize;
+    start..end.min(side)
+}
+
+/// Average pooling of one channel's `plane` (`side.0 × side.1`, row-major) over a `g × g` grid of
+/// cells, written to `out` (`g²` values, row-major over the cells): the features' pooling.
+pub(crate) fn grid_pool(plane: &[f32], side: (usize, usize), g: usize, out: &mut [f32]) {
+    for (cell, o) in out.iter_mut().enumerate() {
+        let (rows, cols) = (pool_bin(cell / g, g, side.0), pool_bin(cell % g, g, side.1));
+        let n = (rows.len() * cols.len()) as f32;
+        let sum: f32 = rows
+            .flat_map(|y| plane[y * side.1 + cols.start..y * side.1 + cols.end].iter())
+            .sum();
+        *o = sum / n;
+    }
+}
+
+/// The backward of [`grid_pool`]: adds each cell's gradient `d_cells`, shared over its pixels,
+/// to the plane's gradient `d_plane`.
+pub(crate) fn grid_unpool(d_cells: &[f32], side: (usize, usize), g: usize, d_plane: &mut [f32]) {
+    for (cell, &d) in d_cells.iter().enumerate() {
+        let (rows, cols) = (pool_bin(cell / g, g, side.0), pool_bin(cell % g, g, side.1));
+        let share = d / (rows.len() * cols.len()) as f32;
+        for y in rows {
+            d_plane[y * side.1 + cols.start..y * side.1 + cols.end]
+                .iter_mut()
+                .for_each(|v| *v += share);
+        }
+    }
 }
 
 fn conv(c_in: usize, c_out: usize, k: usize, stride: usize, device: &Device) -> Conv2d {
@@ -243,7 +290,7 @@ impl EncoderConfig {
             stem,
             stem_pool,
             blocks,
-            pool: AdaptiveAvgPool2dConfig::new([1, 1]).init(),
+            pool: AdaptiveAvgPool2dConfig::new([self.pool_grid; 2]).init(),
         }
     }
 }
@@ -281,6 +328,21 @@ impl Encoder {
         Some(Encoder { blocks, ..self })
     }
 
+    /// Side of the grid of cells the last feature map is averaged over (1: global pooling).
+    pub fn pool_grid(&self) -> usize {
+        self.pool.output_size[0]
+    }
+
+    /// This encoder averaging over a `g × g` grid of cells instead: the same weights, `g²`
+    /// times the features (the head's image projection takes them with
+    /// [`super::DualHead::with_image_cells`]).
+    pub fn with_pool_grid(self, g: usize) -> Self {
+        Encoder {
+            pool: AdaptiveAvgPool2dConfig::new([g; 2]).init(),
+            ..self
+        }
+    }
+
     /// The stem, whether a max-pool follows it, and the residual blocks.
     pub(crate) fn parts(&self) -> (&ConvBn, bool, &[Block]) {
         (&self.stem, self.stem_pool.is_some(), &self.blocks)
@@ -309,6 +371,7 @@ impl Encoder {
             h = block.forward(h);
         }
         let [b, c, _, _] = h.dims();
-        self.pool.forward(h).reshape([b, c])
+        let cells = self.pool_grid() * self.pool_grid();
+        self.pool.forward(h).reshape([b, c * cells])
     }
 }

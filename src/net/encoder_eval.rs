@@ -158,6 +158,8 @@ pub struct InferenceEncoder {
     stem: Folded,
     blocks: Vec<FoldedBlock>,
     kernels: Kernels,
+    /// Side of the pooling grid ([`Encoder::pool_grid`]).
+    pool_grid: usize,
 }
 
 impl InferenceEncoder {
@@ -182,6 +184,7 @@ impl InferenceEncoder {
             stem: Folded::of(stem)?,
             blocks,
             kernels,
+            pool_grid: encoder.pool_grid(),
         })
     }
 
@@ -216,9 +219,12 @@ impl InferenceEncoder {
             );
             (x, side) = second;
         }
+        let g = self.pool_grid;
         let plane = side.0 * side.1;
-        x.chunks_exact(plane)
-            .map(|p| p.iter().sum::<f32>() / plane as f32)
-            .collect()
+        let mut features = vec![0f32; x.len() / plane * g * g];
+        for (p, cells) in x.chunks_exact(plane).zip(features.chunks_exact_mut(g * g)) {
+            super::encoder::grid_pool(p, side, g, cells);
+        }
+        features
     }
 }

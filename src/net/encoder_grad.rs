@@ -569,6 +569,8 @@ pub struct TrainingEncoder {
     units: Vec<Unit>,
     blocks: Vec<BlockUnits>,
     kernels: Kernels,
+    /// Side of the pooling grid ([`Encoder::pool_grid`]).
+    pool_grid: usize,
 }
 
 impl TrainingEncoder {
@@ -596,6 +598,7 @@ impl TrainingEncoder {
             units,
             blocks: indices,
             kernels,
+            pool_grid: encoder.pool_grid(),
         })
     }
 
@@ -620,12 +623,15 @@ impl TrainingEncoder {
             blocks.push(self.block_forward(b, x));
         }
         let last = blocks.last().map_or(&stem_out, |p| &p.out);
-        let plane = last.plane() as f32;
-        let features = last
+        let g = self.pool_grid;
+        let mut features = vec![0f32; last.images * last.channels * g * g];
+        for (plane, cells) in last
             .data
             .chunks_exact(last.plane())
-            .map(|p| p.iter().sum::<f32>() / plane)
-            .collect();
+            .zip(features.chunks_exact_mut(g * g))
+        {
+            super::encoder::grid_pool(plane, last.side, g, cells);
+        }
         EncoderPass {
             images,
             stem,
@@ -667,21 +673,25 @@ impl TrainingEncoder {
     pub fn backward(&self, pass: &EncoderPass, d_features: &[f32]) -> EncoderGrads {
         let mut units: Vec<Option<[Vec<f32>; 3]>> = vec![None; self.units.len()];
         let last = pass.blocks.last().map_or(&pass.stem_out, |p| &p.out);
+        let g = self.pool_grid;
         assert_eq!(
             d_features.len(),
-            last.images * last.channels,
+            last.images * last.channels * g * g,
             "feature gradient"
         );
-        let plane = last.plane();
         let mut d = Act {
             images: last.images,
             channels: last.channels,
             side: last.side,
-            data: d_features
-                .iter()
-                .flat_map(|&g| std::iter::repeat_n(g / plane as f32, plane))
-                .collect(),
+            data: vec![0f32; last.data.len()],
         };
+        for (plane, cells) in d
+            .data
+            .chunks_exact_mut(last.plane())
+            .zip(d_features.chunks_exact(g * g))
+        {
+            super::encoder::grid_unpool(cells, last.side, g, plane);
+        }
         for (i, (b, p)) in self.blocks.iter().zip(&pass.blocks).enumerate().rev() {
             let x = match i {
                 0 => &pass.stem_out,

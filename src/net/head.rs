@@ -180,6 +180,27 @@ impl DualHead {
         self
     }
 
+    /// The head of an encoder that pools over `cells` cells ([`super::Encoder::with_pool_grid`])
+    /// where this one's pooled globally, computing the same scores: each feature's row of the
+    /// image projection repeated for each of its cells (features are channel-major: channel `c`'s
+    /// cells are `c·cells .. (c+1)·cells`) and divided by `cells`, since the global average is the
+    /// mean of the cells' (exactly so when the cells tile the map). Training then weighs the
+    /// cells apart.
+    pub fn with_image_cells(mut self, cells: usize) -> Self {
+        self.image_proj.weight = self.image_proj.weight.map(|w| {
+            let is_tracked = w.is_require_grad();
+            let [d, h] = w.dims();
+            let w = w
+                .reshape([d, 1, h])
+                .expand([d, cells, h])
+                .reshape([d * cells, h])
+                .div_scalar(cells as f32)
+                .detach();
+            if is_tracked { w.require_grad() } else { w }
+        });
+        self
+    }
+
     /// The rotation half of the first layer, `W_R · enc(R) + b_R`: `[K, E] → [K, hidden]`. It
     /// depends only on the rotations, so inference precomputes it once per grid level.
     pub fn project_rotations(&self, encodings: Tensor<2>) -> Tensor<2> {

@@ -33,6 +33,12 @@ pub struct NetworkConfig {
     /// Linear layers per branch.
     #[config(default = 4)]
     pub layers: usize,
+    /// Side of the grid of cells the encoder's last feature map is averaged over
+    /// ([`EncoderConfig::pool_grid`]); `None` (absent from a manifest: every bundle before it) is
+    /// 1, global average pooling. Set with [`NetworkConfig::pooled_over`], read with
+    /// [`NetworkConfig::pooling`].
+    #[config(default = "None")]
+    pub pool_grid: Option<usize>,
 }
 
 /// Encoder + dual-branch head.
@@ -51,6 +57,7 @@ pub const NETWORK_LIMITS: NetworkLimits = NetworkLimits {
     hidden: 1..=4096,
     layers: 1..=16,
     frequencies: 1..=16,
+    pool_grid: 1..=8,
 };
 
 /// Ranges of [`NETWORK_LIMITS`].
@@ -63,6 +70,8 @@ pub struct NetworkLimits {
     pub layers: std::ops::RangeInclusive<usize>,
     /// IPDF encoding frequencies.
     pub frequencies: std::ops::RangeInclusive<usize>,
+    /// Side of the encoder's pooling grid.
+    pub pool_grid: std::ops::RangeInclusive<usize>,
 }
 
 /// `Err("field: value is outside lo ..= hi")` unless `value` lies in `range`.
@@ -89,17 +98,36 @@ impl NetworkConfig {
         check_range("network.image_size", self.image_size, &l.image_size)?;
         check_range("network.hidden", self.hidden, &l.hidden)?;
         check_range("network.layers", self.layers, &l.layers)?;
+        check_range("network.pool_grid", self.pooling(), &l.pool_grid)?;
         if let RotationEncoding::Ipdf { frequencies } = self.encoding {
             check_range("network.encoding.frequencies", frequencies, &l.frequencies)?;
         }
         Ok(())
     }
 
+    /// This network pooling its encoder's last map over a `g × g` grid of cells (1: globally).
+    pub fn pooled_over(self, g: usize) -> Self {
+        NetworkConfig {
+            pool_grid: (g != 1).then_some(g),
+            ..self
+        }
+    }
+
+    /// Side of the encoder's pooling grid (1: global average pooling).
+    pub fn pooling(&self) -> usize {
+        self.pool_grid.unwrap_or(1)
+    }
+
+    /// The encoder's configuration.
+    pub fn encoder(&self) -> EncoderConfig {
+        EncoderConfig::new(self.layout).with_pool_grid(self.pooling())
+    }
+
     /// Builds the network on `device`.
     pub fn init(&self, device: &Device) -> Network {
         Network {
-            encoder: EncoderConfig::new(self.layout).init(device),
-            head: HeadConfig::new(self.layout.feature_dim(), self.encoding.dim())
+            encoder: self.encoder().init(device),
+            head: HeadConfig::new(self.encoder().feature_dim(), self.encoding.dim())
                 .with_hidden(self.hidden)
                 .with_layers(self.layers)
                 .init(device),

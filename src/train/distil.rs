@@ -90,21 +90,34 @@ impl Teacher {
     }
 }
 
-/// Refuses a student whose encoder is not the teacher's (layout, crop side) or whose rotation
-/// encoding is not: the one check of `fit --teacher` and of [`Teacher::load`].
+/// Refuses a student whose encoder is not the teacher's (layout, crop side, pooling grid) or
+/// whose rotation encoding is not: the one check of `fit --teacher` and of [`Teacher::load`].
 pub fn check_pair(
     teacher: &TeacherWeights,
     network: &crate::net::NetworkConfig,
 ) -> Result<(), TrainError> {
     let t = &teacher.network;
-    if (t.layout, t.image_size, &t.encoding)
-        != (network.layout, network.image_size, &network.encoding)
+    if (t.layout, t.image_size, t.pool_grid, &t.encoding)
+        != (
+            network.layout,
+            network.image_size,
+            network.pool_grid,
+            &network.encoding,
+        )
     {
         return Err(TrainError::Data(format!(
-            "{}: the teacher is a {:?} network at {} px, the run a {:?} network at {} px; a \
-             distilled head keeps the teacher's encoder, so give its layout, crop side and \
-             rotation encoding",
-            teacher.path, t.layout, t.image_size, network.layout, network.image_size
+            "{}: the teacher is a {:?} network at {} px pooled over {}×{}, the run a {:?} network \
+             at {} px pooled over {}×{}; a distilled head keeps the teacher's encoder, so give its \
+             layout, crop side, pooling grid and rotation encoding",
+            teacher.path,
+            t.layout,
+            t.image_size,
+            t.pooling(),
+            t.pooling(),
+            network.layout,
+            network.image_size,
+            network.pooling(),
+            network.pooling()
         )));
     }
     Ok(())

@@ -275,10 +275,12 @@ fn dataset_data(inputs: &FitInputs, data: &[PathBuf]) -> Result<FitData, FitErro
 /// The weights of the bundle in `dir`, checked to be of `network`: the start of a warm restart,
 /// recorded with their checksum and the command that trained them.
 ///
-/// The crop side may differ: every layout ends in global average pooling, so the encoder's
-/// weights are the same tensors at any input size (a 32 px network warm-starts a 64 px one). So
-/// may the layout, where this run's deepens theirs (`tiny` → `tiny_deep`: the added blocks start
-/// as identities). The side and layout the weights were trained in are recorded beside them.
+/// The crop side may differ: every layout ends in average pooling, so the encoder's weights are
+/// the same tensors at any input size (a 32 px network warm-starts a 64 px one). So may the
+/// layout, where this run's deepens theirs (`tiny` → `tiny_deep`: the added blocks start as
+/// identities), and the pooling, from global to a grid of cells (the head's image projection
+/// spread over the cells: the same scores at the start). The side, layout and pooling the weights
+/// were trained with are recorded beside them.
 pub fn init_weights(dir: &Path, network: &NetworkConfig) -> Result<InitWeights, FitError> {
     let (path, manifest, file) = bundle_weights(dir)?;
     let theirs = &manifest.network;
@@ -289,14 +291,19 @@ pub fn init_weights(dir: &Path, network: &NetworkConfig) -> Result<InitWeights, 
         } else {
             theirs.layout
         },
+        pool_grid: if theirs.pooling() == 1 {
+            network.pool_grid
+        } else {
+            theirs.pool_grid
+        },
         ..theirs.clone()
     };
     if &same_tensors != network {
         let json = |n: &NetworkConfig| serde_json::to_string(n).unwrap_or_default();
         return Err(FitError::Invalid(format!(
             "{path}: its network ({}) is not the one asked for ({}); give the same encoding, \
-             hidden width and layers, and its layout or one that deepens it (the image size may \
-             differ)",
+             hidden width and layers, its layout or one that deepens it, and its pooling grid \
+             (or any grid from global pooling; the image size may differ)",
             json(theirs),
             json(network)
         )));
@@ -307,6 +314,7 @@ pub fn init_weights(dir: &Path, network: &NetworkConfig) -> Result<InitWeights, 
         trained_by: manifest.provenance.command.clone(),
         image_size: (theirs.image_size != network.image_size).then_some(theirs.image_size),
         layout: (theirs.layout != network.layout).then_some(theirs.layout),
+        pool_grid: (theirs.pooling() != network.pooling()).then_some(theirs.pooling()),
     })
 }
 

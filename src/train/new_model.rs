@@ -73,10 +73,22 @@ pub struct Recipe {
     /// ([`super::sampling::OwnTwins`]; needs a twin share; 0 for none; the recipe's is 32).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub own_twins: usize,
+    /// Side of the grid the encoder's last feature map is averaged over (1, the recipe's:
+    /// global average pooling; [`crate::net::EncoderConfig::pool_grid`]).
+    #[serde(default = "global_pooling", skip_serializing_if = "is_one")]
+    pub pool_grid: usize,
 }
 
 fn is_zero(n: &usize) -> bool {
     *n == 0
+}
+
+fn is_one(n: &usize) -> bool {
+    *n == 1
+}
+
+fn global_pooling() -> usize {
+    1
 }
 
 /// Steps between two searches of the network's own twins ([`Recipe::own_twins`]).
@@ -99,6 +111,7 @@ pub const RECIPE: Recipe = Recipe {
     supersample: 2,
     twin_share: 0.5,
     own_twins: 32,
+    pool_grid: 1,
 };
 
 /// Share of the budget the experts of all objects get at most (the rest trains the network).
@@ -606,7 +619,8 @@ impl Recipe {
     /// The network and training configuration of this recipe for `steps`.
     pub fn config(&self, steps: usize, seed: u64) -> TrainConfig {
         let network = NetworkConfig::new(self.layout, RotationEncoding::Cube)
-            .with_image_size(self.image_size);
+            .with_image_size(self.image_size)
+            .pooled_over(self.pool_grid);
         TrainConfig {
             network,
             method: Method::Alignist {

@@ -401,17 +401,18 @@ fn starting_point(
     if let Some(init) = &config.init {
         let to = config.network.layout;
         let from = init.layout.unwrap_or(to);
+        let (grid, their_grid) = (config.network.pooling(), init.pool_grid.unwrap_or(1));
         let fail = |message: String| TrainError::Checkpoint {
             path: init.path.clone(),
             message,
         };
-        // The run's own network takes the weights, or one of their layout when it deepens it.
-        let start = if from == to {
+        // The run's own network takes the weights, or one of their layout and pooling.
+        let start = if from == to && init.pool_grid.is_none() {
             network
         } else {
             let theirs = crate::net::NetworkConfig {
                 layout: from,
-                ..config.network.clone()
+                ..config.network.clone().pooled_over(their_grid)
             };
             crate::backend::seeded_init(device, config.seed, || theirs.init(device))
         };
@@ -423,6 +424,15 @@ fn starting_point(
                 loaded.encoder.deepened(from, to, device)
             })
             .ok_or_else(|| fail(format!("a {from:?} encoder does not warm-start {to:?}")))?;
+        }
+        if init.pool_grid.is_some() {
+            if their_grid != 1 {
+                return Err(fail(format!(
+                    "weights pooled over a {their_grid}×{their_grid} grid do not warm-start a {grid}×{grid} one"
+                )));
+            }
+            loaded.encoder = loaded.encoder.with_pool_grid(grid);
+            loaded.head = loaded.head.with_image_cells(grid * grid);
         }
         // A distilled head's encoder is its teacher's, whatever the warm start held.
         if let Some(encoder) = teacher_encoder {

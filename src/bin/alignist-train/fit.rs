@@ -67,6 +67,10 @@ pub(crate) struct FitArgs {
     /// Crop side in pixels.
     #[arg(long, default_value_t = TrainConfig::default().network.image_size)]
     image_size: u32,
+    /// Side of the grid the encoder's last feature map is averaged over (1: global average
+    /// pooling). A warm start pooled globally starts any grid.
+    #[arg(long, default_value_t = TrainConfig::default().network.pooling())]
+    pool_grid: usize,
     /// Width of the head's hidden layers (the paper's: 256).
     #[arg(long, default_value_t = TrainConfig::default().network.hidden)]
     hidden: usize,
@@ -289,6 +293,7 @@ pub(crate) fn fit_cmd(args: &FitArgs) -> Result<()> {
     args.check()?;
     let network = NetworkConfig::new(args.layout, args.encoding.into())
         .with_image_size(args.image_size)
+        .pooled_over(args.pool_grid)
         .with_hidden(args.hidden)
         .with_layers(args.layers);
     network

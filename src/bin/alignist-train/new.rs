@@ -64,6 +64,10 @@ pub(crate) struct NewArgs {
     /// trained at another size.
     #[arg(long, default_value_t = RECIPE.image_size, value_parser = clap::value_parser!(u32).range(16..=256))]
     image_size: u32,
+    /// Side of the grid the encoder's last feature map is averaged over (for experiments; the
+    /// recipe's is 1, global average pooling). A warm start pooled globally starts any grid.
+    #[arg(long, default_value_t = RECIPE.pool_grid as u32, value_parser = clap::value_parser!(u32).range(1..=8))]
+    pool_grid: u32,
     /// Images per training step (for experiments; the recipe's is 16).
     #[arg(long, default_value_t = RECIPE.batch as u32, value_parser = clap::value_parser!(u32).range(1..=1024))]
     batch: u32,
@@ -171,6 +175,7 @@ pub(crate) fn new_cmd(args: &NewArgs) -> Result<()> {
         recipe: Recipe {
             layout: args.layout,
             image_size: args.image_size,
+            pool_grid: args.pool_grid as usize,
             batch: args.batch as usize,
             k: args.k as usize,
             lr: args.lr,
