@@ -119,6 +119,9 @@ async fn a_part_becomes_a_served_model_within_its_budget() {
     );
     assert_eq!(m["network"]["image_size"], 48);
     assert_eq!(m["network"]["layout"], "tiny_deep");
+    // The recipe's 3 × 3 cells, from the globally pooled warm start (recorded as such).
+    assert_eq!(m["network"]["pool_grid"], 3);
+    assert_eq!(m["provenance"]["train"]["init"]["pool_grid"], 1);
     // The recipe's default warm start, the shipped model, on record with its checksum.
     let init = &m["provenance"]["train"]["init"];
     assert!(
@@ -306,8 +309,8 @@ fn a_warm_start_is_checked_before_any_work_and_recorded() {
         tiny["files"]["network.safetensors"]["sha256"]
     );
     assert_eq!(m["provenance"]["report"]["steps_run"], 20);
-    // An experiment's crop size, deeper layout, batch, K, learning rate, twin share and own
-    // twins from the same 32 px `tiny` warm start; own twins without a twin share are refused.
+    // An experiment's crop size, deeper layout, batch, K, learning rate, twin share, own twins
+    // and global pooling from the same 32 px `tiny` warm start; own twins without a twin share are refused.
     let out48 = s(&root.path().join("models/blocks48"));
     let refused = Command::new(env!("CARGO_BIN_EXE_alignist-train"))
         .args(new_args(
@@ -345,10 +348,13 @@ fn a_warm_start_is_checked_before_any_work_and_recorded() {
             "0.5",
             "--own-twins",
             "4",
+            "--pool-grid",
+            "1",
         ],
     ));
     let m = manifest(Path::new(&out48));
     assert_eq!(m["network"]["image_size"], 48);
+    assert_eq!(m["network"]["pool_grid"], serde_json::Value::Null);
     assert_eq!(m["network"]["layout"], "tiny_deep");
     assert_eq!(m["provenance"]["train"]["batch"], 3);
     assert_eq!(m["provenance"]["train"]["k"], 40);

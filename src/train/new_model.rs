@@ -73,8 +73,8 @@ pub struct Recipe {
     /// ([`super::sampling::OwnTwins`]; needs a twin share; 0 for none; the recipe's is 32).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub own_twins: usize,
-    /// Side of the grid the encoder's last feature map is averaged over (1, the recipe's:
-    /// global average pooling; [`crate::net::EncoderConfig::pool_grid`]).
+    /// Side of the grid the encoder's last feature map is averaged over (1: global average
+    /// pooling, every job before it; the recipe's is 3; [`crate::net::EncoderConfig::pool_grid`]).
     #[serde(default = "global_pooling", skip_serializing_if = "is_one")]
     pub pool_grid: usize,
 }
@@ -96,10 +96,12 @@ pub const OWN_TWINS_EVERY: usize = 250;
 
 /// The recipe: batch 16 × K 256 at 48 px on the `tiny_deep` encoder, peak lr 1e-3, the focused
 /// share 3/4 → 1/20, half of it drawn around the pose's twins (the near-symmetry's and the
-/// network's own half-turn misses on 32 crops a part). The warm start, [`NewModel::init`], is the
-/// binary's default: the shipped `models/symsol1`. Chosen arm by arm in docs/RESULTS.md ("A
-/// user's parts"): side by side, this start won at 48 px over 32 px on the duplo, and own twins
-/// won on the duplo and the drill; against the first recipe it lost on no part.
+/// network's own half-turn misses on 32 crops a part), the encoder's last map pooled over 3 × 3
+/// cells. The warm start, [`NewModel::init`], is the binary's default: the shipped
+/// `models/symsol1`. Chosen arm by arm in docs/RESULTS.md ("A user's parts"): side by side, this
+/// start won at 48 px over 32 px on the duplo, own twins won on the duplo and the drill, and 3 × 3
+/// cells over global pooling on the drill and the mug; against the first recipe it lost on no
+/// part.
 pub const RECIPE: Recipe = Recipe {
     layout: ResNetLayout::TinyDeep,
     image_size: 48,
@@ -111,7 +113,7 @@ pub const RECIPE: Recipe = Recipe {
     supersample: 2,
     twin_share: 0.5,
     own_twins: 32,
-    pool_grid: 1,
+    pool_grid: 3,
 };
 
 /// Share of the budget the experts of all objects get at most (the rest trains the network).
@@ -265,6 +267,7 @@ pub const FIRST_RECIPE: Recipe = Recipe {
     image_size: 32,
     twin_share: 0.0,
     own_twins: 0,
+    pool_grid: 1,
     ..RECIPE
 };
 
@@ -383,7 +386,8 @@ fn open_job(model: &NewModel, resume: bool) -> Result<Job, NewModelError> {
         if state.recipe != model.recipe {
             return Err(NewModelError::Invalid(format!(
                 "{}: the job was started with another recipe ({}); give the same --layout, \
-                 --image-size, --batch, --k, --lr, --twin-share and --own-twins",
+                 --image-size, --batch, --k, --lr, --twin-share, --own-twins and --pool-grid \
+                 (a job recorded without pool_grid pooled globally: --pool-grid 1)",
                 state_file.display(),
                 serde_json::to_string(&state.recipe).unwrap_or_default()
             )));

@@ -65,7 +65,7 @@ pub(crate) struct NewArgs {
     #[arg(long, default_value_t = RECIPE.image_size, value_parser = clap::value_parser!(u32).range(16..=256))]
     image_size: u32,
     /// Side of the grid the encoder's last feature map is averaged over (for experiments; the
-    /// recipe's is 1, global average pooling). A warm start pooled globally starts any grid.
+    /// recipe's is 3; 1 is global average pooling). A warm start pooled globally starts any grid.
     #[arg(long, default_value_t = RECIPE.pool_grid as u32, value_parser = clap::value_parser!(u32).range(1..=8))]
     pool_grid: u32,
     /// Images per training step (for experiments; the recipe's is 16).
