@@ -473,29 +473,40 @@ fn the_training_bench_prints_both_steps_and_their_ratio() {
     );
 }
 
+/// The network of a first run of `cfg` (trained by `go`), its weights saved in `dir` and
+/// recorded as a warm start from them.
+fn first_run_saved<E: std::fmt::Debug>(
+    go: &impl Fn(&TrainConfig) -> Result<(Network, E), alignist::train::TrainError>,
+    cfg: &TrainConfig,
+    dir: &std::path::Path,
+) -> (Network, alignist::train::config::InitWeights) {
+    let (a, _) = go(cfg).unwrap();
+    let path = dir.join("network.safetensors");
+    let file = alignist::bundle::save_weights(&a, &path).unwrap();
+    let init = alignist::train::config::InitWeights {
+        path: path.display().to_string(),
+        file,
+        trained_by: "the test's first run".into(),
+        image_size: None,
+        layout: None,
+        pool_grid: None,
+    };
+    (a, init)
+}
+
 #[test]
 fn a_warm_restart_starts_from_the_given_weights_and_checks_them() {
-    use alignist::train::config::InitWeights;
     let set = tiny_set();
     let cfg = config(alignist_method());
     let go = |c: &TrainConfig| train(c, &set, None, false, |_, _, _| ControlFlow::Continue(()));
-    let (a, _) = go(&cfg).unwrap();
     let files = tempfile::tempdir().unwrap();
-    let path = files.path().join("network.safetensors");
-    let entry = alignist::bundle::save_weights(&a, &path).unwrap();
+    let (a, init) = first_run_saved(&go, &cfg, files.path());
     // Learning rate 0: the parameters stay where they started (BatchNorm's running statistics
     // still move with the batches, so they are left out of the comparison).
     let warm = TrainConfig {
         lr: 0.0,
         seed: 12,
-        init: Some(InitWeights {
-            path: path.display().to_string(),
-            file: entry.clone(),
-            trained_by: "the test's first run".into(),
-            image_size: None,
-            layout: None,
-            pool_grid: None,
-        }),
+        init: Some(init),
         ..cfg.clone()
     };
     let parameters = |n: &Network, name: &str| {
@@ -539,17 +550,11 @@ fn a_globally_pooled_network_warm_starts_a_grid_pooled_one_with_the_same_scores(
     let set = tiny_set();
     let cfg = config(alignist_method());
     let go = |c: &TrainConfig| train(c, &set, None, false, |_, _, _| ControlFlow::Continue(()));
-    let (a, _) = go(&cfg).unwrap();
     let files = tempfile::tempdir().unwrap();
-    let path = files.path().join("network.safetensors");
-    let entry = alignist::bundle::save_weights(&a, &path).unwrap();
+    let (_, init) = first_run_saved(&go, &cfg, files.path());
     let init = InitWeights {
-        path: path.display().to_string(),
-        file: entry,
-        trained_by: "the test's first run".into(),
-        image_size: None,
-        layout: None,
         pool_grid: Some(1),
+        ..init
     };
     let grid = TrainConfig {
         lr: 0.0,
