@@ -107,7 +107,7 @@ fn pool_bin(i: usize, g: usize, side: usize) -> std::ops::Range<usize> {
 
 /// Average pooling of one channel's `plane` (`side.0 × side.1`, row-major) over a `g × g` grid of
 /// cells, written to `out` (`g²` values, row-major over the cells): the features' pooling.
-pub(crate) fn grid_pool(plane: &[f32], side: (usize, usize), g: usize, out: &mut [f32]) {
+fn grid_pool(plane: &[f32], side: (usize, usize), g: usize, out: &mut [f32]) {
     for (cell, o) in out.iter_mut().enumerate() {
         let (rows, cols) = (pool_bin(cell / g, g, side.0), pool_bin(cell % g, g, side.1));
         let n = (rows.len() * cols.len()) as f32;
@@ -116,6 +116,20 @@ pub(crate) fn grid_pool(plane: &[f32], side: (usize, usize), g: usize, out: &mut
             .sum();
         *o = sum / n;
     }
+}
+
+/// [`grid_pool`] of every channel plane of `maps` (planes of `side`, one after another): the
+/// features, `g²` a plane, in the planes' order.
+pub(crate) fn grid_pool_planes(maps: &[f32], side: (usize, usize), g: usize) -> Vec<f32> {
+    let plane = side.0 * side.1;
+    let mut features = vec![0f32; maps.len() / plane * g * g];
+    for (p, cells) in maps
+        .chunks_exact(plane)
+        .zip(features.chunks_exact_mut(g * g))
+    {
+        grid_pool(p, side, g, cells);
+    }
+    features
 }
 
 /// The backward of [`grid_pool`]: adds each cell's gradient `d_cells`, shared over its pixels,

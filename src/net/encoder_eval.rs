@@ -219,12 +219,6 @@ impl InferenceEncoder {
             );
             (x, side) = second;
         }
-        let g = self.pool_grid;
-        let plane = side.0 * side.1;
-        let mut features = vec![0f32; x.len() / plane * g * g];
-        for (p, cells) in x.chunks_exact(plane).zip(features.chunks_exact_mut(g * g)) {
-            super::encoder::grid_pool(p, side, g, cells);
-        }
-        features
+        super::encoder::grid_pool_planes(&x, side, self.pool_grid)
     }
 }

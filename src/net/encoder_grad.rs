@@ -623,15 +623,7 @@ impl TrainingEncoder {
             blocks.push(self.block_forward(b, x));
         }
         let last = blocks.last().map_or(&stem_out, |p| &p.out);
-        let g = self.pool_grid;
-        let mut features = vec![0f32; last.images * last.channels * g * g];
-        for (plane, cells) in last
-            .data
-            .chunks_exact(last.plane())
-            .zip(features.chunks_exact_mut(g * g))
-        {
-            super::encoder::grid_pool(plane, last.side, g, cells);
-        }
+        let features = super::encoder::grid_pool_planes(&last.data, last.side, self.pool_grid);
         EncoderPass {
             images,
             stem,
