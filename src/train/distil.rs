@@ -97,28 +97,56 @@ pub fn check_pair(
     network: &crate::net::NetworkConfig,
 ) -> Result<(), TrainError> {
     let t = &teacher.network;
-    if (t.layout, t.image_size, t.pool_grid, &t.encoding)
-        != (
-            network.layout,
-            network.image_size,
-            network.pool_grid,
-            &network.encoding,
-        )
+    // Pooling compared as grids: an absent grid is 1 × 1 (global pooling).
+    let (tg, ng) = (t.pooling(), network.pooling());
+    if (t.layout, t.image_size, tg, &t.encoding)
+        != (network.layout, network.image_size, ng, &network.encoding)
     {
         return Err(TrainError::Data(format!(
-            "{}: the teacher is a {:?} network at {} px pooled over {}×{}, the run a {:?} network \
-             at {} px pooled over {}×{}; a distilled head keeps the teacher's encoder, so give its \
-             layout, crop side, pooling grid and rotation encoding",
-            teacher.path,
-            t.layout,
-            t.image_size,
-            t.pooling(),
-            t.pooling(),
-            network.layout,
-            network.image_size,
-            network.pooling(),
-            network.pooling()
+            "{}: the teacher is a {:?} network at {} px pooled over {tg}×{tg}, the run a {:?} \
+             network at {} px pooled over {ng}×{ng}; a distilled head keeps the teacher's encoder, \
+             so give its layout, crop side, pooling grid and rotation encoding",
+            teacher.path, t.layout, t.image_size, network.layout, network.image_size,
         )));
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bundle::record::FileEntry;
+    use crate::net::{NetworkConfig, ResNetLayout};
+
+    fn teacher(network: NetworkConfig) -> TeacherWeights {
+        TeacherWeights {
+            path: "models/teacher/network.safetensors".into(),
+            file: FileEntry {
+                sha256: String::new(),
+                bytes: 0,
+            },
+            network,
+            trained_by: String::new(),
+        }
+    }
+
+    /// A grid written as 1 is global pooling, as an absent one is; another grid is refused, the
+    /// message naming both grids.
+    #[test]
+    fn pooling_grids_are_compared_as_grids() {
+        let plain = NetworkConfig::new(ResNetLayout::Tiny, RotationEncoding::Cube);
+        let one = NetworkConfig {
+            pool_grid: Some(1),
+            ..plain.clone()
+        };
+        assert!(check_pair(&teacher(one.clone()), &plain).is_ok());
+        assert!(check_pair(&teacher(plain.clone()), &one).is_ok());
+        let err = check_pair(&teacher(plain.clone()), &plain.pooled_over(3))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("models/teacher") && err.contains("1×1") && err.contains("3×3"),
+            "{err}"
+        );
+    }
 }
