@@ -332,7 +332,49 @@ fn eval_fresh_renders_its_own_crops(fresh: &Path, report: &Path) {
     );
     for r in json.as_array().unwrap() {
         assert_eq!(r["report"]["overall"]["images"], 2, "{}", r["set"]);
+        assert_eq!(r["report"]["images"].as_array().unwrap().len(), 2);
     }
+    a_report_is_compared_image_by_image(report);
+}
+
+/// `compare`: a report against itself pairs every set with no difference; against the same
+/// report with one image's argmax moved outside 30°, that image is counted on A's side; against
+/// other crops, refused naming the set and the image.
+fn a_report_is_compared_image_by_image(report: &Path) {
+    let compare = |b: &Path| {
+        Command::new(env!("CARGO_BIN_EXE_alignist-train"))
+            .args(["compare", s(report), s(b)])
+            .output()
+            .unwrap()
+    };
+    let out = compare(report);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{text}");
+    assert_eq!(text.matches("(2 images)").count(), 4, "{text}");
+    assert!(text.contains("+0.00 ± 0.00"), "{text}");
+    let mut json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(report).unwrap()).unwrap();
+    let first = &mut json[1]["report"]["images"][0];
+    let hit = first["argmax_error_deg"].as_f64().unwrap() < 30.0;
+    first["argmax_error_deg"] = if hit { 90.0 } else { 10.0 }.into();
+    let moved = report.with_extension("moved.json");
+    std::fs::write(&moved, json.to_string()).unwrap();
+    let text = String::from_utf8_lossy(&compare(&moved).stdout).to_string();
+    let counted = if hit {
+        "in A only 1, in B only 0"
+    } else {
+        "in A only 0, in B only 1"
+    };
+    assert!(text.contains(counted), "{text}");
+    json[1]["report"]["images"][1]["object"] = "other".into();
+    std::fs::write(&moved, json.to_string()).unwrap();
+    let out = compare(&moved);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("realistic (held-out split)") && err.contains("image 1"),
+        "{err}"
+    );
 }
 
 /// `--init` from the 32 px bundle into a 48 px run: the encoder pools globally, so its weights

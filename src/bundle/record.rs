@@ -100,7 +100,11 @@ impl ModelManifest {
             objects,
             levels: None,
             provenance,
-            evaluation,
+            // The manifest keeps the summaries; the per-image records are the report file's.
+            evaluation: evaluation.map(|e| EvalReport {
+                images: Vec::new(),
+                ..e
+            }),
             calibration: None,
             budget: None,
             files: Default::default(),
@@ -597,6 +601,27 @@ pub struct EvalReport {
     /// and in reports written before it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub served: Option<ServedReport>,
+    /// Every image's figures, in the evaluation's order, for comparing two evaluations of the
+    /// same crops image by image (`alignist-train compare`). Written to `eval`'s report file;
+    /// absent from manifests and from reports written before it.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub images: Vec<ImageRecord>,
+}
+
+/// One evaluated image's figures ([`EvalReport::images`]).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct ImageRecord {
+    /// The object.
+    pub object: String,
+    /// The ground truth (the first of its equivalents) as a unit quaternion `[w, x, y, z]`: what
+    /// pairs the images of two reports.
+    pub truth: [f64; 4],
+    /// `log(p_{cell(G)} · N)` averaged over the equivalents (the LL of this image).
+    pub log_likelihood: f64,
+    /// The argmax's error to the nearest equivalent, degrees.
+    pub argmax_error_deg: f64,
+    /// The first mode's error to the nearest equivalent, degrees.
+    pub mode_error_deg: f64,
 }
 
 /// What the server answers for an evaluation's images: the engine loaded as `alignist-server`

@@ -6,14 +6,14 @@ use std::time::Instant;
 
 use nalgebra::Rotation3;
 
-pub use crate::bundle::record::{EvalReport, ServedReport, ServedSummary};
+pub use crate::bundle::record::{EvalReport, ImageRecord, ServedReport, ServedSummary};
 use crate::engine::{EngineError, Model, PredictOptions};
 use crate::net::{Network, NetworkConfig, ProjectedGrid, images_tensor};
-use crate::so3::So3Error;
 use crate::so3::metrics::{
     ImageMetrics, MetricsSummary, accuracy_and_median, chance_accuracy, error_to_nearest_deg,
     image_metrics, summarize,
 };
+use crate::so3::{So3Error, to_quaternion};
 
 /// A test image: crop and every equivalent ground truth.
 #[derive(Debug, Clone)]
@@ -60,6 +60,7 @@ pub fn evaluate(
     let projected = ProjectedGrid::new(network, config, level)?;
     let centres = projected.grid.quaternions();
     let mut per_image: Vec<(String, ImageMetrics)> = Vec::with_capacity(images.len());
+    let mut records = Vec::with_capacity(images.len());
     let (mut shape_only, mut feature_only) = (Vec::new(), Vec::new());
     let mut ceiling = 0.0;
     for (n, batch) in images.chunks(4).enumerate() {
@@ -72,7 +73,18 @@ pub fn evaluate(
         {
             let metrics = |w: &[f32]| image_metrics(&projected.grid, &centres, w, &im.equivalents);
             let combined: Vec<f32> = s.iter().zip(&f).map(|(a, b)| a + b).collect();
-            per_image.push((im.object.clone(), metrics(&combined)?));
+            let m = metrics(&combined)?;
+            records.push(ImageRecord {
+                object: im.object.clone(),
+                truth: im
+                    .equivalents
+                    .first()
+                    .map_or([1.0, 0.0, 0.0, 0.0], to_quaternion),
+                log_likelihood: m.log_likelihood,
+                argmax_error_deg: m.argmax_error_deg,
+                mode_error_deg: m.mode_error_deg,
+            });
+            per_image.push((im.object.clone(), m));
             shape_only.push(metrics(&s)?);
             feature_only.push(metrics(&f)?);
             ceiling += crate::so3::metrics::ll_ceiling(&projected.grid, &im.equivalents);
@@ -118,6 +130,7 @@ pub fn evaluate(
         )),
         chance_ar30,
         served: None,
+        images: records,
     })
 }
 
@@ -191,4 +204,227 @@ pub fn evaluate_served(
         overall: summary(&|_| true),
         search_p50_ms: crate::so3::metrics::quantile(&seconds, 0.5) * 1e3,
     })
+}
+
+/// Why two evaluations cannot be compared image by image.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum PairingError {
+    /// A report without per-image records (one written before them, or a manifest's summary).
+    #[error("no per-image records (a report written before them, or a manifest's summary)")]
+    NoRecords,
+    /// Different numbers of images.
+    #[error("{0} images against {1}: not the same crops")]
+    Count(usize, usize),
+    /// Image `index` is another object or another pose in the two.
+    #[error("image {index} is {a} in one and {b} in the other: not the same crops")]
+    Image {
+        /// Position in the evaluation's order.
+        index: usize,
+        /// What the first report holds there.
+        a: String,
+        /// What the second holds.
+        b: String,
+    },
+}
+
+/// A hit rate (`error < θ`) of two evaluations of the same images, compared image by image.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PairedHits {
+    /// The rate in A and in B.
+    pub rates: (f64, f64),
+    /// Images right in A and not in B, and in B and not in A (the discordant pairs).
+    pub only: (usize, usize),
+    /// The standard error of the rates' difference `B − A`, paired.
+    pub se: f64,
+    /// McNemar's exact two-sided p-value: the chance of discordant pairs at least this uneven
+    /// if A and B were equally good.
+    pub p_value: f64,
+}
+
+/// Two evaluations of the same crops compared image by image, `B − A`: the paired differences
+/// have a far smaller spread than two sets' figures side by side, so an ablation on 100 crops can
+/// tell smaller effects apart.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PairedComparison {
+    /// Images paired.
+    pub images: usize,
+    /// Mean LL in A and in B.
+    pub ll: (f64, f64),
+    /// The standard error of the mean LL difference, paired.
+    pub ll_se: f64,
+    /// AR@θ of the argmax.
+    pub argmax: PairedHits,
+    /// AR@θ of the first mode.
+    pub mode: PairedHits,
+}
+
+/// Pairs `a` and `b` image by image (the same object and ground truth at each position, as two
+/// evaluations of the same seed and count give) and compares them at threshold `theta_deg`.
+pub fn compare_paired(
+    a: &[ImageRecord],
+    b: &[ImageRecord],
+    theta_deg: f64,
+) -> Result<PairedComparison, PairingError> {
+    if a.is_empty() || b.is_empty() {
+        return Err(PairingError::NoRecords);
+    }
+    if a.len() != b.len() {
+        return Err(PairingError::Count(a.len(), b.len()));
+    }
+    let describe = |r: &ImageRecord| format!("{} at {:?}", r.object, r.truth);
+    for (index, (x, y)) in a.iter().zip(b).enumerate() {
+        let same_pose = crate::so3::quaternion_dot(&x.truth, &y.truth).abs() > 1.0 - 1e-9;
+        if x.object != y.object || !same_pose {
+            return Err(PairingError::Image {
+                index,
+                a: describe(x),
+                b: describe(y),
+            });
+        }
+    }
+    let ll_differences: Vec<f64> = a
+        .iter()
+        .zip(b)
+        .map(|(x, y)| y.log_likelihood - x.log_likelihood)
+        .collect();
+    let mean = |v: &mut dyn Iterator<Item = f64>| v.sum::<f64>() / a.len() as f64;
+    let hits = |error: fn(&ImageRecord) -> f64| {
+        let hit = |r: &ImageRecord| error(r) < theta_deg;
+        let only_a = a.iter().zip(b).filter(|(x, y)| hit(x) && !hit(y)).count();
+        let only_b = a.iter().zip(b).filter(|(x, y)| !hit(x) && hit(y)).count();
+        let d: Vec<f64> = a
+            .iter()
+            .zip(b)
+            .map(|(x, y)| f64::from(u8::from(hit(y))) - f64::from(u8::from(hit(x))))
+            .collect();
+        let rate = |v: &[ImageRecord]| v.iter().filter(|r| hit(r)).count() as f64 / v.len() as f64;
+        PairedHits {
+            rates: (rate(a), rate(b)),
+            only: (only_a, only_b),
+            se: standard_error(&d),
+            p_value: mcnemar_p(only_a, only_b),
+        }
+    };
+    Ok(PairedComparison {
+        images: a.len(),
+        ll: (
+            mean(&mut a.iter().map(|r| r.log_likelihood)),
+            mean(&mut b.iter().map(|r| r.log_likelihood)),
+        ),
+        ll_se: standard_error(&ll_differences),
+        argmax: hits(|r| r.argmax_error_deg),
+        mode: hits(|r| r.mode_error_deg),
+    })
+}
+
+/// The standard error of the mean of `d` (sample variance; 0 for fewer than two values).
+fn standard_error(d: &[f64]) -> f64 {
+    let n = d.len() as f64;
+    if d.len() < 2 {
+        return 0.0;
+    }
+    let mean = d.iter().sum::<f64>() / n;
+    let variance = d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0);
+    (variance / n).sqrt()
+}
+
+/// McNemar's exact test of `b` against `c` discordant pairs: two-sided, `2·P(X ≤ min(b, c))` for
+/// `X ~ Binomial(b + c, 1/2)`, at most 1 (1 when there are none).
+pub fn mcnemar_p(b: usize, c: usize) -> f64 {
+    let n = b + c;
+    let ln_half_n = -(n as f64) * std::f64::consts::LN_2;
+    // ln C(n, k), built up from k = 0.
+    let mut ln_choose = 0.0;
+    let mut tail = 0.0;
+    for k in 0..=b.min(c) {
+        if k > 0 {
+            ln_choose += ((n - k + 1) as f64).ln() - (k as f64).ln();
+        }
+        tail += (ln_choose + ln_half_n).exp();
+    }
+    (2.0 * tail).min(1.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn record(object: &str, angle: f64, ll: f64, error: f64) -> ImageRecord {
+        let h = angle / 2.0;
+        ImageRecord {
+            object: object.into(),
+            truth: [h.cos(), h.sin(), 0.0, 0.0],
+            log_likelihood: ll,
+            argmax_error_deg: error,
+            mode_error_deg: error / 2.0,
+        }
+    }
+
+    #[test]
+    fn mcnemar_is_the_binomial_tail_twice() {
+        assert_eq!(mcnemar_p(0, 0), 1.0);
+        assert!((mcnemar_p(0, 6) - 2.0 / 64.0).abs() < 1e-12);
+        assert!((mcnemar_p(5, 1) - 2.0 * 7.0 / 64.0).abs() < 1e-12);
+        assert_eq!(mcnemar_p(3, 3), 1.0);
+        // Large counts stay finite (no 0.5ⁿ underflow): 600 against 400 is far from even.
+        let p = mcnemar_p(600, 400);
+        assert!(p > 0.0 && p < 1e-9, "{p}");
+    }
+
+    #[test]
+    fn paired_figures_count_the_discordant_images() {
+        let a: Vec<ImageRecord> = [(1.0, 10.0), (2.0, 20.0), (3.0, 40.0), (4.0, 50.0)]
+            .iter()
+            .enumerate()
+            .map(|(i, (ll, e))| record("drill", i as f64 * 0.3, *ll, *e))
+            .collect();
+        let b: Vec<ImageRecord> = [(2.0, 10.0), (2.0, 35.0), (5.0, 20.0), (6.0, 25.0)]
+            .iter()
+            .enumerate()
+            .map(|(i, (ll, e))| record("drill", i as f64 * 0.3, *ll, *e))
+            .collect();
+        let c = compare_paired(&a, &b, 30.0).unwrap();
+        assert_eq!(c.images, 4);
+        assert_eq!(c.ll, (2.5, 3.75));
+        // Differences 1, 0, 2, 2: mean 1.25, sample variance 11/12.
+        assert!((c.ll_se - (11.0f64 / 12.0 / 4.0).sqrt()).abs() < 1e-12);
+        assert_eq!(c.argmax.rates, (0.5, 0.75));
+        assert_eq!(c.argmax.only, (1, 2));
+        assert!((c.argmax.p_value - 1.0).abs() < 1e-12);
+        // Modes at half the errors: every image of both within 30°.
+        assert_eq!((c.mode.rates, c.mode.only), ((1.0, 1.0), (0, 0)));
+        // A report against itself: no difference at all.
+        let same = compare_paired(&a, &a, 30.0).unwrap();
+        assert_eq!(
+            (same.ll.0, same.ll_se, same.argmax.only),
+            (2.5, 0.0, (0, 0))
+        );
+    }
+
+    #[test]
+    fn other_crops_are_refused() {
+        let a = vec![
+            record("drill", 0.1, 1.0, 5.0),
+            record("drill", 0.2, 1.0, 5.0),
+        ];
+        assert_eq!(
+            compare_paired(&a, &a[..1], 30.0),
+            Err(PairingError::Count(2, 1))
+        );
+        assert_eq!(compare_paired(&a, &[], 30.0), Err(PairingError::NoRecords));
+        let mut turned = a.clone();
+        turned[1] = record("drill", 0.25, 1.0, 5.0);
+        assert!(matches!(
+            compare_paired(&a, &turned, 30.0),
+            Err(PairingError::Image { index: 1, .. })
+        ));
+        let mut other = a.clone();
+        other[0].object = "mug".into();
+        let err = compare_paired(&a, &other, 30.0).unwrap_err().to_string();
+        assert!(err.contains("image 0") && err.contains("mug"), "{err}");
+        // The same pose written with the opposite quaternion sign pairs.
+        let mut flipped = a.clone();
+        flipped[0].truth = flipped[0].truth.map(|v| -v);
+        assert!(compare_paired(&a, &flipped, 30.0).is_ok());
+    }
 }

@@ -4,6 +4,7 @@
 
 mod bench;
 mod calibrate;
+mod compare;
 mod eval;
 mod experts;
 mod fit;
@@ -72,6 +73,9 @@ enum Command {
     /// training distribution (a model that is unsure should say so), and write the calibrated
     /// bundle.
     Calibrate(calibrate::CalibrateArgs),
+    /// Compare two evaluation reports of the same crops image by image (paired: LL, AR@30 of
+    /// the argmax and of the first mode, B − A with standard errors and McNemar's p).
+    Compare(compare::CompareArgs),
     /// Print the evaluation figures of model bundles as Markdown tables (per object and
     /// averaged, with the ceiling of the level, the training budget and wall time).
     Results {
@@ -126,6 +130,7 @@ fn main() -> Result<()> {
         Command::New(args) => new::new_cmd(&args),
         Command::Eval(args) => eval::eval_cmd(&args),
         Command::Calibrate(args) => calibrate::calibrate_cmd(&args),
+        Command::Compare(args) => compare::compare_cmd(&args),
         Command::Results { bundles } => results::results_cmd(&bundles),
         Command::Bench(args) => bench::bench_cmd(&args),
     }
