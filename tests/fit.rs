@@ -625,7 +625,11 @@ fn calibrate_folds_a_recorded_temperature_into_a_new_bundle_and_refuses_twice() 
     assert!(fit.ll_after >= fit.ll_before - 1e-6, "{fit:?}");
     assert_eq!(fit.images, 4);
     assert!(fit.command.contains("calibrate"));
-    assert!(after.manifest.evaluation.is_some());
+    let evaluation = after.manifest.evaluation.as_ref().unwrap();
+    assert!(
+        evaluation.images.is_empty(),
+        "a manifest keeps the summaries only"
+    );
     assert!(
         before.manifest.calibration.is_none(),
         "the input is left as it was"

@@ -100,11 +100,7 @@ impl ModelManifest {
             objects,
             levels: None,
             provenance,
-            // The manifest keeps the summaries; the per-image records are the report file's.
-            evaluation: evaluation.map(|e| EvalReport {
-                images: Vec::new(),
-                ..e
-            }),
+            evaluation: evaluation.map(EvalReport::summary),
             calibration: None,
             budget: None,
             files: Default::default(),
@@ -606,6 +602,17 @@ pub struct EvalReport {
     /// absent from manifests and from reports written before it.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub images: Vec<ImageRecord>,
+}
+
+impl EvalReport {
+    /// The report without its per-image records: what a manifest keeps (the records are the
+    /// report file's).
+    pub fn summary(self) -> EvalReport {
+        EvalReport {
+            images: Vec::new(),
+            ..self
+        }
+    }
 }
 
 /// One evaluated image's figures ([`EvalReport::images`]).

@@ -116,7 +116,7 @@ pub(crate) fn calibrate_cmd(args: &CalibrateArgs) -> Result<()> {
             |_| {},
         )?;
         print_eval(&report);
-        manifest.evaluation = Some(report);
+        manifest.evaluation = Some(report.summary());
     }
     let dirs = manifest
         .objects
