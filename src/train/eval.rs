@@ -287,19 +287,17 @@ pub fn compare_paired(
         .zip(b)
         .map(|(x, y)| y.log_likelihood - x.log_likelihood)
         .collect();
-    let mean = |v: &mut dyn Iterator<Item = f64>| v.sum::<f64>() / a.len() as f64;
+    let mean = |v: &[ImageRecord], f: &dyn Fn(&ImageRecord) -> f64| {
+        v.iter().map(f).sum::<f64>() / v.len() as f64
+    };
     let hits = |error: fn(&ImageRecord) -> f64| {
-        let hit = |r: &ImageRecord| error(r) < theta_deg;
-        let only_a = a.iter().zip(b).filter(|(x, y)| hit(x) && !hit(y)).count();
-        let only_b = a.iter().zip(b).filter(|(x, y)| !hit(x) && hit(y)).count();
-        let d: Vec<f64> = a
-            .iter()
-            .zip(b)
-            .map(|(x, y)| f64::from(u8::from(hit(y))) - f64::from(u8::from(hit(x))))
-            .collect();
-        let rate = |v: &[ImageRecord]| v.iter().filter(|r| hit(r)).count() as f64 / v.len() as f64;
+        let hit = |r: &ImageRecord| f64::from(u8::from(error(r) < theta_deg));
+        // Per image B − A: −1 right in A only, +1 in B only.
+        let d: Vec<f64> = a.iter().zip(b).map(|(x, y)| hit(y) - hit(x)).collect();
+        let only = |side: f64| d.iter().filter(|&&v| v == side).count();
+        let (only_a, only_b) = (only(-1.0), only(1.0));
         PairedHits {
-            rates: (rate(a), rate(b)),
+            rates: (mean(a, &hit), mean(b, &hit)),
             only: (only_a, only_b),
             se: standard_error(&d),
             p_value: mcnemar_p(only_a, only_b),
@@ -308,8 +306,8 @@ pub fn compare_paired(
     Ok(PairedComparison {
         images: a.len(),
         ll: (
-            mean(&mut a.iter().map(|r| r.log_likelihood)),
-            mean(&mut b.iter().map(|r| r.log_likelihood)),
+            mean(a, &|r| r.log_likelihood),
+            mean(b, &|r| r.log_likelihood),
         ),
         ll_se: standard_error(&ll_differences),
         argmax: hits(|r| r.argmax_error_deg),
