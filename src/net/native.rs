@@ -123,6 +123,11 @@ impl<E: Copy + Default> Packed<E> {
             bias,
         }
     }
+
+    /// The outputs rounded up to whole panels (`panels × nr`).
+    pub(super) fn columns(&self) -> usize {
+        self.bias.len()
+    }
 }
 
 /// What leaves a GEMM's register block.
