@@ -429,3 +429,41 @@ fn ranking_by_the_shape_branch_still_answers_with_both_branches() {
         "start 1, keep 512 ×0.5/level, coarse i8, shape branch to level 3"
     );
 }
+
+/// Every coarse precision of the shipped model, on the kernels the engine picks on this core,
+/// scores a full level of real crops like f32: the same argmax (or one within 0.05 nats of it)
+/// and most of the 64 best cells shared. The kernels' own tests (tests/net.rs) hold them to their
+/// emulations on small heads; this holds the engine's path on the shipped weights, as served.
+#[test]
+fn every_coarse_precision_ranks_a_full_level_like_f32() {
+    let model = model();
+    let (crops, _) = shipped_crops_and_top_10(23, 3);
+    let refs: Vec<&[u8]> = crops.iter().map(Vec::as_slice).collect();
+    let features = model.features(&refs).unwrap();
+    let top = |logits: &[f32], k: usize| {
+        let mut order: Vec<usize> = (0..logits.len()).collect();
+        order.sort_by(|&a, &b| logits[b].total_cmp(&logits[a]));
+        order.truncate(k);
+        order
+    };
+    for (i, f) in features.iter().enumerate() {
+        let exact = model.logits_in(Precision::F32, f, 3).unwrap();
+        let best = top(&exact, 64);
+        for precision in [Precision::Bf16, Precision::F16, Precision::I8] {
+            let kernel = model.kernel_name(precision);
+            let reduced = model.logits_in(precision, f, 3).unwrap();
+            let argmax = top(&reduced, 1)[0];
+            assert!(
+                exact[best[0]] - exact[argmax] <= 0.05,
+                "crop {i}, {precision} ({kernel}): argmax {argmax} is {} nats below f32's {}",
+                exact[best[0]] - exact[argmax],
+                best[0]
+            );
+            let shared = top(&reduced, 64).iter().filter(|c| best.contains(c)).count();
+            assert!(
+                shared >= 48,
+                "crop {i}, {precision} ({kernel}): {shared} of f32's 64 best cells"
+            );
+        }
+    }
+}
