@@ -45,12 +45,6 @@ pub const NR: usize = 64;
 const GROUP: usize = 4;
 /// Inputs per 32-bit lane of `VPMADDWD` (two 16-bit products).
 const PAIR: usize = 2;
-/// Columns of a weight panel of the 256-bit kernels without tiles ([`Isa::AvxVnni`],
-/// [`Isa::Avx2Pairs`]): one register block's, so that a block's weights of one input group lie
-/// contiguous (64 bytes) and not a 64-column panel's 256 bytes apart, which fell on a quarter of
-/// the L1's sets (the f32 kernels' panels are their blocks' too). The 512-bit kernel and the
-/// tiles read panels of [`NR`].
-const NARROW_PANEL: usize = 16;
 /// The name of the `VPMADDWD` kernel ([`I8Head::kernel_name`]).
 pub const KERNEL_NAME_PAIRS: &str = "AVX2 kernel on 16-bit pairs (VPMADDWD)";
 
@@ -132,16 +126,14 @@ pub fn native_available() -> bool {
 /// A layer's weights (with its bias) packed for the one kernel that reads them.
 #[derive(Debug, Clone)]
 enum LayerWeights {
-    /// `[panel][group][columns][4]` bytes: the `VPDPBUSD` kernels (panels of [`NR`] columns for
-    /// AVX-512, of [`NARROW_PANEL`] for AVX-VNNI) and the tiles ([`NR`]).
+    /// `[panel][group][NR][4]` bytes: the `VPDPBUSD` kernels and the tiles.
     Bytes(Packed<u8>),
-    /// `[panel][pair][NARROW_PANEL][2]` in i16, the same values: [`Isa::Avx2Pairs`]'s `VPMADDWD`
-    /// kernel.
+    /// `[panel][pair][NR][2]` in i16, the same values: [`Isa::Avx2Pairs`]'s `VPMADDWD` kernel.
     Pairs(Packed<i16>),
 }
 
 impl LayerWeights {
-    /// [`Packed::columns`] values, zero past the outputs.
+    /// `[panels × NR]`, zero past the outputs.
     fn bias(&self) -> &[f32] {
         match self {
             LayerWeights::Bytes(p) => &p.bias,
@@ -170,25 +162,25 @@ impl LayerWeights {
 #[derive(Debug, Clone)]
 struct I8Layer {
     weights: LayerWeights,
-    /// The outputs rounded up to [`NR`] (at least [`Packed::columns`]), zero past the outputs.
+    /// `[panels × NR]`, zero past the outputs.
     scales: Vec<f32>,
 }
 
 impl I8Layer {
-    /// `dense` in bytes for `isa` in panels of `panel` columns, taking `padded_inputs` inputs (a
-    /// multiple of 4; the extra ones weigh 0).
-    fn of(dense: &Dense, padded_inputs: usize, (isa, panel): (Isa, usize)) -> (I8Layer, Vec<i8>) {
+    /// `dense` in bytes for `isa`, taking `padded_inputs` inputs (a multiple of 4; the extra ones
+    /// weigh 0).
+    fn of(dense: &Dense, padded_inputs: usize, isa: Isa) -> (I8Layer, Vec<i8>) {
         let (bytes, mut scales) = columns_to_i8(&dense.weight, dense.outputs);
         let as_values = Dense {
             weight: bytes.iter().map(|&b| b as f32).collect(),
             ..dense.clone()
         };
         let weights = if isa == Isa::Avx2Pairs {
-            LayerWeights::Pairs(Packed::of(&as_values, padded_inputs, (PAIR, panel), |v| {
+            LayerWeights::Pairs(Packed::of(&as_values, padded_inputs, (PAIR, NR), |v| {
                 v as i16
             }))
         } else {
-            LayerWeights::Bytes(Packed::of(&as_values, padded_inputs, (GROUP, panel), |v| {
+            LayerWeights::Bytes(Packed::of(&as_values, padded_inputs, (GROUP, NR), |v| {
                 v as i8 as u8
             }))
         };
@@ -200,8 +192,8 @@ impl I8Layer {
     /// The rotation layer, reading encodings as `u = (e + 1)·127.5`:
     /// `Σ_i w_ij e_i = s_j · (Σ_i q_ij u_i) / 127.5 − s_j · Σ_i q_ij`; the second term joins the
     /// bias, the first's `1/127.5` is every row's scale.
-    fn of_encoding(dense: &Dense, padded_inputs: usize, packing: (Isa, usize)) -> I8Layer {
-        let (mut layer, bytes) = I8Layer::of(dense, padded_inputs, packing);
+    fn of_encoding(dense: &Dense, padded_inputs: usize, isa: Isa) -> I8Layer {
+        let (mut layer, bytes) = I8Layer::of(dense, padded_inputs, isa);
         for (j, bias) in layer.weights.bias_mut()[..dense.outputs]
             .iter_mut()
             .enumerate()
@@ -297,11 +289,6 @@ impl I8Head {
 
     /// `head` in bytes for `isa` and `tiles`.
     fn packed(head: &HeadWeights, isa: Isa, tiles: Tiles) -> Option<I8Head> {
-        let panel = match (isa, tiles) {
-            (Isa::AvxVnni | Isa::Avx2Pairs, Tiles::None) => NARROW_PANEL,
-            _ => NR,
-        };
-        let packing = (isa, panel);
         let width = head.width;
         let padded = width.div_ceil(NR) * NR;
         let branches = head
@@ -309,7 +296,7 @@ impl I8Head {
             .map(|(hidden, output, output_bias)| I8Branch {
                 hidden: hidden
                     .iter()
-                    .map(|d| I8Layer::of(d, padded, packing).0)
+                    .map(|d| I8Layer::of(d, padded, isa).0)
                     .collect(),
                 output,
                 output_bias,
@@ -323,7 +310,7 @@ impl I8Head {
             rotation: I8Layer::of_encoding(
                 rotation,
                 rotation.inputs.next_multiple_of(tiles.inputs()),
-                packing,
+                isa,
             ),
             encoding: rotation.inputs,
             branches,
@@ -838,9 +825,8 @@ struct Input<'a, E = u8> {
 /// # Safety
 /// The core has `isa`'s instructions (when it does not, this is never called); `rows` is a
 /// multiple of [`MR`]; `input` holds `rows × stride` bytes with `stride ≥ 4 × groups` and
-/// `rows` scales; `bias` the layer's [`Packed::columns`] (panels of `NR` for AVX-512, of
-/// [`NARROW_PANEL`] for AVX-VNNI); a `Store` output holds `rows` rows of its stride (≥ those
-/// columns), a `Dot` `rows` dots and as many weights.
+/// `rows` scales; `bias` the layer's `panels × NR`; a `Store` output holds `rows` rows of its
+/// stride (≥ panels × NR), a `Dot` `rows` dots and `panels × NR` weights.
 unsafe fn gemm(
     isa: Isa,
     packed: &Packed<u8>,
@@ -855,8 +841,8 @@ unsafe fn gemm(
             && input.bytes.len() >= rows * input.stride
             && input.stride >= GROUP * packed.groups
             && input.scales.len() >= rows
-            && bias.len() >= packed.columns()
-            && scales.len() >= packed.columns()
+            && bias.len() >= packed.panels * NR
+            && scales.len() >= packed.panels * NR
     );
     #[cfg(target_arch = "x86_64")]
     // SAFETY: the caller's contract is the kernels'.
@@ -893,8 +879,8 @@ unsafe fn gemm_pairs(
             && input.bytes.len() >= rows * input.stride
             && input.stride >= PAIR * pairs.groups
             && input.scales.len() >= rows
-            && bias.len() >= pairs.columns()
-            && scales.len() >= pairs.columns()
+            && bias.len() >= pairs.panels * NR
+            && scales.len() >= pairs.panels * NR
     );
     #[cfg(target_arch = "x86_64")]
     // SAFETY: the caller's contract is the kernel's.
@@ -932,7 +918,7 @@ unsafe fn madd_pairs(
 /// registers. `$hsum` sums a vector's lanes.
 macro_rules! vnni_gemm {
     ($(#[$doc:meta])* $name:ident, $feature:literal, $elem:ty, $weight:ty, group $group:expr,
-     lanes $lanes:literal, nv $nv:literal, panel $panel:expr,
+     lanes $lanes:literal, nv $nv:literal,
      $vi:ty, $zero_i:ident, $load_i:ident, $set1_i:ident, $dpbusd:ident,
      $vf:ty, $zero:ident, $load:ident, $store:ident, $set1:ident, $cvt:ident, $fmadd:ident,
      $mul:ident, $max:ident, $hsum:path) => {
@@ -954,21 +940,19 @@ macro_rules! vnni_gemm {
             const NV: usize = $nv;
             const COLUMNS: usize = $lanes * NV;
             const LANE_INPUTS: usize = $group;
-            const PANEL: usize = $panel;
-            debug_assert_eq!(packed.columns(), packed.panels * PANEL, "packed in other panels");
             let stride = input.stride;
             let groups = packed.groups;
             let mut epilogue = epilogue;
             for panel in 0..packed.panels {
-                for block in 0..PANEL / COLUMNS {
-                    let column = panel * PANEL + COLUMNS * block;
+                for block in 0..NR / COLUMNS {
+                    let column = panel * NR + COLUMNS * block;
                     // SAFETY (all pointer reads and writes below): within the bounds of `gemm`'s
                     // contract; a block's weights are its columns' bytes of each group.
                     unsafe {
                         let weights = packed
                             .weight
                             .as_ptr()
-                            .add(panel * groups * PANEL * LANE_INPUTS + COLUMNS * block * LANE_INPUTS);
+                            .add(panel * groups * NR * LANE_INPUTS + COLUMNS * block * LANE_INPUTS);
                         let at = |v: &[f32], c: usize| $load(v.as_ptr().add(column + $lanes * c));
                         let bias: [$vf; NV] = std::array::from_fn(|c| at(bias, c));
                         let scale: [$vf; NV] = std::array::from_fn(|c| at(scales, c));
@@ -976,7 +960,7 @@ macro_rules! vnni_gemm {
                             let mut acc = [[$zero_i(); NV]; MR];
                             let a = input.bytes.as_ptr().add(r0 * stride);
                             for g in 0..groups {
-                                let w = weights.add(g * PANEL * LANE_INPUTS);
+                                let w = weights.add(g * NR * LANE_INPUTS);
                                 let b: [$vi; NV] = std::array::from_fn(|c| {
                                     $load_i(w.add(LANE_INPUTS * $lanes * c) as *const _)
                                 });
@@ -1024,7 +1008,7 @@ macro_rules! vnni_gemm {
 
 vnni_gemm!(
     /// [`gemm`] on AVX-512 VNNI: blocks of 6 rows × 64 columns (24 i32 accumulators).
-    gemm_avx512, "avx512f,avx512bw,avx512vnni", u8, u8, group GROUP, lanes 16, nv 4, panel NR,
+    gemm_avx512, "avx512f,avx512bw,avx512vnni", u8, u8, group GROUP, lanes 16, nv 4,
     __m512i, _mm512_setzero_si512, _mm512_loadu_si512, _mm512_set1_epi32, _mm512_dpbusd_epi32,
     __m512, _mm512_setzero_ps, _mm512_loadu_ps, _mm512_storeu_ps, _mm512_set1_ps,
     _mm512_cvtepi32_ps, _mm512_fmadd_ps, _mm512_mul_ps, _mm512_max_ps, _mm512_reduce_add_ps
@@ -1033,7 +1017,7 @@ vnni_gemm!(
 vnni_gemm!(
     /// [`gemm`] on AVX-VNNI: blocks of 6 rows × 16 columns (12 i32 accumulators, two weight
     /// vectors and a broadcast in the 16 ymm registers).
-    gemm_avx_vnni, "avx2,fma,avxvnni", u8, u8, group GROUP, lanes 8, nv 2, panel NARROW_PANEL,
+    gemm_avx_vnni, "avx2,fma,avxvnni", u8, u8, group GROUP, lanes 8, nv 2,
     __m256i, _mm256_setzero_si256, _mm256_loadu_si256, _mm256_set1_epi32,
     _mm256_dpbusd_avx_epi32,
     __m256, _mm256_setzero_ps, _mm256_loadu_ps, _mm256_storeu_ps, _mm256_set1_ps,
@@ -1043,7 +1027,7 @@ vnni_gemm!(
 vnni_gemm!(
     /// [`gemm_pairs`] on AVX2: blocks of 6 rows × 16 columns (12 i32 accumulators, two weight
     /// vectors, a broadcast and a product in the 16 ymm registers), each lane two 16-bit inputs.
-    gemm_avx2_pairs, "avx2,fma", u16, i16, group PAIR, lanes 8, nv 2, panel NARROW_PANEL,
+    gemm_avx2_pairs, "avx2,fma", u16, i16, group PAIR, lanes 8, nv 2,
     __m256i, _mm256_setzero_si256, _mm256_loadu_si256, _mm256_set1_epi32, madd_pairs,
     __m256, _mm256_setzero_ps, _mm256_loadu_ps, _mm256_storeu_ps, _mm256_set1_ps,
     _mm256_cvtepi32_ps, _mm256_fmadd_ps, _mm256_mul_ps, _mm256_max_ps, super::native::hsum256

@@ -123,11 +123,6 @@ impl<E: Copy + Default> Packed<E> {
             bias,
         }
     }
-
-    /// The outputs rounded up to whole panels (`panels × nr`).
-    pub(super) fn columns(&self) -> usize {
-        self.bias.len()
-    }
 }
 
 /// What leaves a GEMM's register block.
