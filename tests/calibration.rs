@@ -461,7 +461,10 @@ fn every_coarse_precision_ranks_a_full_level_like_f32() {
                 exact[best[0]] - exact[argmax],
                 best[0]
             );
-            let shared = top(&reduced, 64).iter().filter(|c| best.contains(c)).count();
+            let shared = top(&reduced, 64)
+                .iter()
+                .filter(|c| best.contains(c))
+                .count();
             assert!(
                 shared >= 40,
                 "crop {i}, {precision} ({kernel}): {shared} of f32's 64 best cells"
