@@ -443,10 +443,8 @@ fn every_coarse_precision_ranks_a_full_level_like_f32() {
     let refs: Vec<&[u8]> = crops.iter().map(Vec::as_slice).collect();
     let features = model.features(&refs).unwrap();
     let top = |logits: &[f32], k: usize| {
-        let mut order: Vec<usize> = (0..logits.len()).collect();
-        order.sort_by(|&a, &b| logits[b].total_cmp(&logits[a]));
-        order.truncate(k);
-        order
+        let logits: Vec<f64> = logits.iter().map(|&v| v as f64).collect();
+        alignist::engine::search::top_indices(&logits, k)
     };
     for (i, f) in features.iter().enumerate() {
         let exact = model.logits_in(Precision::F32, f, 3).unwrap();
