@@ -147,7 +147,7 @@ pub fn candidates() -> Vec<SearchParams> {
 
 /// Halving searches whose coarse levels are ranked by the shape branch alone: to level 3 in
 /// every precision, to levels 2 and 4 in i8 (the shipped model's choice on AVX2), and from start
-/// level 2.
+/// level 2 (keeps of 192–1024, one of them with its finest level rescored).
 fn shape_ranked() -> Vec<SearchParams> {
     let halving = |start_level, keep, to, coarse_precision| SearchParams {
         shape_only_to: Some(to),
@@ -174,6 +174,18 @@ fn shape_ranked() -> Vec<SearchParams> {
         out.push(halving(2, keep, 3, Precision::I8));
         out.push(halving(2, keep, 3, Precision::Bf16));
     }
+    // Start level 2 in full with narrower keeps: a keep of 256 scores the same rows below level 2
+    // as start level 1's keep of 512, and level 2's 4 608 cells in full (one pass over its
+    // projections) instead of 576 + 4 096 gathered ones, a superset of them.
+    for keep in [192, 256, 384] {
+        for precision in [Precision::I8, Precision::Bf16, Precision::F16, Precision::F32] {
+            out.push(halving(2, keep, 3, precision));
+        }
+    }
+    out.push(SearchParams {
+        rescore_finest: true,
+        ..halving(2, 256, 3, Precision::I8)
+    });
     out
 }
 
