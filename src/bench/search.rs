@@ -178,7 +178,12 @@ fn shape_ranked() -> Vec<SearchParams> {
     // as start level 1's keep of 512, and level 2's 4 608 cells in full (one pass over its
     // projections) instead of 576 + 4 096 gathered ones, a superset of them.
     for keep in [192, 256, 384] {
-        for precision in [Precision::I8, Precision::Bf16, Precision::F16, Precision::F32] {
+        for precision in [
+            Precision::I8,
+            Precision::Bf16,
+            Precision::F16,
+            Precision::F32,
+        ] {
             out.push(halving(2, keep, 3, precision));
         }
     }

@@ -367,7 +367,7 @@ impl Model {
             return Ok(Vec::new());
         }
         if let Some(encoder) = &self.encoder {
-            return Ok(encoder.features(crops, side));
+            return Ok(on_pool(|| encoder.features(crops, side)));
         }
         let images = images_tensor(crops, side, &self.device);
         Ok(feature_rows(self.network.encoder.forward(images)))
@@ -656,22 +656,24 @@ impl Model {
             taper: search.keep_taper,
         };
         let mut fusion = DepthSearch::new(depth, level, options.top_k.max(MIN_REFITS));
-        let results = coarse_to_fine_many(&grids, keep, b, |grid, cells| {
-            let rescore = grid.level() == level && search.rescores_to(start, level);
-            let precision = search.precision_at(grid.level(), start, level);
-            let branches = search.branches_at(grid.level(), level);
-            // A level boundary: a call whose caller went away stops here.
-            options.cancel.check()?;
-            let (mut logits, mats) =
-                self.search_logits(features, grid, cells, (precision, branches));
-            let network = rescore.then(|| logits.clone());
-            fusion.add_terms(grid, cells, &mats, &mut logits, &options.cancel)?;
-            if let Some(network) = network {
+        let results = on_pool(|| {
+            coarse_to_fine_many(&grids, keep, b, |grid, cells| {
+                let rescore = grid.level() == level && search.rescores_to(start, level);
+                let precision = search.precision_at(grid.level(), start, level);
+                let branches = search.branches_at(grid.level(), level);
+                // A level boundary: a call whose caller went away stops here.
                 options.cancel.check()?;
-                let rescored = options.top_k.max(RESCORED_CELLS);
-                self.rescore(features, (grid, cells), &network, &mut logits, rescored);
-            }
-            Ok::<_, EngineError>(logits)
+                let (mut logits, mats) =
+                    self.search_logits(features, grid, cells, (precision, branches));
+                let network = rescore.then(|| logits.clone());
+                fusion.add_terms(grid, cells, &mats, &mut logits, &options.cancel)?;
+                if let Some(network) = network {
+                    options.cancel.check()?;
+                    let rescored = options.top_k.max(RESCORED_CELLS);
+                    self.rescore(features, (grid, cells), &network, &mut logits, rescored);
+                }
+                Ok::<_, EngineError>(logits)
+            })
         })?;
         let grid = &self.grids[level as usize];
         let angle = options.mode_angle;
@@ -839,4 +841,13 @@ impl Model {
     pub fn config(&self) -> &EngineConfig {
         &self.config
     }
+}
+
+/// Runs `work` on a thread of rayon's pool: a request's encoder and search each make dozens of
+/// parallel passes, and a caller outside the pool (a server's blocking task, a benchmark's main
+/// thread) hands each of them to the pool and sleeps until it is done; inside it, one hand-over
+/// for all of them (the encoder at batch 1 on a 2-core AMD EPYC: about 1 ms of 6 saved,
+/// docs/BENCHMARKS.md). Inline where the caller is already in the pool.
+fn on_pool<R: Send>(work: impl FnOnce() -> R + Send) -> R {
+    rayon::scope(|_| work())
 }
