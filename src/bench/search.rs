@@ -149,18 +149,19 @@ pub fn candidates() -> Vec<SearchParams> {
 /// every precision, to levels 2 and 4 in i8 (the shipped model's choice on AVX2), and from start
 /// level 2 (keeps of 192–1024, one of them with its finest level rescored).
 fn shape_ranked() -> Vec<SearchParams> {
+    const EVERY_PRECISION: [Precision; 4] = [
+        Precision::I8,
+        Precision::Bf16,
+        Precision::F16,
+        Precision::F32,
+    ];
     let halving = |start_level, keep, to, coarse_precision| SearchParams {
         shape_only_to: Some(to),
         ..SearchParams::halving(start_level, keep, coarse_precision)
     };
     let mut out = Vec::new();
     for keep in [256, 384, 512] {
-        for precision in [
-            Precision::I8,
-            Precision::Bf16,
-            Precision::F16,
-            Precision::F32,
-        ] {
+        for precision in EVERY_PRECISION {
             out.push(halving(1, keep, 3, precision));
         }
     }
@@ -178,12 +179,7 @@ fn shape_ranked() -> Vec<SearchParams> {
     // as start level 1's keep of 512, and level 2's 4 608 cells in full (one pass over its
     // projections) instead of 576 + 4 096 gathered ones, a superset of them.
     for keep in [192, 256, 384] {
-        for precision in [
-            Precision::I8,
-            Precision::Bf16,
-            Precision::F16,
-            Precision::F32,
-        ] {
+        for precision in EVERY_PRECISION {
             out.push(halving(2, keep, 3, precision));
         }
     }
