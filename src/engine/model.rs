@@ -846,7 +846,7 @@ impl Model {
 /// Runs `work` on a thread of rayon's pool: a request's encoder and search each make dozens of
 /// parallel passes, and a caller outside the pool (a server's blocking task, a benchmark's main
 /// thread) hands each of them to the pool and sleeps until it is done; inside it, one hand-over
-/// for all of them (the encoder at batch 1 on a 2-core AMD EPYC: about 1 ms of 6 saved,
+/// for all of them (the encoder at batch 1 on a 2-core AMD Zen 3: 0.6–1.8 ms of 6–8 saved,
 /// docs/BENCHMARKS.md). Inline where the caller is already in the pool.
 fn on_pool<R: Send>(work: impl FnOnce() -> R + Send) -> R {
     rayon::scope(|_| work())
