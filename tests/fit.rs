@@ -295,11 +295,13 @@ fn eval_fresh_renders_its_own_crops(fresh: &Path, report: &Path) {
     let json = eval_fresh("3", &[]);
     assert_eq!(json["overall"]["images"], 3);
     assert!(json.get("served").is_none(), "{json}");
-    // With --served: the same crops answered by the serving engine's search, its top-1 and first
-    // mode scored per object and overall.
+    // With --served: the same crops answered by the serving engine's search (calibrated on this
+    // machine, as the server's default flags do), its top-1 and first mode scored per object and
+    // overall.
     let json = eval_fresh("3", &["--served", "--top-k", "4"]);
     let served = &json["served"];
     assert_eq!(served["top_k"], 4, "{json}");
+    assert_eq!(served["calibrated"], true, "{served}");
     assert_eq!(served["overall"]["images"], 3);
     assert_eq!(served["per_object"][0][0], "cube");
     assert_eq!(served["per_object"][0][1]["images"], 3);

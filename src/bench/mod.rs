@@ -88,12 +88,7 @@ pub fn bench(
         objects.len(),
         crops.len()
     );
-    // As a server with its default flags: the search calibrated on this CPU.
-    let engine_config = EngineConfig {
-        search_budget_ms: Some(crate::engine::calibrate::DEFAULT_SEARCH_BUDGET_MS),
-        ..EngineConfig::default()
-    };
-    let model = Arc::new(Engine::load_model(bundle, engine_config)?);
+    let model = Arc::new(Engine::load_model(bundle, EngineConfig::served())?);
     let size = model.input_size();
     println!(
         "bundle {} (input {size}², head {}×{}), {} threads, {} images",
@@ -192,18 +187,7 @@ fn print_peaks(model: &Model) -> Peaks {
         amx_i8,
     };
     match model.calibration() {
-        Some(c) => println!(
-            "calibration ({:.0} ms: {}): {} — agreement {}, predicted {:.1} ms, measured {:.1} ms, budget {} ms; {}",
-            c.took_ms,
-            c.spent,
-            c.chosen,
-            c.agreement
-                .map_or("not studied".into(), |a| format!("{a:.3}")),
-            c.predicted_ms,
-            c.measured_ms,
-            c.budget_ms,
-            c.reason
-        ),
+        Some(c) => println!("calibration {c}"),
         None => println!("calibration: none"),
     }
     peaks

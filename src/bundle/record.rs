@@ -639,6 +639,10 @@ pub struct ImageRecord {
 pub struct ServedReport {
     /// The search the engine ran (the calibration's choice), as the server logs it.
     pub search: String,
+    /// Whether that search was calibrated on the machine that ran the evaluation (reports written
+    /// before this field ran the engine's default search, uncalibrated, and read as `false`).
+    #[serde(default)]
+    pub calibrated: bool,
     /// The search's finest level.
     pub level: u8,
     /// Top-k asked of each search.

@@ -112,6 +112,25 @@ impl std::fmt::Display for Spent {
     }
 }
 
+impl std::fmt::Display for Calibration {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let agreement = self
+            .agreement
+            .map_or("not studied".into(), |a| format!("{a:.3}"));
+        write!(
+            f,
+            "({:.0} ms: {}): {} — agreement {agreement}, predicted {:.1} ms, measured {:.1} ms, budget {} ms; {}",
+            self.took_ms,
+            self.spent,
+            self.chosen,
+            self.predicted_ms,
+            self.measured_ms,
+            self.budget_ms,
+            self.reason
+        )
+    }
+}
+
 /// The arithmetic of a level's rows: its precision, and the branches that score them.
 type Arithmetic = (Precision, Branches);
 

@@ -166,6 +166,15 @@ impl std::fmt::Display for SearchParams {
 }
 
 impl EngineConfig {
+    /// As `alignist-server` serves with its default flags: this configuration with the search
+    /// calibrated on this CPU within [`super::calibrate::DEFAULT_SEARCH_BUDGET_MS`].
+    pub fn served() -> Self {
+        Self {
+            search_budget_ms: Some(super::calibrate::DEFAULT_SEARCH_BUDGET_MS),
+            ..Self::default()
+        }
+    }
+
     /// The levels a bundle is served at: this configuration's, capped by the levels its
     /// manifest sets (a cap its shipper chose; the trainer sets none).
     pub fn within(&self, levels: &crate::bundle::model::GridLevels) -> EngineConfig {

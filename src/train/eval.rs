@@ -195,6 +195,7 @@ pub fn evaluate_served(
     objects.dedup();
     Ok(ServedReport {
         search: model.config().search().to_string(),
+        calibrated: model.calibration().is_some(),
         level: checked.level(),
         top_k,
         per_object: objects

@@ -254,8 +254,16 @@ fn served_model(args: &EvalArgs) -> Result<Option<alignist::engine::Model>> {
     if !args.served {
         return Ok(None);
     }
-    let model = Engine::load_model(&args.model, EngineConfig::default())
+    // As the server answers with its default flags: the search calibrated on this CPU.
+    let model = Engine::load_model(&args.model, EngineConfig::served())
         .with_context(|| format!("loading --model {} for the engine", args.model.display()))?;
+    match model.calibration() {
+        Some(c) => eprintln!("served search, calibrated {c}"),
+        None => eprintln!(
+            "served search: {} (not calibrated)",
+            model.config().search()
+        ),
+    }
     Ok(Some(model))
 }
 
