@@ -883,7 +883,8 @@ impl Tolerance {
 /// residual add on the GEMM's output) computes burn's eval-mode features: on the shipped
 /// `tiny_deep` encoder (projection shortcuts, strided stages, trained running statistics) and on
 /// a fresh `tiny` one after two training-mode passes, at batches of 1 and 3,
-/// under the widest kernels and capped at AVX2 (matrixmultiply's GEMM).
+/// under the widest kernels and capped at AVX2 (matrixmultiply's GEMM), with the direct 3 × 3
+/// kernels where the core has them and with im2col and the GEMM alone.
 #[test]
 fn the_folded_inference_encoder_computes_burns_eval_features() {
     use alignist::net::{EncoderConfig, InferenceEncoder, Kernels, ResNetLayout, network};
@@ -920,8 +921,14 @@ fn the_folded_inference_encoder_computes_burns_eval_features() {
         (&grid2, 32, "fresh tiny, 2 × 2 grid"),
         (&grid3, 32, "fresh tiny, 3 × 3 grid"),
     ] {
-        for kernels in [Kernels::Widest, Kernels::Avx2] {
+        for (kernels, direct) in [
+            (Kernels::Widest, true),
+            (Kernels::Avx2, true),
+            (Kernels::Widest, false),
+        ] {
             let folded = InferenceEncoder::of(encoder, kernels).expect("a CPU layout");
+            let folded = if direct { folded } else { folded.im2col_only() };
+            let kernels = format!("{kernels}{}", if direct { "" } else { ", im2col only" });
             for batch in [1usize, 3] {
                 let crops: Vec<Vec<u8>> = (0..batch).map(|i| crop(i, side)).collect();
                 let refs: Vec<&[u8]> = crops.iter().map(Vec::as_slice).collect();

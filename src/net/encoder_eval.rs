@@ -8,6 +8,7 @@
 
 use rayon::prelude::*;
 
+use super::conv3x3::Conv3x3;
 use super::dense::{Strided, gemm, read};
 use super::encoder::{ConvBn, Encoder};
 use super::encoder_grad::{Unit, im2col_rows};
@@ -19,10 +20,12 @@ struct Folded {
     /// The weights scaled per output channel (`Unit::weight` holds `[c_out, c_in·k·k]`).
     unit: Unit,
     bias: Vec<f32>,
+    /// The direct kernel, for a 3 × 3 convolution on a core that has one.
+    direct: Option<Conv3x3>,
 }
 
 impl Folded {
-    fn of(conv_bn: &ConvBn) -> Option<Folded> {
+    fn of(conv_bn: &ConvBn, kernels: Kernels) -> Option<Folded> {
         let mut unit = Unit::read(conv_bn)?;
         let bn = conv_bn.parts().1;
         let mean = read(bn.running_mean.value_sync());
@@ -32,11 +35,22 @@ impl Folded {
         for (row, s) in unit.weight.chunks_exact_mut(columns).zip(&scale) {
             row.iter_mut().for_each(|w| *w *= s);
         }
-        Some(Folded { unit, bias })
+        let direct = (unit.k() == 3)
+            .then(|| {
+                Conv3x3::new(
+                    &unit.weight,
+                    (columns / 9, unit.c_out),
+                    unit.stride(),
+                    kernels,
+                )
+            })
+            .flatten();
+        Some(Folded { unit, bias, direct })
     }
 
     /// `W'·cols(x) + b'` of one image (`[c_in, h, w]`) into `[c_out, ho, wo]`, with its side,
-    /// then as `after` says; `cols` is scratch.
+    /// then as `after` says; `cols` is scratch. A 3 × 3 unit runs the direct kernel where it has
+    /// one for this side ([`Conv3x3`]), the others im2col and the GEMM.
     fn forward(
         &self,
         kernels: Kernels,
@@ -47,30 +61,46 @@ impl Folded {
         let unit = &self.unit;
         let out = unit.out_side(side);
         let (n, m) = (unit.columns(), out.0 * out.1);
-        cols.resize(n * m, 0.0);
-        // Rows of columns per task: a few tasks per thread, whole rows.
-        let tasks = 2 * rayon::current_num_threads();
-        let rows = n.div_ceil(tasks).max(1);
-        cols[..n * m]
-            .par_chunks_mut(rows * m)
-            .enumerate()
-            .for_each(|(t, chunk)| im2col_rows(unit, x, side, t * rows, chunk));
         let mut y = vec![0.0; unit.c_out * m];
-        let cols = &cols[..n * m];
         let threads = rayon::current_num_threads();
-        let by_pixels = unit.c_out < NARROW_CHANNELS * threads && m >= MIN_PIXELS * threads;
-        if by_pixels {
-            self.gemm_by_pixels(kernels, cols, m, threads, &mut y);
+        let direct = self
+            .direct
+            .as_ref()
+            .filter(|d| d.out_side(side) == Some(out));
+        let mut by_pixels = false;
+        if let Some(direct) = direct {
+            direct.forward(x, side, cols, &mut y);
+        } else {
+            cols.resize(n * m, 0.0);
+            // Rows of columns per task: a few tasks per thread, whole rows.
+            let tasks = 2 * threads;
+            let rows = n.div_ceil(tasks).max(1);
+            cols[..n * m]
+                .par_chunks_mut(rows * m)
+                .enumerate()
+                .for_each(|(t, chunk)| im2col_rows(unit, x, side, t * rows, chunk));
+            by_pixels = unit.c_out < NARROW_CHANNELS * threads && m >= MIN_PIXELS * threads;
+            if by_pixels {
+                self.gemm_by_pixels(kernels, &cols[..n * m], m, threads, &mut y);
+            }
         }
+        let cols = &cols[..];
         let channels = unit.c_out.div_ceil(threads).max(1);
         y.par_chunks_mut(channels * m)
             .enumerate()
             .for_each(|(t, y)| {
                 let first = t * channels;
                 let c = y.len() / m;
-                if !by_pixels {
+                if direct.is_none() && !by_pixels {
                     let w = Strided::rows(&unit.weight[first * n..(first + c) * n], n);
-                    gemm(kernels, [c, n, m], w, Strided::rows(cols, m), 0.0, y);
+                    gemm(
+                        kernels,
+                        [c, n, m],
+                        w,
+                        Strided::rows(&cols[..n * m], m),
+                        0.0,
+                        y,
+                    );
                 }
                 for (ch, plane) in y.chunks_exact_mut(m).enumerate() {
                     let b = self.bias[first + ch];
@@ -171,21 +201,40 @@ impl InferenceEncoder {
             .into_iter()
             .map(|(first, second, shortcut)| {
                 Some(FoldedBlock {
-                    first: Folded::of(first)?,
-                    second: Folded::of(second)?,
+                    first: Folded::of(first, kernels)?,
+                    second: Folded::of(second, kernels)?,
                     shortcut: match shortcut {
-                        Some(s) => Some(Folded::of(s)?),
+                        Some(s) => Some(Folded::of(s, kernels)?),
                         None => None,
                     },
                 })
             })
             .collect::<Option<Vec<_>>>()?;
         Some(InferenceEncoder {
-            stem: Folded::of(stem)?,
+            stem: Folded::of(stem, kernels)?,
             blocks,
             kernels,
             pool_grid: encoder.pool_grid(),
         })
+    }
+
+    /// The same encoder with every convolution on im2col and the GEMM (no direct kernel): the
+    /// ablation of [`Conv3x3`] (`examples/probe_inference_encoder.rs`, `tests/net.rs`).
+    pub fn im2col_only(mut self) -> InferenceEncoder {
+        let units = std::iter::once(&mut self.stem).chain(self.blocks.iter_mut().flat_map(|b| {
+            [&mut b.first, &mut b.second]
+                .into_iter()
+                .chain(b.shortcut.as_mut())
+        }));
+        units.for_each(|u| u.direct = None);
+        self
+    }
+
+    /// Whether any convolution runs the direct kernel.
+    pub fn has_direct(&self) -> bool {
+        std::iter::once(&self.stem)
+            .chain(self.blocks.iter().flat_map(|b| [&b.first, &b.second]))
+            .any(|u| u.direct.is_some())
     }
 
     /// The features of RGB8 crops of `size`² (values / 255, as burn's forward reads them), a
@@ -198,27 +247,104 @@ impl InferenceEncoder {
     }
 
     fn image_features(&self, crop: &[u8], size: usize) -> Vec<f32> {
+        self.image_features_timed(crop, size, &mut |_, _| {})
+    }
+
+    /// Each convolution of one crop's forward, in order, with its milliseconds: its name
+    /// (`stem`, `block B.1`, `block B.2`, `block B shortcut`), its shape and its multiply-adds
+    /// (a profile for `examples/probe_inference_encoder.rs`).
+    pub fn unit_times(&self, crop: &[u8], size: usize) -> Vec<UnitTime> {
+        let mut units = Vec::new();
+        self.image_features_timed(crop, size, &mut |name, (unit, side, ms)| {
+            let out = unit.unit.out_side(side);
+            units.push(UnitTime {
+                name,
+                shape: format!(
+                    "{}→{} k{} /{} at {}×{}",
+                    unit.unit.columns() / (unit.unit.k() * unit.unit.k()),
+                    unit.unit.c_out,
+                    unit.unit.k(),
+                    unit.unit.stride(),
+                    out.0,
+                    out.1
+                ),
+                multiply_adds: unit.unit.c_out * unit.unit.columns() * out.0 * out.1,
+                ms,
+            });
+        });
+        units
+    }
+
+    /// The forward of one crop, telling `took` each convolution's name, unit, input side and
+    /// milliseconds.
+    fn image_features_timed(&self, crop: &[u8], size: usize, took: &mut UnitTook<'_>) -> Vec<f32> {
         let k = self.kernels;
         let mut cols = Vec::new();
+        let mut timed = |name: &dyn Fn() -> String,
+                         unit: &Folded,
+                         input: (&[f32], (usize, usize)),
+                         after: After<'_>,
+                         cols: &mut Vec<f32>| {
+            let started = std::time::Instant::now();
+            let out = unit.forward(k, input, after, cols);
+            took(
+                name(),
+                (unit, input.1, started.elapsed().as_secs_f64() * 1e3),
+            );
+            out
+        };
         let image = super::network::images_nchw(&[crop], size);
-        let (mut x, mut side) =
-            self.stem
-                .forward(k, (&image, (size, size)), After::Relu, &mut cols);
-        for block in &self.blocks {
-            let hidden = block.first.forward(k, (&x, side), After::Relu, &mut cols);
-            let shortcut = block
-                .shortcut
-                .as_ref()
-                .map(|s| s.forward(k, (&x, side), After::Nothing, &mut cols).0);
+        let (mut x, mut side) = timed(
+            &|| "stem".into(),
+            &self.stem,
+            (&image, (size, size)),
+            After::Relu,
+            &mut cols,
+        );
+        for (b, block) in self.blocks.iter().enumerate() {
+            let hidden = timed(
+                &|| format!("block {b}.1"),
+                &block.first,
+                (&x, side),
+                After::Relu,
+                &mut cols,
+            );
+            let shortcut = block.shortcut.as_ref().map(|s| {
+                timed(
+                    &|| format!("block {b} shortcut"),
+                    s,
+                    (&x, side),
+                    After::Nothing,
+                    &mut cols,
+                )
+                .0
+            });
             let residual = shortcut.as_deref().unwrap_or(&x);
-            let second = block.second.forward(
-                k,
+            (x, side) = timed(
+                &|| format!("block {b}.2"),
+                &block.second,
                 (&hidden.0, hidden.1),
                 After::AddRelu(residual),
                 &mut cols,
             );
-            (x, side) = second;
         }
         super::encoder::grid_pool_planes(&x, side, self.pool_grid)
     }
+}
+
+/// What [`InferenceEncoder::unit_times`] is told of each convolution: its name, the unit, its
+/// input side and its milliseconds.
+type UnitTook<'a> = dyn FnMut(String, (&Folded, (usize, usize), f64)) + 'a;
+
+/// One convolution's time in [`InferenceEncoder::unit_times`].
+#[derive(Debug, Clone)]
+pub struct UnitTime {
+    /// `stem`, `block B.1`, `block B.2` or `block B shortcut`.
+    pub name: String,
+    /// Input → output channels, kernel side, stride and output side.
+    pub shape: String,
+    /// Its multiply-adds.
+    pub multiply_adds: usize,
+    /// Milliseconds.
+    pub ms: f64,
 }

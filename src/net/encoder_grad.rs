@@ -98,6 +98,16 @@ impl Unit {
         })
     }
 
+    /// The kernel's side.
+    pub(super) fn k(&self) -> usize {
+        self.k
+    }
+
+    /// The stride.
+    pub(super) fn stride(&self) -> usize {
+        self.stride
+    }
+
     pub(super) fn columns(&self) -> usize {
         self.c_in * self.k * self.k
     }

@@ -3,6 +3,7 @@
 
 pub mod amx;
 pub mod bf16;
+mod conv3x3;
 pub(crate) mod dense;
 pub mod encoder;
 pub mod encoder_eval;
@@ -20,7 +21,7 @@ pub mod tiles;
 mod weights;
 
 pub use encoder::{Encoder, EncoderConfig, ResNetLayout};
-pub use encoder_eval::InferenceEncoder;
+pub use encoder_eval::{InferenceEncoder, UnitTime};
 pub use encoder_grad::{EncoderGrads, EncoderPass, TrainingEncoder};
 pub use fused::{FusedHead, ReducedHead};
 pub use head::{BranchScores, DualHead, HeadConfig};
