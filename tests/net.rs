@@ -928,6 +928,19 @@ fn the_folded_inference_encoder_computes_burns_eval_features() {
         ] {
             let folded = InferenceEncoder::of(encoder, kernels).expect("a CPU layout");
             let folded = if direct { folded } else { folded.im2col_only() };
+            // Where the core has AVX2 and FMA, every 3 × 3 unit whose output is 8 wide or more
+            // runs direct, and the encoder says so.
+            #[cfg(target_arch = "x86_64")]
+            let has = std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma");
+            #[cfg(not(target_arch = "x86_64"))]
+            let has = false;
+            let paths = folded.kernel_paths(side);
+            assert_eq!(folded.has_direct(), direct && has, "{what}: {paths}");
+            assert_eq!(
+                paths.contains("direct 3×3"),
+                direct && has,
+                "{what}: {paths}"
+            );
             let kernels = format!("{kernels}{}", if direct { "" } else { ", im2col only" });
             for batch in [1usize, 3] {
                 let crops: Vec<Vec<u8>> = (0..batch).map(|i| crop(i, side)).collect();

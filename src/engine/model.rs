@@ -261,9 +261,12 @@ impl Model {
         self.calibration.as_ref()
     }
 
-    /// The kernel each precision runs on, in words.
+    /// The kernel each precision of the head runs on, and the encoder's, in words.
     pub fn kernel_paths(&self) -> String {
-        self.fused.kernel_paths()
+        let encoder = self.encoder.as_ref().map_or("burn's forward".into(), |e| {
+            e.kernel_paths(self.manifest.network.image_size as usize)
+        });
+        format!("{}; encoder: {encoder}", self.fused.kernel_paths())
     }
 
     /// The network's configuration (input size, encoding, …).

@@ -76,6 +76,14 @@ impl Conv3x3 {
         })
     }
 
+    /// The instructions it runs on, in words.
+    pub(super) fn isa_name(&self) -> &'static str {
+        match self.isa {
+            Isa::Avx2 => "AVX2",
+            Isa::Avx512 => "AVX-512",
+        }
+    }
+
     /// The output side of an input of side `(h, w)`, where the kernel runs on it: an output
     /// width that is a multiple of 8, and at stride 2 an even input side.
     pub(super) fn out_side(&self, (h, w): (usize, usize)) -> Option<(usize, usize)> {

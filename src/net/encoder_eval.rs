@@ -230,6 +230,38 @@ impl InferenceEncoder {
         self
     }
 
+    /// Which kernels the convolutions of a `size`² crop's forward run on, in words.
+    pub fn kernel_paths(&self, size: usize) -> String {
+        let (mut side, mut direct, mut isa, mut total) = ((size, size), 0, None, 0);
+        let mut visit = |unit: &Folded, side: (usize, usize)| {
+            let out = unit.unit.out_side(side);
+            total += 1;
+            if let Some(d) = unit
+                .direct
+                .as_ref()
+                .filter(|d| d.out_side(side) == Some(out))
+            {
+                direct += 1;
+                isa = Some(d.isa_name());
+            }
+            out
+        };
+        side = visit(&self.stem, side);
+        for block in &self.blocks {
+            let hidden = visit(&block.first, side);
+            if let Some(s) = &block.shortcut {
+                visit(s, side);
+            }
+            side = visit(&block.second, hidden);
+        }
+        match isa {
+            Some(isa) => format!(
+                "{direct} of {total} convolutions direct 3×3 ({isa}), the others im2col + GEMM"
+            ),
+            None => format!("{total} convolutions im2col + GEMM"),
+        }
+    }
+
     /// Whether any convolution runs the direct kernel.
     pub fn has_direct(&self) -> bool {
         std::iter::once(&self.stem)
