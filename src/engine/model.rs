@@ -240,7 +240,7 @@ impl Model {
             within_budget = c.within_budget,
             calibration_ms = c.took_ms,
             calibration_spent = %c.spent,
-            kernels = %self.fused.kernel_paths(),
+            kernels = %self.kernel_paths(),
             "search calibrated: {}",
             c.reason
         );
