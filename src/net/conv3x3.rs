@@ -205,6 +205,26 @@ struct Image<'a> {
     out: (usize, usize),
 }
 
+impl Image<'_> {
+    /// Where a block reads input channel `ci` for output row `oy` from pixel `x0` (its taps at
+    /// the layout's offsets from there), and that channel's weights from output channel
+    /// `first` of the group (its taps `PACK` apart).
+    fn start(
+        &self,
+        (ci, oy, x0): (usize, usize, usize),
+        weights: &[f32],
+        first: usize,
+    ) -> (*const f32, *const f32) {
+        let l = &self.layout;
+        (
+            self.buffer
+                .as_ptr()
+                .wrapping_add(ci * l.plane + oy * l.row_step + x0),
+            weights.as_ptr().wrapping_add(ci * 9 * PACK + first),
+        )
+    }
+}
+
 impl Isa {
     /// One group of eight output channels.
     fn group(self, image: &Image<'_>, weights: &[f32], y: &mut [f32]) {
@@ -284,11 +304,7 @@ unsafe fn group_avx512(image: &Image<'_>, weights: &[f32], y: &mut [f32]) {
             for ci in 0..l.c_in {
                 // SAFETY: `check`: every value read lies in the buffer, every tap in `weights`.
                 unsafe {
-                    let r = image
-                        .buffer
-                        .as_ptr()
-                        .add(ci * l.plane + oy * l.row_step + x0);
-                    let t = weights.as_ptr().add(ci * 9 * PACK);
+                    let (r, t) = image.start((ci, oy, x0), weights, 0);
                     for (tap, offset) in l.taps.iter().enumerate() {
                         let v = _mm512_loadu_ps(r.add(*offset));
                         for (c, acc) in acc.iter_mut().enumerate() {
@@ -373,11 +389,7 @@ unsafe fn blocks_avx2<const CB: usize, const NV: usize>(
             for ci in 0..l.c_in {
                 // SAFETY: `check`: every value read lies in the buffer, every tap in `weights`.
                 unsafe {
-                    let r = image
-                        .buffer
-                        .as_ptr()
-                        .add(ci * l.plane + oy * l.row_step + x0);
-                    let t = weights.as_ptr().add(ci * 9 * PACK + first);
+                    let (r, t) = image.start((ci, oy, x0), weights, first);
                     for (tap, offset) in l.taps.iter().enumerate() {
                         let p = r.add(*offset);
                         let v: [__m256; NV] =
