@@ -2,7 +2,7 @@
 //! (basic blocks, no stem max-pool), each convolution with its BatchNorm's running statistics
 //! folded in (`W' = W·γ/σ`, `b' = β − mean·γ/σ`, σ = `sqrt(var + ε)`), so a unit is one
 //! convolution plus a bias, and the ReLU and the residual add ride on the same pass. A 3 × 3 unit
-//! runs the direct kernel where the core has one ([`super::conv3x3`]: at batch 1 the shipped
+//! runs the direct kernel where the core has one (`net::conv3x3`: at batch 1 the shipped
 //! encoder 4.0 ms against 6.4 on Zen 3, `examples/probe_inference_encoder.rs`), the others one
 //! GEMM over their im2col columns.
 //!
@@ -223,7 +223,7 @@ impl InferenceEncoder {
     }
 
     /// The same encoder with every convolution on im2col and the GEMM (no direct kernel): the
-    /// ablation of [`Conv3x3`] (`examples/probe_inference_encoder.rs`, `tests/net.rs`).
+    /// ablation of the direct kernels (`net::conv3x3`) (`examples/probe_inference_encoder.rs`, `tests/net.rs`).
     pub fn im2col_only(mut self) -> InferenceEncoder {
         let units = std::iter::once(&mut self.stem).chain(self.blocks.iter_mut().flat_map(|b| {
             [&mut b.first, &mut b.second]
