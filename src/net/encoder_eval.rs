@@ -222,8 +222,8 @@ impl InferenceEncoder {
         })
     }
 
-    /// The same encoder with every convolution on im2col and the GEMM (no direct kernel): the
-    /// ablation of the direct kernels (`net::conv3x3`) (`examples/probe_inference_encoder.rs`, `tests/net.rs`).
+    /// The same encoder with every convolution on im2col and the GEMM: the ablation of the
+    /// direct kernels of `net::conv3x3` (`examples/probe_inference_encoder.rs`, `tests/net.rs`).
     pub fn im2col_only(mut self) -> InferenceEncoder {
         let units = std::iter::once(&mut self.stem).chain(self.blocks.iter_mut().flat_map(|b| {
             [&mut b.first, &mut b.second]
