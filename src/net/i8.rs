@@ -916,6 +916,13 @@ unsafe fn madd_pairs(
 /// broadcast from the row, the block's weights of a group loaded once;
 /// `relu(acc · s_row · s_col + b)` (or the output dot product) as each block leaves the
 /// registers. `$hsum` sums a vector's lanes.
+///
+/// As the f32 kernels (`net::native`), the common input strides (the padded widths 128, 256
+/// and 512) run an instance with the stride a constant, so each row's broadcast is one load at
+/// a fixed displacement from the block: no address arithmetic between the multiplies. (With
+/// the stride in a register, 4 of the `VPMADDWD` loop's 39 instructions computed row addresses
+/// on AMD Zen 3, whose dispatch width the loop fills; docs/BENCHMARKS.md. Four groups a trip,
+/// as the f32 kernels run, made the compiler spill accumulators here.)
 macro_rules! vnni_gemm {
     ($(#[$doc:meta])* $name:ident, $feature:literal, $elem:ty, $weight:ty, group $group:expr,
      lanes $lanes:literal, nv $nv:literal,
@@ -936,70 +943,89 @@ macro_rules! vnni_gemm {
             rows: usize,
             epilogue: Epilogue<'_, f32>,
         ) {
-            use std::arch::x86_64::*;
-            const NV: usize = $nv;
-            const COLUMNS: usize = $lanes * NV;
-            const LANE_INPUTS: usize = $group;
-            let stride = input.stride;
-            let groups = packed.groups;
-            let mut epilogue = epilogue;
-            for panel in 0..packed.panels {
-                for block in 0..NR / COLUMNS {
-                    let column = panel * NR + COLUMNS * block;
-                    // SAFETY (all pointer reads and writes below): within the bounds of `gemm`'s
-                    // contract; a block's weights are its columns' bytes of each group.
-                    unsafe {
-                        let weights = packed
-                            .weight
-                            .as_ptr()
-                            .add(panel * groups * NR * LANE_INPUTS + COLUMNS * block * LANE_INPUTS);
-                        let at = |v: &[f32], c: usize| $load(v.as_ptr().add(column + $lanes * c));
-                        let bias: [$vf; NV] = std::array::from_fn(|c| at(bias, c));
-                        let scale: [$vf; NV] = std::array::from_fn(|c| at(scales, c));
-                        for r0 in (0..rows).step_by(MR) {
-                            let mut acc = [[$zero_i(); NV]; MR];
-                            let a = input.bytes.as_ptr().add(r0 * stride);
-                            for g in 0..groups {
-                                let w = weights.add(g * NR * LANE_INPUTS);
-                                let b: [$vi; NV] = std::array::from_fn(|c| {
-                                    $load_i(w.add(LANE_INPUTS * $lanes * c) as *const _)
-                                });
-                                for (r, acc) in acc.iter_mut().enumerate() {
-                                    let inputs = (a.add(r * stride + LANE_INPUTS * g) as *const i32)
-                                        .read_unaligned();
-                                    let x = $set1_i(inputs);
-                                    for c in 0..NV {
-                                        acc[c] = $dpbusd(acc[c], x, b[c]);
+            #[target_feature(enable = $feature)]
+            unsafe fn by_stride<const STRIDE: usize>(
+                packed: &Packed<$weight>,
+                scales: &[f32],
+                bias: &[f32],
+                input: Input<'_, $elem>,
+                rows: usize,
+                epilogue: Epilogue<'_, f32>,
+            ) {
+                use std::arch::x86_64::*;
+                const NV: usize = $nv;
+                const COLUMNS: usize = $lanes * NV;
+                const LANE_INPUTS: usize = $group;
+                let stride = if STRIDE == 0 { input.stride } else { STRIDE };
+                let groups = packed.groups;
+                let mut epilogue = epilogue;
+                for panel in 0..packed.panels {
+                    for block in 0..NR / COLUMNS {
+                        let column = panel * NR + COLUMNS * block;
+                        // SAFETY (all pointer reads and writes below): within the bounds of
+                        // `gemm`'s contract; a block's weights are its columns' bytes of each group.
+                        unsafe {
+                            let weights = packed.weight.as_ptr().add(
+                                panel * groups * NR * LANE_INPUTS + COLUMNS * block * LANE_INPUTS,
+                            );
+                            let at = |v: &[f32], c: usize| $load(v.as_ptr().add(column + $lanes * c));
+                            let bias: [$vf; NV] = std::array::from_fn(|c| at(bias, c));
+                            let scale: [$vf; NV] = std::array::from_fn(|c| at(scales, c));
+                            for r0 in (0..rows).step_by(MR) {
+                                let mut acc = [[$zero_i(); NV]; MR];
+                                let a = input.bytes.as_ptr().add(r0 * stride);
+                                for g in 0..groups {
+                                    let w = weights.add(g * NR * LANE_INPUTS);
+                                    let b: [$vi; NV] = std::array::from_fn(|c| {
+                                        $load_i(w.add(LANE_INPUTS * $lanes * c) as *const _)
+                                    });
+                                    let x = a.add(LANE_INPUTS * g);
+                                    for (r, acc) in acc.iter_mut().enumerate() {
+                                        let inputs =
+                                            (x.add(r * stride) as *const i32).read_unaligned();
+                                        let x = $set1_i(inputs);
+                                        for c in 0..NV {
+                                            acc[c] = $dpbusd(acc[c], x, b[c]);
+                                        }
                                     }
                                 }
-                            }
-                            let zero = $zero();
-                            for (r, acc) in acc.iter().enumerate() {
-                                let row = r0 + r;
-                                let s = $set1(input.scales[row]);
-                                let h: [$vf; NV] = std::array::from_fn(|c| {
-                                    let scaled = $fmadd($cvt(acc[c]), $mul(scale[c], s), bias[c]);
-                                    $max(scaled, zero)
-                                });
-                                match &mut epilogue {
-                                    Epilogue::Store { out, stride } => {
-                                        let o = out.as_mut_ptr().add(row * *stride + column);
-                                        for (c, h) in h.iter().enumerate() {
-                                            $store(o.add($lanes * c), *h);
+                                let zero = $zero();
+                                for (r, acc) in acc.iter().enumerate() {
+                                    let row = r0 + r;
+                                    let s = $set1(input.scales[row]);
+                                    let h: [$vf; NV] = std::array::from_fn(|c| {
+                                        let scaled = $fmadd($cvt(acc[c]), $mul(scale[c], s), bias[c]);
+                                        $max(scaled, zero)
+                                    });
+                                    match &mut epilogue {
+                                        Epilogue::Store { out, stride } => {
+                                            let o = out.as_mut_ptr().add(row * *stride + column);
+                                            for (c, h) in h.iter().enumerate() {
+                                                $store(o.add($lanes * c), *h);
+                                            }
                                         }
-                                    }
-                                    Epilogue::Dot { weights, dots } => {
-                                        let w = weights.as_ptr().add(column);
-                                        let mut sum = $mul(h[0], $load(w));
-                                        for (c, h) in h.iter().enumerate().skip(1) {
-                                            sum = $fmadd(*h, $load(w.add($lanes * c)), sum);
+                                        Epilogue::Dot { weights, dots } => {
+                                            let w = weights.as_ptr().add(column);
+                                            let mut sum = $mul(h[0], $load(w));
+                                            for (c, h) in h.iter().enumerate().skip(1) {
+                                                sum = $fmadd(*h, $load(w.add($lanes * c)), sum);
+                                            }
+                                            dots[row] += $hsum(sum);
                                         }
-                                        dots[row] += $hsum(sum);
                                     }
                                 }
                             }
                         }
                     }
+                }
+            }
+            // SAFETY: the caller's contract; each instance reads `input.stride` as given.
+            unsafe {
+                match input.stride {
+                    256 => by_stride::<256>(packed, scales, bias, input, rows, epilogue),
+                    128 => by_stride::<128>(packed, scales, bias, input, rows, epilogue),
+                    512 => by_stride::<512>(packed, scales, bias, input, rows, epilogue),
+                    _ => by_stride::<0>(packed, scales, bias, input, rows, epilogue),
                 }
             }
         }
