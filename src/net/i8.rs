@@ -920,9 +920,10 @@ unsafe fn madd_pairs(
 /// As the f32 kernels (`net::native`), the common input strides (the padded widths 128, 256
 /// and 512) run an instance with the stride a constant, so each row's broadcast is one load at
 /// a fixed displacement from the block: no address arithmetic between the multiplies. (With
-/// the stride in a register, 4 of the `VPMADDWD` loop's 39 instructions computed row addresses
-/// on AMD Zen 3, whose dispatch width the loop fills; docs/BENCHMARKS.md. Four groups a trip,
-/// as the f32 kernels run, made the compiler spill accumulators here.)
+/// the stride in a register, 5 of the `VPMADDWD` loop's 41 instructions computed row addresses
+/// on AMD Zen 3, whose dispatch width the loop fills; 36 with it a constant. Four or two groups
+/// a trip, as the f32 kernels run, made the compiler spill accumulators or branch within the
+/// trip here; docs/BENCHMARKS.md.)
 macro_rules! vnni_gemm {
     ($(#[$doc:meta])* $name:ident, $feature:literal, $elem:ty, $weight:ty, group $group:expr,
      lanes $lanes:literal, nv $nv:literal,
