@@ -30,7 +30,7 @@
 use super::amx::{self, BytesScales};
 use super::dense::Dense;
 use super::kernels::Kernels;
-use super::native::{Epilogue, Packed, avx2_available};
+use super::native::{Epilogue, Packed, avx2_available, with_constant_stride};
 use super::tiles::{
     Branches, ENCODING_SCALE, Rows, blocked_tile_rows, by_tiles, columns_to_i8, encoding_to_u8,
     row_to_u8,
@@ -1022,12 +1022,10 @@ macro_rules! vnni_gemm {
             }
             // SAFETY: the caller's contract; each instance reads `input.stride` as given.
             unsafe {
-                match input.stride {
-                    256 => by_stride::<256>(packed, scales, bias, input, rows, epilogue),
-                    128 => by_stride::<128>(packed, scales, bias, input, rows, epilogue),
-                    512 => by_stride::<512>(packed, scales, bias, input, rows, epilogue),
-                    _ => by_stride::<0>(packed, scales, bias, input, rows, epilogue),
-                }
+                with_constant_stride!(
+                    input.stride,
+                    by_stride(packed, scales, bias, input, rows, epilogue)
+                )
             }
         }
     };

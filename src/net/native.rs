@@ -393,6 +393,22 @@ macro_rules! kernel_impl {
 }
 pub(super) use kernel_impl;
 
+/// `$instance::<STRIDE>(args…)` with the row stride a constant where it is one of the padded
+/// widths 128, 256 and 512 (`STRIDE` 0: read at run time otherwise), so that a kernel's
+/// broadcasts are loads at fixed displacements: the dispatch of the f32 kernels here and of the
+/// 8-bit ones (`net::i8`).
+macro_rules! with_constant_stride {
+    ($stride:expr, $instance:ident($($arg:expr),* $(,)?)) => {
+        match $stride {
+            256 => $instance::<256>($($arg),*),
+            128 => $instance::<128>($($arg),*),
+            512 => $instance::<512>($($arg),*),
+            _ => $instance::<0>($($arg),*),
+        }
+    };
+}
+pub(super) use with_constant_stride;
+
 /// An f32 [`Kernel::gemm`] on one vector width: blocks of `MR` rows × `NV` vectors of `LANES`
 /// lanes, each row's input broadcast from its own row, bias and ReLU (or the output dot
 /// product) as each block leaves the registers. `$hsum` sums a vector's lanes.
@@ -498,12 +514,10 @@ macro_rules! f32_gemm {
             }
             // SAFETY: the caller's contract; each instance reads `stride` as given.
             unsafe {
-                match stride {
-                    256 => by_stride::<256>(layer, bias, input, stride, rows, epilogue),
-                    128 => by_stride::<128>(layer, bias, input, stride, rows, epilogue),
-                    512 => by_stride::<512>(layer, bias, input, stride, rows, epilogue),
-                    _ => by_stride::<0>(layer, bias, input, stride, rows, epilogue),
-                }
+                with_constant_stride!(
+                    stride,
+                    by_stride(layer, bias, input, stride, rows, epilogue)
+                )
             }
         }
     };
