@@ -82,7 +82,7 @@ fn main() -> anyhow::Result<()> {
     let n = 60;
     for s in 0..n {
         let object = s % fresh.meshes.len();
-        let _ = fresh.training_image(object, size, &mut ChaCha8Rng::seed_from_u64(s as u64));
+        let _ = fresh.training_image(object, size, None, &mut ChaCha8Rng::seed_from_u64(s as u64));
     }
     println!(
         "{:15} {:6.2} ms per {size}px crop (supersample 2, one core)",

@@ -363,3 +363,52 @@ fn a_textured_obj_renders_its_texture() {
         Some(alignist::cad::MeshColors::PerVertex(_))
     ));
 }
+
+#[test]
+fn a_plain_share_given_to_a_training_image_replaces_the_realisms() {
+    use alignist::train::data::FreshRenders;
+    let meshes = vec![Shape::Cube.mesh()];
+    let fresh = FreshRenders {
+        meshes: meshes.clone(),
+        supersample: 2,
+        pool: None,
+        realism: Some(SceneAssets::new(&meshes, Realism::TRAIN)),
+    };
+    // A plain crop is the part on black around its exact box: its four corners are black. A
+    // realistic one has a background there (the frame's edge may cut off one side, not all).
+    let plain_corners = |rgb: &[u8]| {
+        [0, 31, 32 * 31, 32 * 32 - 1]
+            .iter()
+            .all(|&i| rgb[3 * i..3 * i + 3] == [0, 0, 0])
+    };
+    let crops = |plain| {
+        (0..12)
+            .map(|seed| {
+                let im = fresh.training_image(0, 32, plain, &mut ChaCha8Rng::seed_from_u64(seed));
+                plain_corners(&im.rgb)
+            })
+            .collect::<Vec<_>>()
+    };
+    assert!(crops(Some(1.0)).iter().all(|&g| g));
+    assert!(crops(Some(0.0)).iter().all(|&g| !g));
+    // Without one, the realism's own share (1/10): mostly realistic.
+    let plain = crops(None).iter().filter(|&&g| g).count();
+    assert!(plain <= 4, "{plain} of 12 plain");
+}
+
+#[test]
+fn the_plain_share_is_annealed_from_its_start_to_the_realisms() {
+    use alignist::train::TrainConfig;
+    let end = Realism::TRAIN.plain;
+    let fixed = TrainConfig::default();
+    assert_eq!(fixed.plain_share(0, 100, end), end);
+    assert_eq!(fixed.plain_share(99, 100, end), end);
+    let curriculum = TrainConfig {
+        plain_start: Some(1.0),
+        ..TrainConfig::default()
+    };
+    assert_eq!(curriculum.plain_share(0, 101, end), 1.0);
+    assert!((curriculum.plain_share(50, 101, end) - (1.0 + end) / 2.0).abs() < 1e-12);
+    assert!((curriculum.plain_share(100, 101, end) - end).abs() < 1e-12);
+    assert!((curriculum.plain_share(500, 101, end) - end).abs() < 1e-12);
+}

@@ -108,6 +108,7 @@ fn config(method: Method) -> TrainConfig {
         checkpoint_every: 3,
         init: None,
         teacher: None,
+        plain_start: None,
     }
 }
 

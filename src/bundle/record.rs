@@ -268,6 +268,27 @@ pub struct TrainConfig {
     /// `None`: the experts' targets, the paper's.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub teacher: Option<TeacherWeights>,
+    /// With realistic fresh renders: the share of plain crops (flat grey on black, the exact
+    /// box) at the first step, annealed linearly to the realism's own share at the last step
+    /// ([`TrainConfig::plain_share`]): a curriculum, the part's shape on plain renders first.
+    /// `None`: the realism's share at every step.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub plain_start: Option<f64>,
+}
+
+impl TrainConfig {
+    /// The share of plain crops at `step` of `steps` when the realism's own share is `end`:
+    /// [`TrainConfig::plain_start`] annealed linearly to `end`, or `end` without one.
+    pub fn plain_share(&self, step: usize, steps: usize, end: f64) -> f64 {
+        match self.plain_start {
+            None => end,
+            Some(start) => {
+                // As the focused share is annealed ([`SamplingStrategy::at_step`]).
+                let t = step as f64 / steps.saturating_sub(1).max(1) as f64;
+                start + (end - start) * t.min(1.0)
+            }
+        }
+    }
 }
 
 impl Default for TrainConfig {
@@ -295,6 +316,7 @@ impl Default for TrainConfig {
             checkpoint_every: 100,
             init: None,
             teacher: None,
+            plain_start: None,
         }
     }
 }

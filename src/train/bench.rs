@@ -133,6 +133,7 @@ pub fn bench_training(config: &TrainingBenchConfig) -> Result<TrainingBench, Tra
             checkpoint_every: usize::MAX,
             init: None,
             teacher: None,
+            plain_start: None,
         };
         train(&cfg, &set, None, false, |_, _, _| ControlFlow::Continue(()))
             .map(|(_, report)| report.profile)

@@ -129,15 +129,17 @@ impl FreshRenders {
     }
 
     /// A crop of object `object` placed at random in the frame (from `rng`), with its label in
-    /// the virtual camera and the visible points of its render.
+    /// the virtual camera and the visible points of its render. With realism, `plain` (when
+    /// given) replaces the realism's share of plain crops ([`Realism::plain`]).
     pub fn training_image<R: Rng + ?Sized>(
         &self,
         object: usize,
         size: u32,
+        plain: Option<f64>,
         rng: &mut R,
     ) -> TrainingImage {
         if let Some(assets) = &self.realism
-            && rng.random::<f64>() >= assets.realism.plain
+            && rng.random::<f64>() >= plain.unwrap_or(assets.realism.plain)
         {
             let crop = realistic_crop(assets, object, size, self.supersample, rng);
             return TrainingImage {

@@ -77,6 +77,10 @@ pub struct Recipe {
     /// pooling, every job before it; the recipe's is 3; [`crate::net::EncoderConfig::pool_grid`]).
     #[serde(default = "global_pooling", skip_serializing_if = "is_one")]
     pub pool_grid: usize,
+    /// Share of plain crops at the first step, annealed to the realism's (1/10) at the last: a
+    /// curriculum ([`TrainConfig::plain_start`]; an experiment, none in the recipe).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub plain_start: Option<f64>,
 }
 
 fn is_zero(n: &usize) -> bool {
@@ -114,6 +118,7 @@ pub const RECIPE: Recipe = Recipe {
     twin_share: 0.5,
     own_twins: 32,
     pool_grid: 3,
+    plain_start: None,
 };
 
 /// Share of the budget the experts of all objects get at most (the rest trains the network).
@@ -650,6 +655,7 @@ impl Recipe {
             checkpoint_every: 50,
             init: None,
             teacher: None,
+            plain_start: self.plain_start,
         }
     }
 }
@@ -829,7 +835,7 @@ fn realistic_crops(
 /// The progress line that opens the fit: its schedule, its probe's pace and its warm start.
 fn fit_line(plan: &BudgetPlan, recipe: &Recipe, config: &TrainConfig) -> String {
     format!(
-        "fit: {} steps of batch {} × K {} ({:.3} s per step in the probe), focused share {} → {}{}{}",
+        "fit: {} steps of batch {} × K {} ({:.3} s per step in the probe), focused share {} → {}{}{}{}",
         plan.fit_steps,
         recipe.batch,
         recipe.k,
@@ -852,6 +858,10 @@ fn fit_line(plan: &BudgetPlan, recipe: &Recipe, config: &TrainConfig) -> String 
         } else {
             String::new()
         },
+        recipe.plain_start.map_or(String::new(), |p| format!(
+            ", plain crops {p} → {}",
+            Realism::TRAIN.plain
+        )),
         config
             .init
             .as_ref()

@@ -140,11 +140,13 @@ fn sample_image(
     (mats, targets)
 }
 
-/// The images of one step: `batch` draws from the fixed set, or (with [`TrainingSet::fresh`])
-/// `batch` new renders of random objects at Haar-random rotations, all from `rng`.
+/// The images of `step` of `steps`: `batch` draws from the fixed set, or (with
+/// [`TrainingSet::fresh`]) `batch` new renders of random objects at Haar-random rotations, all
+/// from `rng`; realistic ones with the step's share of plain crops ([`TrainConfig::plain_share`]).
 fn step_images(
     config: &TrainConfig,
     set: &TrainingSet,
+    (step, steps): (usize, usize),
     rng: &mut ChaCha8Rng,
 ) -> Vec<TrainingImage> {
     match &set.fresh {
@@ -152,6 +154,11 @@ fn step_images(
             .map(|_| set.images[rng.random_range(0..set.images.len())].clone())
             .collect(),
         Some(fresh) => {
+            let plain = fresh.realism.as_ref().and_then(|assets| {
+                config
+                    .plain_start
+                    .map(|_| config.plain_share(step, steps, assets.realism.plain))
+            });
             // One seed per image drawn in order, then rendered in parallel: deterministic.
             let draws: Vec<(usize, u64)> = (0..config.batch)
                 .map(|_| {
@@ -165,6 +172,7 @@ fn step_images(
                     fresh.training_image(
                         object,
                         config.network.image_size,
+                        plain,
                         &mut ChaCha8Rng::seed_from_u64(seed),
                     )
                 })
@@ -190,6 +198,7 @@ fn mean_log_targets(
             ..config.clone()
         },
         set,
+        (0, config.steps),
         &mut rng,
     ) {
         let at_start = (0, config.steps);
@@ -580,7 +589,7 @@ impl Run<'_> {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let mut profile = StepProfile::default();
         let started = Instant::now();
-        let images = step_images(config, set, &mut rng);
+        let images = step_images(config, set, (step, steps), &mut rng);
         profile.data += started.elapsed().as_secs_f64();
         let mut rotations = Vec::with_capacity(images.len());
         let mut log_sdf = Vec::with_capacity(images.len() * config.k);

@@ -30,6 +30,11 @@ pub(crate) struct FitArgs {
     /// detector-like boxes and a camera model (src/data/realism.rs, its training split).
     #[arg(long, requires = "fresh")]
     realistic: bool,
+    /// With --realistic: the share of plain crops (flat grey on black, the exact box) at the
+    /// first step, annealed linearly to the realism's own 1/10 at the last (a curriculum, for
+    /// experiments; without it 1/10 throughout).
+    #[arg(long, requires = "realistic", value_parser = crate::new::parse_share)]
+    plain_start: Option<f64>,
     /// Supersampling per axis of fresh renders (anti-aliasing).
     #[arg(long, default_value_t = 4)]
     supersample: u32,
@@ -215,6 +220,7 @@ impl FitArgs {
                         .with_context(|| format!("--teacher {}", dir.display()))
                 })
                 .transpose()?,
+            plain_start: self.plain_start,
         })
     }
 

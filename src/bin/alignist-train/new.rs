@@ -87,10 +87,15 @@ pub(crate) struct NewArgs {
     /// none with --twin-share 0; 0 for none).
     #[arg(long, value_parser = clap::value_parser!(u32).range(0..=4096))]
     own_twins: Option<u32>,
+    /// The share of plain crops (flat grey on black, the exact box) at the fit's first step,
+    /// annealed linearly to the realistic renders' own 1/10 at its last: a curriculum, the part's
+    /// shape on plain renders first (for experiments; the recipe has none: 1/10 throughout).
+    #[arg(long, value_parser = parse_share)]
+    plain_start: Option<f64>,
 }
 
-/// A share in [0, 1].
-fn parse_share(s: &str) -> Result<f64, String> {
+/// A share in [0, 1] (`new --twin-share`, `--plain-start`; `fit --plain-start`).
+pub(crate) fn parse_share(s: &str) -> Result<f64, String> {
     match s.trim().parse::<f64>() {
         Ok(x) if (0.0..=1.0).contains(&x) => Ok(x),
         _ => Err(format!("'{s}' is not a share in [0, 1] (e.g. 0.25)")),
@@ -181,6 +186,7 @@ pub(crate) fn new_cmd(args: &NewArgs) -> Result<()> {
             lr: args.lr,
             twin_share: args.twin_share,
             own_twins,
+            plain_start: args.plain_start,
             ..RECIPE
         },
         command: std::env::args().collect::<Vec<_>>().join(" "),
