@@ -1,5 +1,12 @@
 //! The learning-rate schedule every trainer of the project uses (the distribution network, the
-//! SDF and the feature experts): a linear warm-up to the peak, then a cosine decay to a floor.
+//! SDF and the feature experts): a linear warm-up to the peak, then a cosine decay to a floor;
+//! and the linear anneal of a training share (the focused rotations, the plain crops).
+
+/// `start` at step 0, `end` at the last step `steps − 1` (and after), linear between.
+pub fn linear_anneal(start: f64, end: f64, step: usize, steps: usize) -> f64 {
+    let t = step as f64 / steps.saturating_sub(1).max(1) as f64;
+    start + (end - start) * t.min(1.0)
+}
 
 /// Linear warm-up over `warmup` steps, then cosine decay from `peak` to `floor × peak` at `steps`.
 #[derive(Debug, Clone, Copy, PartialEq)]

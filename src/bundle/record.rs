@@ -282,11 +282,7 @@ impl TrainConfig {
     pub fn plain_share(&self, step: usize, steps: usize, end: f64) -> f64 {
         match self.plain_start {
             None => end,
-            Some(start) => {
-                // As the focused share is annealed ([`SamplingStrategy::at_step`]).
-                let t = step as f64 / steps.saturating_sub(1).max(1) as f64;
-                start + (end - start) * t.min(1.0)
-            }
+            Some(start) => crate::schedule::linear_anneal(start, end, step, steps),
         }
     }
 }
@@ -484,8 +480,7 @@ impl SamplingStrategy {
                 twin_share,
                 own_twins,
             } => {
-                let t = step as f64 / steps.saturating_sub(1).max(1) as f64;
-                let now = focused as f64 + (end as f64 - focused as f64) * t.min(1.0);
+                let now = crate::schedule::linear_anneal(focused as f64, end as f64, step, steps);
                 SamplingStrategy::ModeFocused {
                     focused: now.round() as usize,
                     temperature,

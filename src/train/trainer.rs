@@ -154,11 +154,10 @@ fn step_images(
             .map(|_| set.images[rng.random_range(0..set.images.len())].clone())
             .collect(),
         Some(fresh) => {
-            let plain = fresh.realism.as_ref().and_then(|assets| {
-                config
-                    .plain_start
-                    .map(|_| config.plain_share(step, steps, assets.realism.plain))
-            });
+            let plain = fresh
+                .realism
+                .as_ref()
+                .map(|assets| config.plain_share(step, steps, assets.realism.plain));
             // One seed per image drawn in order, then rendered in parallel: deterministic.
             let draws: Vec<(usize, u64)> = (0..config.batch)
                 .map(|_| {
@@ -192,16 +191,16 @@ fn mean_log_targets(
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed ^ 0xB1A5);
     let (mut sdf, mut se, mut count) = (0.0f64, 0.0f64, 0usize);
     let mut profile = StepProfile::default();
+    let at_start = (0, config.steps);
     for im in step_images(
         &TrainConfig {
             batch: n,
             ..config.clone()
         },
         set,
-        (0, config.steps),
+        at_start,
         &mut rng,
     ) {
-        let at_start = (0, config.steps);
         // The experts' targets, also where a teacher gives the steps' (a distilled head).
         let experts_only = TrainConfig {
             teacher: None,
