@@ -43,12 +43,12 @@ fn stream(seed: u64, n: usize) -> Vec<f32> {
 /// Two encoders of `layout`, pooled over a `grid × grid` grid, with the same weights and
 /// statistics, each with its own running state (a copy through the record: two seeded inits do
 /// not draw the same weights). A `tiny_deep` one is a `tiny` one deepened, its added blocks at
-/// their identity start.
+/// their identity start; a `tiny_wide` one is a `tiny` one grown, its added channels unread.
 fn encoders(device: &Device, seed: u64, layout: ResNetLayout, grid: usize) -> (Encoder, Encoder) {
     device.seed(seed);
     let tiny = EncoderConfig::new(ResNetLayout::Tiny).init(device);
     let reference = tiny
-        .deepened(ResNetLayout::Tiny, layout, device)
+        .grown(ResNetLayout::Tiny, layout, device)
         .unwrap()
         .with_pool_grid(grid);
     let copy = EncoderConfig::new(layout)
@@ -66,6 +66,8 @@ fn the_hand_written_encoder_trains_as_burns_autodiff() {
     }
     // Blocks at their identity start: zero scale and shift, gradients through them all the same.
     check(SIZE, ResNetLayout::TinyDeep, 1);
+    // Added channels: weights from them into the old channels zero, 24 channels a stem.
+    check(SIZE, ResNetLayout::TinyWide, 1);
 }
 
 #[test]

@@ -151,7 +151,7 @@ fn render_experts_fit_eval_and_load_a_bundle() {
     resume_and_stop_at_finish_a_run(&p);
     assert_eq!(p.eval_overall("2")["images"], 2);
     fresh_renders_fit_with_their_loss_and_sampling(&p);
-    a_warm_start_may_change_the_crop_side_and_deepen_the_encoder(&p);
+    a_warm_start_may_change_the_crop_side_and_grow_the_encoder(&p);
     a_narrower_head_is_distilled_from_a_bundle(&p);
     the_bundle_read_back_scores_as_fit_held_it(&p, &eval);
     bad_arguments_are_refused_naming_them(&p);
@@ -382,7 +382,7 @@ fn a_report_is_compared_image_by_image(report: &Path) {
 /// `--init` from the 32 px bundle into a 48 px run: the encoder pools globally, so its weights
 /// carry over, and the manifest records the side they were trained at. Another encoding is
 /// refused, naming the bundle.
-fn a_warm_start_may_change_the_crop_side_and_deepen_the_encoder(p: &Pipeline) {
+fn a_warm_start_may_change_the_crop_side_and_grow_the_encoder(p: &Pipeline) {
     let (bundle, dir) = (&p.bundle, &p.dir);
     let warm = dir.path().join("warm-48");
     let fit = |encoding: &str| {
@@ -463,10 +463,29 @@ fn a_warm_start_may_change_the_crop_side_and_deepen_the_encoder(p: &Pipeline) {
     );
     let init = manifest.provenance.train.init.unwrap();
     assert_eq!(init.layout, Some(alignist::net::ResNetLayout::Tiny));
+    // Wider too: the added channels start unread, the head reads their features once trained.
+    let wide = dir.path().join("warm-wide");
+    let args = [
+        "--init",
+        s(bundle),
+        "--layout",
+        "tiny-wide",
+        "--eval-images",
+        "0",
+    ];
+    let out = p.fresh_fit(&wide, &args);
+    assert!(out.status.success(), "{out:?}");
+    let manifest = ModelBundle::load(&wide).unwrap().manifest;
+    assert_eq!(
+        manifest.network.layout,
+        alignist::net::ResNetLayout::TinyWide
+    );
+    let init = manifest.provenance.train.init.unwrap();
+    assert_eq!(init.layout, Some(alignist::net::ResNetLayout::Tiny));
     let refused = deepen("resnet18");
     assert!(!refused.status.success());
     let err = String::from_utf8_lossy(&refused.stderr);
-    assert!(err.contains("deepens it"), "{err}");
+    assert!(err.contains("grows it"), "{err}");
 }
 
 /// `fit --teacher`: a head of its own width on the teacher's encoder, the teacher on record; a

@@ -129,34 +129,83 @@ fn encoder_and_head_give_one_score_per_image_and_rotation() {
 }
 
 #[test]
-fn a_deepened_encoder_computes_the_same_features_with_more_blocks() {
+fn a_grown_encoder_computes_the_same_features_with_more_blocks_and_channels() {
     use burn::module::Module;
     let d = alignist::backend::device_for(alignist::backend::Workload::Conv);
     let tiny = EncoderConfig::new(ResNetLayout::Tiny).init(&d);
     let images: Tensor<4> = Tensor::random([3, 3, 24, 24], Distribution::Default, &d);
     let values = |t: Tensor<2>| t.into_data().try_to_vec::<f32>().unwrap();
     let before = values(tiny.clone().valid().forward(images.clone()));
+    let close = |a: &[f32], b: &[f32]| {
+        for (x, y) in a.iter().zip(b) {
+            assert!((x - y).abs() <= 1e-5 * x.abs().max(1.0), "{x} != {y}");
+        }
+    };
     let deep = tiny
-        .deepened(ResNetLayout::Tiny, ResNetLayout::TinyDeep, &d)
-        .expect("tiny_deep deepens tiny");
-    let fresh = EncoderConfig::new(ResNetLayout::TinyDeep).init(&d);
-    assert_eq!(deep.num_params(), fresh.num_params());
-    assert!(deep.num_params() > EncoderConfig::new(ResNetLayout::Tiny).init(&d).num_params());
-    let after = values(deep.clone().valid().forward(images));
+        .clone()
+        .grown(ResNetLayout::Tiny, ResNetLayout::TinyDeep, &d)
+        .expect("tiny_deep grows tiny");
+    let fresh = |layout| EncoderConfig::new(layout).init(&d).num_params();
+    assert_eq!(deep.num_params(), fresh(ResNetLayout::TinyDeep));
+    assert!(deep.num_params() > fresh(ResNetLayout::Tiny));
+    let after = values(deep.clone().valid().forward(images.clone()));
     assert_eq!(before.len(), after.len());
-    for (a, b) in before.iter().zip(&after) {
-        assert!((a - b).abs() <= 1e-6 * a.abs().max(1.0), "{a} != {b}");
+    close(&before, &after);
+    // Wider: the old 128 features first and unchanged, 64 more after them.
+    for (from, encoder) in [(ResNetLayout::Tiny, tiny), (ResNetLayout::TinyDeep, deep)] {
+        let wide = encoder
+            .grown(from, ResNetLayout::TinyWide, &d)
+            .expect("tiny_wide grows tiny and tiny_deep");
+        assert_eq!(wide.num_params(), fresh(ResNetLayout::TinyWide));
+        let after = values(wide.valid().forward(images.clone()));
+        assert_eq!(after.len(), 3 * 192);
+        for (image, features) in after.chunks(192).enumerate() {
+            close(&before[image * 128..(image + 1) * 128], &features[..128]);
+            // The added channels are not dead: their own weights are fresh.
+            assert!(features[128..].iter().any(|&f| f > 0.0), "{from:?}");
+        }
     }
-    // Only the same stem, widths and block kind with no fewer blocks per stage deepen.
-    assert!(ResNetLayout::TinyDeep.deepens(ResNetLayout::Tiny));
-    assert!(ResNetLayout::Tiny.deepens(ResNetLayout::Tiny));
-    assert!(!ResNetLayout::Tiny.deepens(ResNetLayout::TinyDeep));
-    assert!(!ResNetLayout::Resnet18.deepens(ResNetLayout::Tiny));
-    assert!(!ResNetLayout::Resnet50.deepens(ResNetLayout::Resnet18));
+    // Only the same stem and block kind with no fewer channels or blocks per stage grow.
+    assert!(ResNetLayout::TinyDeep.grows(ResNetLayout::Tiny));
+    assert!(ResNetLayout::TinyWide.grows(ResNetLayout::TinyDeep));
+    assert!(ResNetLayout::Tiny.grows(ResNetLayout::Tiny));
+    assert!(!ResNetLayout::Tiny.grows(ResNetLayout::TinyDeep));
+    assert!(!ResNetLayout::TinyDeep.grows(ResNetLayout::TinyWide));
+    assert!(!ResNetLayout::Resnet18.grows(ResNetLayout::Tiny));
+    assert!(!ResNetLayout::Resnet50.grows(ResNetLayout::Resnet18));
+    let tiny = EncoderConfig::new(ResNetLayout::Tiny).init(&d);
     assert!(
-        deep.deepened(ResNetLayout::TinyDeep, ResNetLayout::Resnet18, &d)
+        tiny.grown(ResNetLayout::Tiny, ResNetLayout::Resnet18, &d)
             .is_none()
     );
+}
+
+/// A head widened for a grown encoder's added features scores as before while they are zero
+/// (they are not yet read), and reads them once the added rows are trained.
+#[test]
+fn a_head_for_more_features_scores_the_same_on_the_old_ones() {
+    let d = device();
+    let enc = RotationEncoding::Cube;
+    let head = HeadConfig::new(16, enc.dim()).init(&d);
+    let grid = alignist::so3::GridLevel::new(0).unwrap().matrices_f32();
+    let shared = head
+        .project_rotations(enc.encode_tensor(&grid, &d))
+        .unsqueeze::<3>();
+    let features: Tensor<2> = Tensor::random([2, 16], Distribution::Default, &d);
+    let scores = |h: &alignist::net::DualHead, f: Tensor<2>| -> Vec<f32> {
+        h.forward_projected(f, shared.clone())
+            .combined()
+            .into_data()
+            .try_to_vec::<f32>()
+            .unwrap()
+    };
+    let before = scores(&head, features.clone());
+    let wide = head.clone().with_image_features(24);
+    let more: Tensor<2> = Tensor::random([2, 8], Distribution::Default, &d);
+    let after = scores(&wide, Tensor::cat(vec![features.clone(), more], 1));
+    assert_eq!(before, after);
+    // Fewer features than it reads: unchanged.
+    assert_eq!(scores(&head.with_image_features(8), features), before);
 }
 
 #[test]

@@ -338,8 +338,8 @@ pub struct InitWeights {
     /// globally, so its weights carry over to another size).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub image_size: Option<u32>,
-    /// The encoder layout the weights were trained in, when this run's deepens it (its added
-    /// blocks start as identities).
+    /// The encoder layout the weights were trained in, when this run's grows it (its added
+    /// blocks start as identities, its added channels unread).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub layout: Option<crate::net::ResNetLayout>,
     /// The encoder's pooling grid the weights were trained with (1, global pooling), when this

@@ -4,7 +4,9 @@
 //!
 //! Layouts: `tiny` (the CPU default: basic blocks [1, 1, 1, 1], widths 16…128, a 3×3 stem for
 //! 64×64 crops), `tiny_deep` (the same with two blocks per stage: a trained `tiny` encoder
-//! warm-starts it unchanged, [`Encoder::deepened`]), `resnet18` (basic [2, 2, 2, 2], 64…512) and
+//! warm-starts it unchanged, [`Encoder::grown`]), `tiny_wide` (`tiny_deep` with half as many
+//! channels again, 24…192, which a trained `tiny` or `tiny_deep` encoder warm-starts the same
+//! way), `resnet18` (basic [2, 2, 2, 2], 64…512) and
 //! `resnet50` (bottleneck [3, 4, 6, 3], 64…512 × 4 = 2048 features) with the 7×7/2 stem and
 //! max-pool for 224×224 crops.
 
@@ -26,6 +28,10 @@ pub enum ResNetLayout {
     /// Basic blocks [2, 2, 2, 2], widths 16, 32, 64, 128, 3×3 stem: `tiny` with a second block
     /// per stage (a `tiny` network warm-starts it, the added blocks starting as identities).
     TinyDeep,
+    /// Basic blocks [2, 2, 2, 2], widths 24, 48, 96, 192, 3×3 stem: `tiny_deep` with half as
+    /// many channels again (a `tiny` or `tiny_deep` network warm-starts it, the added channels
+    /// read by nothing at the start).
+    TinyWide,
     /// ResNet-18: basic blocks [2, 2, 2, 2], widths 64 … 512.
     Resnet18,
     /// ResNet-50: bottleneck blocks [3, 4, 6, 3], widths 64 … 512, expansion 4.
@@ -36,7 +42,7 @@ impl ResNetLayout {
     fn blocks(&self) -> [usize; 4] {
         match self {
             ResNetLayout::Tiny => [1, 1, 1, 1],
-            ResNetLayout::TinyDeep => [2, 2, 2, 2],
+            ResNetLayout::TinyDeep | ResNetLayout::TinyWide => [2, 2, 2, 2],
             ResNetLayout::Resnet18 => [2, 2, 2, 2],
             ResNetLayout::Resnet50 => [3, 4, 6, 3],
         }
@@ -45,6 +51,7 @@ impl ResNetLayout {
     fn base_width(&self) -> usize {
         match self {
             ResNetLayout::Tiny | ResNetLayout::TinyDeep => 16,
+            ResNetLayout::TinyWide => 24,
             _ => 64,
         }
     }
@@ -52,15 +59,18 @@ impl ResNetLayout {
     /// A 3×3 stride-1 stem without a max-pool (the small crops of the CPU layouts), else the
     /// 7×7/2 stem and a max-pool of ImageNet ResNets.
     fn small_stem(&self) -> bool {
-        matches!(self, ResNetLayout::Tiny | ResNetLayout::TinyDeep)
+        matches!(
+            self,
+            ResNetLayout::Tiny | ResNetLayout::TinyDeep | ResNetLayout::TinyWide
+        )
     }
 
-    /// Whether an encoder of layout `from` becomes one of this layout by adding blocks only (the
-    /// same stem, widths and block kind, at least as many blocks per stage): its weights then
-    /// warm-start this layout ([`Encoder::deepened`]).
-    pub fn deepens(&self, from: ResNetLayout) -> bool {
+    /// Whether an encoder of layout `from` becomes one of this layout by adding blocks and
+    /// channels only (the same stem and block kind, at least as many channels, at least as many
+    /// blocks per stage): its weights then warm-start this layout ([`Encoder::grown`]).
+    pub fn grows(&self, from: ResNetLayout) -> bool {
         self.small_stem() == from.small_stem()
-            && self.base_width() == from.base_width()
+            && self.base_width() >= from.base_width()
             && self.bottleneck() == from.bottleneck()
             && self
                 .blocks()
@@ -179,6 +189,64 @@ impl ConvBn {
         (&self.conv, &self.bn)
     }
 
+    /// This pair's weights in `into`, a pair of the same kernel with at least as many channels
+    /// in and out, so that its own output channels compute what they did: their weights from
+    /// the old inputs copied, from the added inputs zero; the added output channels keep
+    /// `into`'s fresh weights and BatchNorm (scale 1, shift 0, running mean 0 and variance 1).
+    /// The added channels are read by nothing that was there, so the encoder's old features are
+    /// unchanged, and the gradient reaches the zero weights through the added channels' own
+    /// (non-zero) activations. `None` when `into` is smaller or of another kernel.
+    fn embedded_in(self, into: ConvBn, device: &Device) -> Option<Self> {
+        use super::dense::read;
+        use burn::module::RunningState;
+        use burn::tensor::TensorData;
+        let [o0, i0, k0, k0b] = self.conv.weight.dims();
+        let [o1, i1, k1, k1b] = into.conv.weight.dims();
+        if o1 < o0 || i1 < i0 || (k0, k0b) != (k1, k1b) {
+            return None;
+        }
+        let kk = k0 * k0b;
+        let old = read(self.conv.weight.val());
+        let mut weight = read(into.conv.weight.val());
+        for o in 0..o0 {
+            for i in 0..i1 {
+                let to = &mut weight[(o * i1 + i) * kk..][..kk];
+                if i < i0 {
+                    to.copy_from_slice(&old[(o * i0 + i) * kk..][..kk]);
+                } else {
+                    to.fill(0.0);
+                }
+            }
+        }
+        let joined = |old: Tensor<1>, fresh: Tensor<1>| {
+            let mut v = read(fresh);
+            let old = read(old);
+            v[..old.len()].copy_from_slice(&old);
+            Tensor::<1>::from_data(TensorData::new(v, [o1]), device)
+        };
+        let bn = BatchNorm {
+            gamma: Param::from_tensor(joined(self.bn.gamma.val(), into.bn.gamma.val())),
+            beta: Param::from_tensor(joined(self.bn.beta.val(), into.bn.beta.val())),
+            running_mean: RunningState::new(joined(
+                self.bn.running_mean.value_sync(),
+                into.bn.running_mean.value_sync(),
+            )),
+            running_var: RunningState::new(joined(
+                self.bn.running_var.value_sync(),
+                into.bn.running_var.value_sync(),
+            )),
+            ..self.bn
+        };
+        let conv = Conv2d {
+            weight: Param::from_tensor(Tensor::<4>::from_data(
+                TensorData::new(weight, [o1, i1, k0, k0b]),
+                device,
+            )),
+            ..self.conv
+        };
+        Some(ConvBn { conv, bn })
+    }
+
     fn sync_running_stats(&self) {
         let _ = self.bn.running_mean.value_sync();
         let _ = self.bn.running_var.value_sync();
@@ -222,18 +290,38 @@ impl Block {
         Block { layers, shortcut }
     }
 
-    /// A block of `channels` in and out (stride 1, no projection) that starts as the identity
-    /// on the non-negative activations between blocks: its last BatchNorm's scale and shift are
-    /// zero, so `relu(0 + x) = x` (the zero-initialised residual of Goyal et al. 2017), while
-    /// the scale's gradient `Σ dy·x̂` is not zero and lets it learn.
-    fn identity(channels: usize, bottleneck: bool, device: &Device) -> Self {
-        let width = if bottleneck { channels / 4 } else { channels };
-        let mut block = Block::new(channels, width, 1, bottleneck, device);
-        if let Some(last) = block.layers.last_mut() {
+    /// This block (of as many channels in as out, stride 1, no projection) as one that starts
+    /// as the identity on the non-negative activations between blocks: its last BatchNorm's
+    /// scale and shift are zero, so `relu(0 + x) = x` (the zero-initialised residual of Goyal
+    /// et al. 2017), while the scale's gradient `Σ dy·x̂` is not zero and lets it learn.
+    fn into_identity(mut self, device: &Device) -> Self {
+        if let Some(last) = self.layers.last_mut() {
+            let [channels] = last.bn.gamma.dims();
             last.bn.gamma = Param::from_tensor(Tensor::zeros([channels], device));
             last.bn.beta = Param::from_tensor(Tensor::zeros([channels], device));
         }
-        block
+        self
+    }
+
+    /// This block's weights in `into`, a block of the same kind and stride with at least as many
+    /// channels ([`ConvBn::embedded_in`] for each unit); `None` when their units do not match.
+    fn embedded_in(self, into: Block, device: &Device) -> Option<Self> {
+        if self.layers.len() != into.layers.len()
+            || self.shortcut.is_some() != into.shortcut.is_some()
+        {
+            return None;
+        }
+        let layers = self
+            .layers
+            .into_iter()
+            .zip(into.layers)
+            .map(|(old, new)| old.embedded_in(new, device))
+            .collect::<Option<Vec<_>>>()?;
+        let shortcut = match (self.shortcut, into.shortcut) {
+            (Some(old), Some(new)) => Some(old.embedded_in(new, device)?),
+            _ => None,
+        };
+        Some(Block { layers, shortcut })
     }
 
     /// The main path's conv + BatchNorm pairs and the projection shortcut.
@@ -323,23 +411,35 @@ impl Encoder {
         }
     }
 
-    /// This encoder, of layout `from`, as one of layout `to` that computes the same features:
-    /// each stage's blocks followed by the blocks `to` adds there, each starting as the identity.
-    /// `None` when `to` does not deepen `from` ([`ResNetLayout::deepens`]).
-    pub fn deepened(self, from: ResNetLayout, to: ResNetLayout, device: &Device) -> Option<Self> {
-        if !to.deepens(from) {
+    /// This encoder, of layout `from`, as one of layout `to` that computes the same features
+    /// (followed by zeros where `to` has more channels): each stage's blocks with their weights
+    /// embedded in `to`'s wider ones ([`ConvBn::embedded_in`]), then the blocks `to` adds there,
+    /// each starting as the identity. The added weights are drawn as a fresh `to` encoder's.
+    /// `None` when `to` does not grow `from` ([`ResNetLayout::grows`]).
+    pub fn grown(self, from: ResNetLayout, to: ResNetLayout, device: &Device) -> Option<Self> {
+        if !to.grows(from) {
             return None;
         }
+        let fresh = EncoderConfig::new(to)
+            .with_pool_grid(self.pool_grid())
+            .init(device);
         let mut source = self.blocks.into_iter();
+        let mut target = fresh.blocks.into_iter();
         let mut blocks = Vec::new();
-        for (stage, (&have, &want)) in from.blocks().iter().zip(&to.blocks()).enumerate() {
-            blocks.extend(source.by_ref().take(have));
-            let width = from.base_width() << stage;
-            let channels = if from.bottleneck() { width * 4 } else { width };
-            blocks
-                .extend((have..want).map(|_| Block::identity(channels, from.bottleneck(), device)));
+        for (&have, &want) in from.blocks().iter().zip(&to.blocks()) {
+            for (i, block) in target.by_ref().take(want).enumerate() {
+                blocks.push(if i < have {
+                    source.next()?.embedded_in(block, device)?
+                } else {
+                    block.into_identity(device)
+                });
+            }
         }
-        Some(Encoder { blocks, ..self })
+        Some(Encoder {
+            stem: self.stem.embedded_in(fresh.stem, device)?,
+            blocks,
+            ..self
+        })
     }
 
     /// Side of the grid of cells the last feature map is averaged over (1: global pooling).

@@ -201,6 +201,24 @@ impl DualHead {
         self
     }
 
+    /// The head of an encoder with `features` features where this one's had fewer, the added
+    /// ones last (a grown encoder's added channels: [`super::Encoder::grown`]), computing the
+    /// same scores: zero rows appended to the image projection, which training then fills.
+    /// Unchanged when `features` is not more than it reads.
+    pub fn with_image_features(mut self, features: usize) -> Self {
+        self.image_proj.weight = self.image_proj.weight.map(|w| {
+            let is_tracked = w.is_require_grad();
+            let [d, h] = w.dims();
+            if features <= d {
+                return w;
+            }
+            let zeros = Tensor::zeros([features - d, h], &w.device());
+            let w = Tensor::cat(vec![w.detach(), zeros], 0);
+            if is_tracked { w.require_grad() } else { w }
+        });
+        self
+    }
+
     /// The rotation half of the first layer, `W_R · enc(R) + b_R`: `[K, E] → [K, hidden]`. It
     /// depends only on the rotations, so inference precomputes it once per grid level.
     pub fn project_rotations(&self, encodings: Tensor<2>) -> Tensor<2> {

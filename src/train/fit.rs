@@ -277,8 +277,8 @@ fn dataset_data(inputs: &FitInputs, data: &[PathBuf]) -> Result<FitData, FitErro
 ///
 /// The crop side may differ: every layout ends in average pooling, so the encoder's weights are
 /// the same tensors at any input size (a 32 px network warm-starts a 64 px one). So may the
-/// layout, where this run's deepens theirs (`tiny` → `tiny_deep`: the added blocks start as
-/// identities), and the pooling, from global to a grid of cells (the head's image projection
+/// layout, where this run's grows theirs (`tiny` → `tiny_deep`: the added blocks start as
+/// identities; → `tiny_wide`: the added channels start unread), and the pooling, from global to a grid of cells (the head's image projection
 /// spread over the cells: the same scores at the start). The side, layout and pooling the weights
 /// were trained with are recorded beside them.
 pub fn init_weights(dir: &Path, network: &NetworkConfig) -> Result<InitWeights, FitError> {
@@ -286,7 +286,7 @@ pub fn init_weights(dir: &Path, network: &NetworkConfig) -> Result<InitWeights, 
     let theirs = &manifest.network;
     let same_tensors = NetworkConfig {
         image_size: network.image_size,
-        layout: if network.layout.deepens(theirs.layout) {
+        layout: if network.layout.grows(theirs.layout) {
             network.layout
         } else {
             theirs.layout
@@ -302,7 +302,7 @@ pub fn init_weights(dir: &Path, network: &NetworkConfig) -> Result<InitWeights, 
         let json = |n: &NetworkConfig| serde_json::to_string(n).unwrap_or_default();
         return Err(FitError::Invalid(format!(
             "{path}: its network ({}) is not the one asked for ({}); give the same encoding, \
-             hidden width and layers, its layout or one that deepens it, and its pooling grid \
+             hidden width and layers, its layout or one that grows it, and its pooling grid \
              (or any grid from global pooling; the image size may differ)",
             json(theirs),
             json(network)

@@ -232,7 +232,7 @@ pub struct NewModel {
     /// Seed of the experts and the training data.
     pub seed: u64,
     /// A bundle whose network starts the fit (a warm start; it must have the recipe's encoding
-    /// and head, and its layout or one that deepens it), recorded with its checksum in the
+    /// and head, and its layout or one that it grows), recorded with its checksum in the
     /// manifest.
     pub init: Option<PathBuf>,
     /// The schedule: [`RECIPE`] unless an experiment changes it.

@@ -427,9 +427,10 @@ fn starting_point(
         let mut loaded = crate::bundle::load_weights(start, Path::new(&init.path), &init.file)
             .map_err(|e| fail(format!("the weights to start from: {e}")))?;
         if from != to {
-            // The added blocks' convolutions are drawn from the run's seed, as a fresh network's.
+            // The added blocks' and channels' convolutions are drawn from the run's seed, as a
+            // fresh network's.
             loaded.encoder = crate::backend::seeded_init(device, config.seed, || {
-                loaded.encoder.deepened(from, to, device)
+                loaded.encoder.grown(from, to, device)
             })
             .ok_or_else(|| fail(format!("a {from:?} encoder does not warm-start {to:?}")))?;
         }
@@ -442,6 +443,10 @@ fn starting_point(
             loaded.encoder = loaded.encoder.with_pool_grid(grid);
             loaded.head = loaded.head.with_image_cells(grid * grid);
         }
+        // A wider encoder's added features (channel-major, after the old ones) start unread.
+        loaded.head = loaded
+            .head
+            .with_image_features(config.network.encoder().feature_dim());
         // A distilled head's encoder is its teacher's, whatever the warm start held.
         if let Some(encoder) = teacher_encoder {
             loaded.encoder = encoder;

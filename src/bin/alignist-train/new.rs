@@ -48,7 +48,7 @@ pub(crate) struct NewArgs {
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// Start the network from this bundle's weights (a warm start; it must have the recipe's
-    /// encoding and head, and the layout asked for or one it deepens; the crop size may differ),
+    /// encoding and head, and the layout asked for or one it grows; the crop size may differ),
     /// or `none` to start from random weights.
     /// The default, the shipped SYMSOL model (read from the working directory: run from the
     /// repository's root), has seen the most realistic crops; a warm start was measured to learn a
@@ -57,7 +57,8 @@ pub(crate) struct NewArgs {
     #[arg(long, default_value = DEFAULT_INIT, value_parser = parse_init)]
     init: InitArg,
     /// The image encoder's layout (for experiments; the recipe's is `tiny-deep`). A warm start must
-    /// have this layout or one this layout deepens (`tiny` for `tiny-deep`).
+    /// have this layout or one this layout grows (`tiny` for `tiny-deep`; `tiny` or `tiny-deep`
+    /// for `tiny-wide`).
     #[arg(long, value_enum, default_value_t = RECIPE.layout)]
     layout: ResNetLayout,
     /// Crop side in pixels (for experiments; the recipe's is 48). A warm start may have been
