@@ -441,7 +441,8 @@ fn a_warm_start_may_change_the_crop_side_and_grow_the_encoder(p: &Pipeline) {
         "{err}"
     );
 
-    // A layout with more blocks per stage starts from the tiny weights; another is refused.
+    // A layout with more blocks per stage starts from the tiny weights (here pooled over 2 × 2
+    // cells at once); another is refused.
     let deep = dir.path().join("warm-deep");
     let deepen = |layout: &str| {
         let args = [
@@ -449,6 +450,8 @@ fn a_warm_start_may_change_the_crop_side_and_grow_the_encoder(p: &Pipeline) {
             s(bundle),
             "--layout",
             layout,
+            "--pool-grid",
+            "2",
             "--eval-images",
             "0",
         ];
@@ -463,13 +466,17 @@ fn a_warm_start_may_change_the_crop_side_and_grow_the_encoder(p: &Pipeline) {
     );
     let init = manifest.provenance.train.init.unwrap();
     assert_eq!(init.layout, Some(alignist::net::ResNetLayout::Tiny));
-    // Wider too: the added channels start unread, the head reads their features once trained.
+    assert_eq!(init.pool_grid, Some(1));
+    // Wider too, from that deep network and its grid: the added channels start unread, the head
+    // reads their features once trained.
     let wide = dir.path().join("warm-wide");
     let args = [
         "--init",
-        s(bundle),
+        s(&deep),
         "--layout",
         "tiny-wide",
+        "--pool-grid",
+        "2",
         "--eval-images",
         "0",
     ];
@@ -481,7 +488,8 @@ fn a_warm_start_may_change_the_crop_side_and_grow_the_encoder(p: &Pipeline) {
         alignist::net::ResNetLayout::TinyWide
     );
     let init = manifest.provenance.train.init.unwrap();
-    assert_eq!(init.layout, Some(alignist::net::ResNetLayout::Tiny));
+    assert_eq!(init.layout, Some(alignist::net::ResNetLayout::TinyDeep));
+    assert_eq!(init.pool_grid, None);
     let refused = deepen("resnet18");
     assert!(!refused.status.success());
     let err = String::from_utf8_lossy(&refused.stderr);

@@ -213,7 +213,7 @@ impl DualHead {
                 return w;
             }
             let zeros = Tensor::zeros([features - d, h], &w.device());
-            let w = Tensor::cat(vec![w.detach(), zeros], 0);
+            let w = Tensor::cat(vec![w, zeros], 0).detach();
             if is_tracked { w.require_grad() } else { w }
         });
         self

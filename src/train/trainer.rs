@@ -409,7 +409,9 @@ fn starting_point(
     if let Some(init) = &config.init {
         let to = config.network.layout;
         let from = init.layout.unwrap_or(to);
-        let (grid, their_grid) = (config.network.pooling(), init.pool_grid.unwrap_or(1));
+        // A pooling grid is recorded only where it differs from the run's.
+        let grid = config.network.pooling();
+        let their_grid = init.pool_grid.unwrap_or(grid);
         let fail = |message: String| TrainError::Checkpoint {
             path: init.path.clone(),
             message,
