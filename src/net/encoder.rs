@@ -411,10 +411,13 @@ impl Encoder {
         }
     }
 
-    /// This encoder, of layout `from`, as one of layout `to` that computes the same features
-    /// (followed by zeros where `to` has more channels): each stage's blocks with their weights
-    /// embedded in `to`'s wider ones ([`ConvBn::embedded_in`]), then the blocks `to` adds there,
-    /// each starting as the identity. The added weights are drawn as a fresh `to` encoder's.
+    /// This encoder, of layout `from`, as one of layout `to` that computes the same features,
+    /// followed by those of the channels `to` adds (which nothing reads yet, [`DualHead`]'s
+    /// `with_image_features`): each stage's blocks with their weights embedded in `to`'s wider
+    /// ones ([`ConvBn::embedded_in`]), then the blocks `to` adds there, each starting as the
+    /// identity. The added weights are drawn as a fresh `to` encoder's (under the caller's seed).
+    ///
+    /// [`DualHead`]: super::DualHead
     /// `None` when `to` does not grow `from` ([`ResNetLayout::grows`]).
     pub fn grown(self, from: ResNetLayout, to: ResNetLayout, device: &Device) -> Option<Self> {
         if !to.grows(from) {
