@@ -151,7 +151,8 @@ fn render_experts_fit_eval_and_load_a_bundle() {
     resume_and_stop_at_finish_a_run(&p);
     assert_eq!(p.eval_overall("2")["images"], 2);
     fresh_renders_fit_with_their_loss_and_sampling(&p);
-    a_warm_start_may_change_the_crop_side_and_grow_the_encoder(&p);
+    a_warm_start_may_change_the_crop_side(&p);
+    a_warm_start_may_grow_the_encoder(&p);
     a_narrower_head_is_distilled_from_a_bundle(&p);
     the_bundle_read_back_scores_as_fit_held_it(&p, &eval);
     bad_arguments_are_refused_naming_them(&p);
@@ -382,7 +383,7 @@ fn a_report_is_compared_image_by_image(report: &Path) {
 /// `--init` from the 32 px bundle into a 48 px run: the encoder pools globally, so its weights
 /// carry over, and the manifest records the side they were trained at. Another encoding is
 /// refused, naming the bundle.
-fn a_warm_start_may_change_the_crop_side_and_grow_the_encoder(p: &Pipeline) {
+fn a_warm_start_may_change_the_crop_side(p: &Pipeline) {
     let (bundle, dir) = (&p.bundle, &p.dir);
     let warm = dir.path().join("warm-48");
     let fit = |encoding: &str| {
@@ -440,9 +441,13 @@ fn a_warm_start_may_change_the_crop_side_and_grow_the_encoder(p: &Pipeline) {
             && err.contains("image size may differ"),
         "{err}"
     );
+}
 
-    // A layout with more blocks per stage starts from the tiny weights (here pooled over 2 × 2
-    // cells at once); another is refused.
+/// `--init` into a layout with more blocks per stage, then more channels: the manifest records
+/// the layout and grid grown from; a layout of another kind is refused.
+fn a_warm_start_may_grow_the_encoder(p: &Pipeline) {
+    let (bundle, dir) = (&p.bundle, &p.dir);
+    // More blocks per stage from the tiny weights (here pooled over 2 × 2 cells at once).
     let deep = dir.path().join("warm-deep");
     let deepen = |layout: &str| {
         let args = [
