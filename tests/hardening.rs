@@ -99,11 +99,18 @@ fn add_bad_bundles(models: &Path) -> Vec<(&'static str, &'static str)> {
     bad_bundle(models, "outside_experts", |m| {
         m["objects"][0]["experts"] = "/etc".into()
     });
+    // Weights of another network than the manifest describes: every head tensor is refused, in
+    // a few named lines, not a dump of each one.
+    bad_bundle(models, "wrong_width", |m| {
+        let hidden = m["network"]["hidden"].as_u64().unwrap();
+        m["network"]["hidden"] = (2 * hidden).into()
+    });
     vec![
         ("huge_layers", "network.layers"),
         ("huge_size", "network.image_size"),
         ("outside", "outside the bundle"),
         ("outside_experts", "objects[0].experts"),
+        ("wrong_width", "do not fit the manifest's `network`"),
     ]
 }
 
@@ -125,6 +132,7 @@ fn check_refusals(models: &Path, failed: &[ModelFailure], expected: &[(&str, &st
     assert_eq!(names, want, "{failed:?}");
     for (f, (_, field)) in failed.iter().zip(expected) {
         assert!(f.error.contains(field), "{}: {}", f.name, f.error);
+        assert!(f.error.len() < 800, "a refusal is a few lines: {}", f.error);
         // Paths are named inside the models directory, never as the server's own.
         assert!(f.error.starts_with(&format!("{}/", f.name)), "{}", f.error);
         assert!(!f.error.contains(models.to_str().unwrap()), "{}", f.error);

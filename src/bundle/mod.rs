@@ -152,14 +152,18 @@ pub fn save_weights<M: Module>(module: &M, path: &Path) -> Result<FileEntry, Bun
 }
 
 /// Loads safetensors weights into `module` (built from the manifest's configuration), after
-/// checking the file's checksum. Every tensor must be present with the right shape.
+/// checking the file's checksum. Every tensor must be present with the right shape; a file that
+/// does not fit is refused with a short account (how many tensors differ, the first few by name
+/// with both shapes), not the loader's dump of every one.
 pub fn load_weights<M: Module>(
     mut module: M,
     path: &Path,
     expected: &FileEntry,
 ) -> Result<M, BundleError> {
     verify_file(path, expected)?;
-    let mut store = SafetensorsStore::from_file(path);
+    let mut store = SafetensorsStore::from_file(path)
+        .validate(false)
+        .allow_partial(true);
     let result = module
         .load_from(&mut store)
         .map_err(|e| BundleError::Weights {
@@ -168,18 +172,39 @@ pub fn load_weights<M: Module>(
         })?;
     let mut problems = Vec::new();
     if !result.errors.is_empty() {
+        let each = result.errors.iter().map(|e| match e {
+            burn::store::ApplyError::ShapeMismatch {
+                path,
+                expected,
+                found,
+            } => format!(
+                "{path} is {:?} in the file, {:?} in the manifest's network",
+                found.as_slice(),
+                expected.as_slice()
+            ),
+            other => other.to_string(),
+        });
         problems.push(format!(
-            "{} tensors do not fit: {:?}",
+            "{} tensor(s) do not fit the manifest's `network` (its layout, hidden width, layers or \
+             pooling grid?): {}",
             result.errors.len(),
-            result.errors
+            first_few(each)
         ));
     }
     if !result.missing.is_empty() {
-        let names: Vec<&str> = result.missing.iter().map(|(n, _)| n.as_str()).collect();
-        problems.push(format!("missing tensors {names:?}"));
+        let names = result.missing.iter().map(|(n, _)| n.clone());
+        problems.push(format!(
+            "{} tensor(s) missing: {}",
+            result.missing.len(),
+            first_few(names)
+        ));
     }
     if !result.unused.is_empty() {
-        problems.push(format!("unexpected tensors {:?}", result.unused));
+        problems.push(format!(
+            "{} unexpected tensor(s): {}",
+            result.unused.len(),
+            first_few(result.unused.iter().cloned())
+        ));
     }
     if !problems.is_empty() {
         return Err(BundleError::Weights {
@@ -188,6 +213,16 @@ pub fn load_weights<M: Module>(
         });
     }
     Ok(module)
+}
+
+/// The first three items, then how many more.
+fn first_few(items: impl Iterator<Item = String>) -> String {
+    let items: Vec<String> = items.collect();
+    let shown = items.iter().take(3).cloned().collect::<Vec<_>>().join(", ");
+    match items.len().saturating_sub(3) {
+        0 => shown,
+        more => format!("{shown} and {more} more"),
+    }
 }
 
 /// Reads and parses a JSON manifest; a parse error names the file, line and field.
