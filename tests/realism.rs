@@ -8,7 +8,7 @@ use alignist::cad::{
     render_scene,
 };
 use alignist::data::realism::{
-    Realism, SceneAssets, Split, background, jitter_box, random_lighting, random_material,
+    Neutral, Realism, SceneAssets, Split, background, jitter_box, random_lighting, random_material,
     realistic_crop,
 };
 use nalgebra::{Rotation3, Vector3};
@@ -217,6 +217,62 @@ fn realistic_crops_are_deterministic_per_seed_and_vary_between_seeds() {
             .filter(|p| p.iter().any(|&v| v > 12))
             .count();
         assert!(lit > 32 * 32 / 2, "seed {seed}: {lit} lit pixels");
+    }
+}
+
+#[test]
+fn a_factor_held_neutral_keeps_each_crops_pose_and_changes_only_that_factor() {
+    // A mesh of no colours of its own, as a user's scan (the shapes are bluish grey).
+    let mut cube = Shape::Cube.mesh();
+    cube.colors = None;
+    let meshes = vec![cube, Shape::Cone.mesh()];
+    let base = Realism {
+        clutter: 0.0,
+        ..Realism::HELD_OUT
+    };
+    let crop = |neutral, seed| {
+        let assets = SceneAssets::new(&meshes, Realism { neutral, ..base });
+        realistic_crop(&assets, 0, 32, 2, &mut ChaCha8Rng::seed_from_u64(seed))
+    };
+    let all = Neutral {
+        material: true,
+        lighting: true,
+        background: true,
+        camera: true,
+    };
+    let background = Neutral {
+        background: true,
+        ..Neutral::NONE
+    };
+    for seed in 0..12 {
+        let varied = crop(Neutral::NONE, seed);
+        let (plain, black) = (crop(all, seed), crop(background, seed));
+        // Same pose and the same pixels of the object in every variant.
+        for other in [&plain, &black] {
+            assert_eq!(other.r_virtual, varied.r_virtual, "seed {seed}");
+            assert_eq!(other.render.mask, varied.render.mask, "seed {seed}");
+        }
+        assert_ne!(plain.rgb, varied.rgb, "seed {seed}");
+        // Everything neutral: a grey object under white light on black, no noise.
+        let ss = plain.render.width as usize / 32;
+        let mut object = 0;
+        for (p, rgb) in plain.rgb.chunks(3).enumerate() {
+            let (x, y) = (p % 32, p / 32);
+            let covered = (0..ss * ss)
+                .filter(|q| {
+                    let (bx, by) = (x * ss + q % ss, y * ss + q / ss);
+                    plain.render.mask[by * plain.render.width as usize + bx]
+                })
+                .count();
+            assert!(rgb[0] == rgb[1] && rgb[1] == rgb[2], "seed {seed}: {rgb:?}");
+            if covered == 0 {
+                assert_eq!(rgb, [0, 0, 0], "seed {seed}: background at {x}, {y}");
+            } else if covered == ss * ss {
+                object += 1;
+                assert!(rgb[0] > 0, "seed {seed}: an object pixel is black");
+            }
+        }
+        assert!(object > 0, "seed {seed}");
     }
 }
 

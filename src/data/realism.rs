@@ -65,6 +65,55 @@ pub struct Realism {
     /// Share of crops rendered plain instead (flat grey on black, the exact box): one more
     /// variation, so that clean renders stay in the training distribution.
     pub plain: f64,
+    /// Factors held at one neutral value (for probes that ask which factor a model misses;
+    /// training and evaluation vary every one).
+    pub neutral: Neutral,
+}
+
+/// Randomised factors of a realistic crop that can be held at one neutral value. Each is still
+/// drawn from the crop's generator and then replaced, so a crop keeps its pose and every other
+/// factor's draw whichever are neutral.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Neutral {
+    /// A matte mid-grey material (the mesh's own colours, where it has them, under white).
+    pub material: bool,
+    /// One white light from the camera's upper left and a dim white ambient.
+    pub lighting: bool,
+    /// A black background, as the flat renders have (distractors behind still drawn).
+    pub background: bool,
+    /// No camera effects: exposure 1, no white balance, saturation or gamma change beyond sRGB's
+    /// 2.2, no blur, noise or JPEG.
+    pub camera: bool,
+}
+
+impl Neutral {
+    /// Every factor varies.
+    pub const NONE: Neutral = Neutral {
+        material: false,
+        lighting: false,
+        background: false,
+        camera: false,
+    };
+
+    /// The material a neutral crop gets.
+    pub fn material(has_colours: bool) -> Material {
+        Material {
+            base: if has_colours { [1.0; 3] } else { [0.35; 3] },
+            roughness: 0.8,
+            metalness: 0.0,
+        }
+    }
+
+    /// The lighting a neutral crop gets.
+    pub fn lighting() -> Lighting {
+        Lighting {
+            lights: vec![Light {
+                direction: Vector3::new(-0.4, -0.5, -1.0).normalize(),
+                radiance: [1.6; 3],
+            }],
+            ambient: [0.12; 3],
+        }
+    }
 }
 
 impl Realism {
@@ -76,6 +125,7 @@ impl Realism {
         clutter: 0.8,
         truncation: 0.25,
         plain: 0.1,
+        neutral: Neutral::NONE,
     };
 
     /// Held-out crops around the exact box, none plain.
@@ -85,6 +135,7 @@ impl Realism {
         clutter: 0.8,
         truncation: 0.25,
         plain: 0.0,
+        neutral: Neutral::NONE,
     };
 
     /// Held-out crops with a detector's box error of σ = `sigma` × side per edge (every crop).
@@ -632,6 +683,14 @@ pub fn camera_effects<R: Rng + ?Sized>(
     rgb
 }
 
+/// A linear image to RGB8 through sRGB's gamma alone (the neutral camera).
+fn plain_camera(linear: &[[f32; 3]]) -> Vec<u8> {
+    linear
+        .iter()
+        .flat_map(|p| p.map(|v| (v.clamp(0.0, 1.0).powf(1.0 / 2.2) * 255.0).round() as u8))
+        .collect()
+}
+
 /// A separable Gaussian blur with standard deviation `sigma` pixels (edges clamped).
 fn gaussian_blur(img: &[[f32; 3]], n: usize, sigma: f32) -> Vec<[f32; 3]> {
     let radius = (2.5 * sigma).ceil() as i64;
@@ -716,8 +775,15 @@ pub fn realistic_crop<R: Rng + ?Sized>(
             continue;
         };
         let subject = big.pose_in_virtual(&pose);
-        let material = random_material(rng, split, mesh.colors.is_some());
-        let lighting = random_lighting(rng, split);
+        let neutral = realism.neutral;
+        let mut material = random_material(rng, split, mesh.colors.is_some());
+        let mut lighting = random_lighting(rng, split);
+        if neutral.material {
+            material = Neutral::material(mesh.colors.is_some());
+        }
+        if neutral.lighting {
+            lighting = Neutral::lighting();
+        }
         let mut objects = vec![SceneObject {
             mesh,
             normals: &assets.normals[object],
@@ -750,7 +816,11 @@ pub fn realistic_crop<R: Rng + ?Sized>(
         let unoccluded = scene.unoccluded_pixels;
         // Pixels whose ray leaves the real frame are black, as a server's crop of a frame is.
         let h = big.homography(&k);
-        let mut back = background(rng, split, n).into_iter();
+        let mut back = background(rng, split, n);
+        if neutral.background {
+            back.fill([0.0; 3]);
+        }
+        let mut back = back.into_iter();
         let mut linear = Vec::with_capacity(n * n);
         for (idx, seen) in scene.linear.iter().enumerate() {
             let bg = back.next().unwrap_or([0.0; 3]);
@@ -773,7 +843,11 @@ pub fn realistic_crop<R: Rng + ?Sized>(
             continue;
         }
         let small = box_filter_linear(&linear, n, ss as usize);
-        let rgb = camera_effects(rng, split, &small, size as usize);
+        let rgb = if neutral.camera {
+            plain_camera(&small)
+        } else {
+            camera_effects(rng, split, &small, size as usize)
+        };
         return RealisticCrop {
             rgb,
             render: scene.subject,
