@@ -19,6 +19,32 @@ fn main() -> anyhow::Result<()> {
     let bundle = ModelBundle::load(&path)?;
     let config = &bundle.manifest.network;
     let renders = BundleRenders::of(&bundle, 2);
+    let rows = rows();
+    println!(
+        "{per_object} held-out realistic crops per object, level {level}, {}: LL, AR@30 (argmax), \
+         share below uniform; per object",
+        path.display()
+    );
+    for (label, realism) in rows {
+        let images =
+            renders.realistic_eval_images(config.image_size, per_object, (1u64 << 40) + 1, realism);
+        let report = evaluate(&bundle.network, config, &images, level, |_| {})?;
+        let mut row = format!("  {label:36}");
+        for (object, o) in &report.per_object {
+            row += &format!(
+                " | {object}: {:5.2} {:.2} {:3.0} %",
+                o.log_likelihood,
+                o.accuracy_at[0].1,
+                100.0 * o.confidently_wrong
+            );
+        }
+        println!("{row}");
+    }
+    Ok(())
+}
+
+/// The held-out realism, then with one factor neutral at a time, then all of them.
+fn rows() -> [(&'static str, Realism); 8] {
     let all = Neutral {
         material: true,
         lighting: true,
@@ -26,7 +52,7 @@ fn main() -> anyhow::Result<()> {
         camera: true,
     };
     let base = Realism::HELD_OUT;
-    let rows: [(&str, Realism); 8] = [
+    [
         ("as evaluated (every factor varies)", base),
         (
             "material neutral",
@@ -91,26 +117,5 @@ fn main() -> anyhow::Result<()> {
                 ..base
             },
         ),
-    ];
-    println!(
-        "{per_object} held-out realistic crops per object, level {level}, {}: LL, AR@30 (argmax), \
-         share below uniform; per object",
-        path.display()
-    );
-    for (label, realism) in rows {
-        let images =
-            renders.realistic_eval_images(config.image_size, per_object, (1u64 << 40) + 1, realism);
-        let report = evaluate(&bundle.network, config, &images, level, |_| {})?;
-        let mut row = format!("  {label:36}");
-        for (object, o) in &report.per_object {
-            row += &format!(
-                " | {object}: {:5.2} {:.2} {:3.0} %",
-                o.log_likelihood,
-                o.accuracy_at[0].1,
-                100.0 * o.confidently_wrong
-            );
-        }
-        println!("{row}");
-    }
-    Ok(())
+    ]
 }

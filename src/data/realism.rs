@@ -71,8 +71,8 @@ pub struct Realism {
 }
 
 /// Randomised factors of a realistic crop that can be held at one neutral value. Each is still
-/// drawn from the crop's generator and then replaced, so a crop keeps its pose and every other
-/// factor's draw whichever are neutral.
+/// drawn from the crop's generator and then replaced (the camera, the crop's last draw, is not
+/// drawn), so a crop keeps its pose and every other factor's draw whichever are neutral.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct Neutral {
     /// A matte mid-grey material (the mesh's own colours, where it has them, under white).
@@ -112,6 +112,55 @@ impl Neutral {
                 radiance: [1.6; 3],
             }],
             ambient: [0.12; 3],
+        }
+    }
+
+    /// The subject's material and the scene's lights: drawn for `split`, then replaced where
+    /// neutral.
+    fn draw_look<R: Rng + ?Sized>(
+        self,
+        rng: &mut R,
+        split: Split,
+        has_colours: bool,
+    ) -> (Material, Lighting) {
+        let material = random_material(rng, split, has_colours);
+        let lighting = random_lighting(rng, split);
+        (
+            if self.material {
+                Neutral::material(has_colours)
+            } else {
+                material
+            },
+            if self.lighting {
+                Neutral::lighting()
+            } else {
+                lighting
+            },
+        )
+    }
+
+    /// The `n × n` background: drawn for `split`, then black where neutral.
+    fn draw_background<R: Rng + ?Sized>(self, rng: &mut R, split: Split, n: usize) -> Vec<Rgb> {
+        let mut back = background(rng, split, n);
+        if self.background {
+            back.fill([0.0; 3]);
+        }
+        back
+    }
+
+    /// The camera's RGB8 image of a linear one: [`camera_effects`], or sRGB's gamma alone where
+    /// neutral (nothing drawn then: the camera is the crop's last draw).
+    fn draw_camera<R: Rng + ?Sized>(
+        self,
+        rng: &mut R,
+        split: Split,
+        linear: &[[f32; 3]],
+        size: usize,
+    ) -> Vec<u8> {
+        if self.camera {
+            plain_camera(linear)
+        } else {
+            camera_effects(rng, split, linear, size)
         }
     }
 }
@@ -776,14 +825,7 @@ pub fn realistic_crop<R: Rng + ?Sized>(
         };
         let subject = big.pose_in_virtual(&pose);
         let neutral = realism.neutral;
-        let mut material = random_material(rng, split, mesh.colors.is_some());
-        let mut lighting = random_lighting(rng, split);
-        if neutral.material {
-            material = Neutral::material(mesh.colors.is_some());
-        }
-        if neutral.lighting {
-            lighting = Neutral::lighting();
-        }
+        let (material, lighting) = neutral.draw_look(rng, split, mesh.colors.is_some());
         let mut objects = vec![SceneObject {
             mesh,
             normals: &assets.normals[object],
@@ -816,11 +858,7 @@ pub fn realistic_crop<R: Rng + ?Sized>(
         let unoccluded = scene.unoccluded_pixels;
         // Pixels whose ray leaves the real frame are black, as a server's crop of a frame is.
         let h = big.homography(&k);
-        let mut back = background(rng, split, n);
-        if neutral.background {
-            back.fill([0.0; 3]);
-        }
-        let mut back = back.into_iter();
+        let mut back = neutral.draw_background(rng, split, n).into_iter();
         let mut linear = Vec::with_capacity(n * n);
         for (idx, seen) in scene.linear.iter().enumerate() {
             let bg = back.next().unwrap_or([0.0; 3]);
@@ -843,11 +881,7 @@ pub fn realistic_crop<R: Rng + ?Sized>(
             continue;
         }
         let small = box_filter_linear(&linear, n, ss as usize);
-        let rgb = if neutral.camera {
-            plain_camera(&small)
-        } else {
-            camera_effects(rng, split, &small, size as usize)
-        };
+        let rgb = neutral.draw_camera(rng, split, &small, size as usize);
         return RealisticCrop {
             rgb,
             render: scene.subject,
