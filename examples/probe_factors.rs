@@ -1,14 +1,14 @@
 //! Which factor of the realistic crops a model misses: the held-out set `alignist-train eval
-//! --fresh --realistic` evaluates (same seed: 2⁴⁰ + 1, held-out split, exact boxes), made again
-//! with one factor at a time held at a neutral value (`Realism::neutral`: a matte grey
-//! material, one white light, a black background, no camera effects; `clutter` 0: no other
+//! --fresh --realistic` evaluates (same seed: `EVAL_SEED` + 1, held-out split, exact boxes),
+//! made again with one factor at a time held at a neutral value (`Realism::neutral`: a matte
+//! grey material, one white light, a black background, no camera effects; `clutter` 0: no other
 //! objects; `truncation` 0: never cut by the frame), then with all of them. Every crop keeps its
 //! pose in every row (each factor is still drawn, then replaced), so the rows are paired: a row
 //! far above the first names a variation the model has not learned.
 //! `cargo run --release --example probe_factors [BUNDLE] [IMAGES_PER_OBJECT] [LEVEL]`
 use alignist::bundle::model::ModelBundle;
 use alignist::data::realism::{Neutral, Realism};
-use alignist::train::data::BundleRenders;
+use alignist::train::data::{BundleRenders, EVAL_SEED};
 use alignist::train::eval::evaluate;
 
 fn main() -> anyhow::Result<()> {
@@ -27,7 +27,7 @@ fn main() -> anyhow::Result<()> {
     );
     for (label, realism) in rows {
         let images =
-            renders.realistic_eval_images(config.image_size, per_object, (1u64 << 40) + 1, realism);
+            renders.realistic_eval_images(config.image_size, per_object, EVAL_SEED + 1, realism);
         let report = evaluate(&bundle.network, config, &images, level, |_| {})?;
         let mut row = format!("  {label:36}");
         for (object, o) in &report.per_object {

@@ -48,7 +48,8 @@ fn main() -> anyhow::Result<()> {
     );
     let ratio = last as f64 / old_last as f64;
     println!(
-        "{}: last width {last}, grown from {old_last} (×{ratio:.2}); mean |w| old→old, added→old, old→added, added→added",
+        "{}: last width {last}, grown from {old_last} (×{ratio:.2}); \
+         mean |w| old→old, added→old, old→added, added→added",
         path.display()
     );
     for t in tensors {
