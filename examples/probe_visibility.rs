@@ -11,7 +11,7 @@
 //! `cargo run --release --example probe_visibility [BUNDLE] [IMAGES_PER_OBJECT] [LEVEL]`
 use alignist::bundle::model::ModelBundle;
 use alignist::data::realism::{Realism, RealisticCrop};
-use alignist::train::data::BundleRenders;
+use alignist::train::data::{BundleRenders, EVAL_SEED};
 use alignist::train::eval::{EvalImage, evaluate};
 
 /// Luma of every crop pixel, and whether most of its supersampled pixels are the object's.
@@ -61,7 +61,7 @@ fn main() -> anyhow::Result<()> {
     let crops = renders.fresh.realistic_eval_crops(
         config.image_size,
         per_object,
-        (1u64 << 40).wrapping_add(1),
+        EVAL_SEED + 1,
         Realism::HELD_OUT,
     );
     println!(

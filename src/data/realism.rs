@@ -28,6 +28,10 @@ use crate::so3::haar_rotation;
 /// Crease angle of the shading normals: edges sharper than this stay hard.
 pub const CREASE_DEG: f32 = 35.0;
 
+/// The display gamma the crops are encoded with (sRGB's, approximated): colours drawn as sRGB
+/// are decoded with it, and the camera encodes with it (times its own random factor).
+const GAMMA: f32 = 2.2;
+
 /// Which of the two disjoint sets of ranges a crop's randomisation draws from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Split {
@@ -73,7 +77,7 @@ pub struct Realism {
 /// Randomised factors of a realistic crop that can be held at one neutral value. Each is still
 /// drawn from the crop's generator and then replaced (the camera, the crop's last draw, is not
 /// drawn), so a crop keeps its pose and every other factor's draw whichever are neutral.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Neutral {
     /// A matte mid-grey material (the mesh's own colours, where it has them, under white).
     pub material: bool,
@@ -96,7 +100,7 @@ impl Neutral {
     };
 
     /// The material a neutral crop gets.
-    pub fn material(has_colours: bool) -> Material {
+    fn material(has_colours: bool) -> Material {
         Material {
             base: if has_colours { [1.0; 3] } else { [0.35; 3] },
             roughness: 0.8,
@@ -105,7 +109,7 @@ impl Neutral {
     }
 
     /// The lighting a neutral crop gets.
-    pub fn lighting() -> Lighting {
+    fn lighting() -> Lighting {
         Lighting {
             lights: vec![Light {
                 direction: Vector3::new(-0.4, -0.5, -1.0).normalize(),
@@ -309,7 +313,7 @@ fn random_colour<R: Rng + ?Sized>(
         _ => (c, 0.0, x),
     };
     let m = v - c;
-    [r + m, g + m, b + m].map(|c| (c as f32).powf(2.2))
+    [r + m, g + m, b + m].map(|c| (c as f32).powf(GAMMA))
 }
 
 /// A random material: a base colour (white when the mesh has its own colours, which then show
@@ -694,7 +698,7 @@ pub fn camera_effects<R: Rng + ?Sized>(
     let exposure = 2f32.powf(banded(rng, -1.0, 1.0, split) as f32);
     let balance: [f32; 3] = std::array::from_fn(|_| rng.random_range(0.85..1.15f32));
     let saturation = rng.random_range(0.6..1.4f32);
-    let gamma = 2.2 * banded(rng, 0.8, 1.2, split) as f32;
+    let gamma = GAMMA * banded(rng, 0.8, 1.2, split) as f32;
     let mut img: Vec<[f32; 3]> = linear
         .iter()
         .map(|p| {
@@ -732,11 +736,11 @@ pub fn camera_effects<R: Rng + ?Sized>(
     rgb
 }
 
-/// A linear image to RGB8 through sRGB's gamma alone (the neutral camera).
+/// A linear image to RGB8 through the display gamma alone (the neutral camera).
 fn plain_camera(linear: &[[f32; 3]]) -> Vec<u8> {
     linear
         .iter()
-        .flat_map(|p| p.map(|v| (v.clamp(0.0, 1.0).powf(1.0 / 2.2) * 255.0).round() as u8))
+        .flat_map(|p| p.map(|v| (v.clamp(0.0, 1.0).powf(1.0 / GAMMA) * 255.0).round() as u8))
         .collect()
 }
 
