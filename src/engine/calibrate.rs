@@ -40,8 +40,8 @@ const RUNS: usize = 2;
 const LARGE_ROWS: usize = 1024;
 
 /// Rows of the head timed per precision, many and few (a level's fixed cost). The many are
-/// timed twice like every measurement of at most [`LARGE_ROWS`] rows: 2 048 rows timed once let
-/// one slow timing move a search's prediction by a fifth (docs/BENCHMARKS.md, 2026-12-01).
+/// timed twice like every measurement of at most [`LARGE_ROWS`] rows: 2 048 rows timed once left
+/// one slow timing uncorrected, and the choice flipped with it (docs/BENCHMARKS.md, 2026-12-01).
 const TIMED_ROWS: usize = 1024;
 const SMALL_ROWS: usize = 64;
 
