@@ -46,8 +46,8 @@ const TIMED_ROWS: usize = 1024;
 const SMALL_ROWS: usize = 64;
 
 /// After this long, a calibration measures only until one search's prediction is exact
-/// ([`calibrate_within`]); it took 45–100 ms a model on a 2-core AMD EPYC and 73–101 ms on a
-/// 2-core Intel Xeon with AMX (docs/BENCHMARKS.md).
+/// ([`calibrate_within`]); it took 45–100 ms a model on a 2-core AMD EPYC and 73–180 ms on
+/// 2-core Intel Xeons with AMX (docs/BENCHMARKS.md).
 pub const MEASURING_DEADLINE_MS: f64 = 250.0;
 
 /// Predictions within this factor of the fastest count as equally fast. A search and its twin
