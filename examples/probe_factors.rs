@@ -3,8 +3,9 @@
 //! made again with one factor at a time held at a neutral value (`Realism::neutral`: a matte
 //! grey material, one white light, a black background, no camera effects; `clutter` 0: no other
 //! objects; `truncation` 0: never cut by the frame), then with all of them. Every crop keeps its
-//! pose in every row (each factor is still drawn, then replaced), so the rows are paired: a row
-//! far above the first names a variation the model has not learned.
+//! pose in every row (each factor but the camera, the crop's last draw, is still drawn, then
+//! replaced), so the rows are paired: a row far above the first names a variation the model has
+//! not learned.
 //! `cargo run --release --example probe_factors [BUNDLE] [IMAGES_PER_OBJECT] [LEVEL]`
 use alignist::bundle::model::ModelBundle;
 use alignist::data::realism::{Neutral, Realism};

@@ -35,25 +35,26 @@ pub const DEFAULT_SEARCH_BUDGET_MS: f64 = 25.0;
 /// Timed runs of each measurement (the minimum is kept).
 const RUNS: usize = 2;
 
-/// A measurement of more rows than this, whose code a smaller measurement has just run, is timed
-/// once (see [`Meter`]).
+/// A start level of more cells than this, in a precision whose code a smaller measurement has
+/// just run, is timed once (see [`Meter`]).
 const LARGE_ROWS: usize = 1024;
 
-/// Rows of the head timed per precision, many and few (a level's fixed cost). The many are
-/// timed twice like every measurement of at most [`LARGE_ROWS`] rows: 2 048 rows timed once left
-/// one slow timing uncorrected, and the choice flipped with it (docs/BENCHMARKS.md, 2026-12-01).
+/// Rows of the head timed per precision, many and few (a level's fixed cost), each the minimum
+/// of [`RUNS`]: 2 048 rows timed once left one slow timing uncorrected, and the choice flipped
+/// with it (docs/BENCHMARKS.md, 2026-12-01).
 const TIMED_ROWS: usize = 1024;
 const SMALL_ROWS: usize = 64;
 
 /// After this long, a calibration measures only until one search's prediction is exact
-/// ([`calibrate_within`]); it took 45–100 ms a model on a 2-core AMD EPYC and 73–180 ms on
+/// ([`calibrate_within`]); it took 45–100 ms a model on a 2-core AMD EPYC and 73–185 ms on
 /// 2-core Intel Xeons with AMX (docs/BENCHMARKS.md).
 pub const MEASURING_DEADLINE_MS: f64 = 250.0;
 
 /// Predictions within this factor of the fastest count as equally fast. A search and its twin
 /// that rescores the finest level from 8-bit scores are predicted 1.08–1.17 apart on a 2-core
-/// Intel Xeon with AMX, so a tie at 1.15 let timing noise choose between them (75–88 % the same
-/// choice over 40 starts; 100 % at 1.25 with [`TIMED_ROWS`] timed twice, docs/BENCHMARKS.md).
+/// Intel Xeon with AMX, so a tie at 1.15 let timing noise choose between them (the same choice in
+/// 75–90 % of 40 calibrations; in 100 % at 1.25 with [`TIMED_ROWS`] timed twice,
+/// docs/BENCHMARKS.md).
 const TIE: f64 = 1.25;
 
 /// Agreements this many studied images apart count as equal: at 99 % over a 100-image study,
@@ -571,8 +572,9 @@ fn next_need(
 }
 
 /// Measures the costs of a search on this CPU on demand ([`Need`]), on the features of one grey
-/// image, into [`Rates`]. Each measurement is the minimum of [`RUNS`] calls, except a large one
-/// (over [`LARGE_ROWS`] rows) in a precision whose code has already run here: it is timed once.
+/// image, into [`Rates`]. Each measurement is the minimum of [`RUNS`] calls, except a large start
+/// level (over [`LARGE_ROWS`] cells) in a precision whose code has already run here: it is timed
+/// once.
 /// The few rows are timed before the many.
 struct Meter<'a> {
     model: &'a Model,
@@ -634,12 +636,13 @@ impl<'a> Meter<'a> {
     fn measure(&mut self, need: Need) {
         let clock = Instant::now();
         let (model, features) = (self.model, &self.features);
-        // Once for a large measurement whose code just ran, else the minimum of RUNS.
-        let runs = |rows: usize, warm: bool| if rows > LARGE_ROWS && warm { 1 } else { RUNS };
         match need {
             Need::Start(l, (precision, branches)) => {
                 let cells = model.grid(l).map_or(0, |g| g.len());
-                let ms = min_ms(runs(cells, self.ran(precision)), || {
+                // Once for a large level whose code just ran, else the minimum of RUNS.
+                let warm = self.ran(precision);
+                let runs = if cells > LARGE_ROWS && warm { 1 } else { RUNS };
+                let ms = min_ms(runs, || {
                     let _ = model.projected[l as usize].log_weights_of_row_by(
                         precision,
                         branches,
@@ -671,7 +674,7 @@ impl<'a> Meter<'a> {
                     })
                 };
                 let few = time(true, RUNS);
-                let many = time(false, runs(TIMED_ROWS, true));
+                let many = time(false, RUNS);
                 let per_row = ((many - few) / (TIMED_ROWS - SMALL_ROWS) as f64).max(0.0);
                 let fixed = (few - per_row * SMALL_ROWS as f64).max(0.0);
                 self.rates
