@@ -46,14 +46,14 @@ const TIMED_ROWS: usize = 1024;
 const SMALL_ROWS: usize = 64;
 
 /// After this long, a calibration measures only until one search's prediction is exact
-/// ([`calibrate_within`]); it took 45–100 ms a model on a 2-core AMD EPYC and 73–185 ms on
+/// ([`calibrate_within`]); it took 45–100 ms a model on a 2-core AMD EPYC and 73–203 ms on
 /// 2-core Intel Xeons with AMX (docs/BENCHMARKS.md).
 pub const MEASURING_DEADLINE_MS: f64 = 250.0;
 
 /// Predictions within this factor of the fastest count as equally fast. A search and its twin
 /// that rescores the finest level from 8-bit scores are predicted 1.08–1.17 apart on a 2-core
 /// Intel Xeon with AMX, so a tie at 1.15 let timing noise choose between them (the same choice in
-/// 75–90 % of 40 calibrations; in 100 % at 1.25 with [`TIMED_ROWS`] timed twice,
+/// 75–90 % of 40 calibrations; in 97.5–100 % at 1.25 with [`TIMED_ROWS`] timed twice,
 /// docs/BENCHMARKS.md).
 const TIE: f64 = 1.25;
 
