@@ -150,7 +150,7 @@ def main():
     tests = [(path, *load_crops(path)) for path in a.test]
     sigma = math.radians(a.sigma_deg)
     opt = torch.optim.AdamW(model.parameters(), lr=a.lr, weight_decay=1e-4)
-    warm = min(200, a.steps // 10)
+    warm = max(1, min(200, a.steps // 10))
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: min(1.0, (s + 1) / warm) * 0.5 * (1 + math.cos(math.pi * min(s, a.steps) / a.steps))
     )
