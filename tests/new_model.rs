@@ -141,6 +141,70 @@ async fn a_part_becomes_a_served_model_within_its_budget() {
     the_model_is_served_and_answers_a_frame(&models).await;
 }
 
+#[tokio::test(flavor = "multi_thread")]
+async fn an_imagenet_pretrained_encoder_becomes_a_served_model() {
+    let weights = pretrained_weights();
+    let root = tempfile::tempdir().unwrap();
+    let part = write_part(root.path(), "block", 0.04);
+    let models = root.path().join("models");
+    let out = models.join("blocks");
+    train(&new_args(
+        part.to_str().unwrap(),
+        out.to_str().unwrap(),
+        "300s",
+        &[
+            "--layout",
+            "efficientnet-lite0",
+            "--pretrained",
+            weights.to_str().unwrap(),
+            "--image-size",
+            "32",
+            "--pool-grid",
+            "1",
+            "--max-steps",
+            "3",
+        ],
+    ));
+    let m = manifest(&out);
+    assert_eq!(m["network"]["layout"], "efficientnet_lite0");
+    assert_eq!(m["network"]["image_size"], 32);
+    let train = &m["provenance"]["train"];
+    assert_eq!(train["pretrained"], weights.to_str().unwrap());
+    // No warm start: the encoder started from the ImageNet weights, the head fresh.
+    assert!(train.get("init").is_none(), "{train}");
+    // The layout without its weights, or with a warm start, is refused before any work.
+    for extra in [
+        &[
+            "--layout",
+            "efficientnet-lite0",
+            "--pretrained",
+            "absent.pth",
+        ][..],
+        &["--layout", "efficientnet-lite0", "--init", "models/symsol1"][..],
+        &["--pretrained", weights.to_str().unwrap()][..],
+    ] {
+        let refused = root.path().join("refused");
+        let args = new_args(
+            part.to_str().unwrap(),
+            refused.to_str().unwrap(),
+            "60s",
+            extra,
+        );
+        let run = Command::new(env!("CARGO_BIN_EXE_alignist-train"))
+            .args(&args)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&run.stderr);
+        assert!(!run.status.success(), "{extra:?} was accepted");
+        assert!(
+            err.contains("pretrained") || err.contains("absent.pth"),
+            "{extra:?}: {err}"
+        );
+        assert!(!refused.exists(), "{extra:?} wrote the bundle");
+    }
+    the_model_is_served_and_answers_a_frame(&models).await;
+}
+
 /// The models folder served as it is: the part listed in metres with its discovered symmetry,
 /// and a camera frame answered.
 async fn the_model_is_served_and_answers_a_frame(models: &Path) {

@@ -109,6 +109,7 @@ fn config(method: Method) -> TrainConfig {
         init: None,
         teacher: None,
         plain_start: None,
+        pretrained: None,
     }
 }
 

@@ -274,6 +274,11 @@ pub struct TrainConfig {
     /// `None`: the realism's share at every step.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub plain_start: Option<f64>,
+    /// The ImageNet weights file a fresh EfficientNet-Lite0 encoder starts from
+    /// (`scripts/fetch_pretrained.sh`; [`crate::net::EfficientNetLite0::pretrained`]). `None`:
+    /// the seeded initialisation. Read only at a fresh start (not when resuming or warm-starting).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pretrained: Option<String>,
 }
 
 impl TrainConfig {
@@ -313,6 +318,7 @@ impl Default for TrainConfig {
             init: None,
             teacher: None,
             plain_start: None,
+            pretrained: None,
         }
     }
 }

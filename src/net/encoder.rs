@@ -10,6 +10,7 @@
 //! `resnet50` (bottleneck [3, 4, 6, 3], 64…512 × 4 = 2048 features) with the 7×7/2 stem and
 //! max-pool for 224×224 crops.
 
+use super::efficientnet::{EfficientNetLite0, PretrainedError};
 use burn::config::Config;
 use burn::module::{Module, Param};
 use burn::nn::conv::{Conv2d, Conv2dConfig};
@@ -36,6 +37,9 @@ pub enum ResNetLayout {
     Resnet18,
     /// ResNet-50: bottleneck blocks [3, 4, 6, 3], widths 64 … 512, expansion 4.
     Resnet50,
+    /// Not a ResNet: EfficientNet-Lite0 ([`super::efficientnet`]), 1280 features, started from
+    /// ImageNet weights (the layout for realistic crops of real parts).
+    EfficientnetLite0,
 }
 
 impl ResNetLayout {
@@ -45,6 +49,7 @@ impl ResNetLayout {
             ResNetLayout::TinyDeep | ResNetLayout::TinyWide => [2, 2, 2, 2],
             ResNetLayout::Resnet18 => [2, 2, 2, 2],
             ResNetLayout::Resnet50 => [3, 4, 6, 3],
+            ResNetLayout::EfficientnetLite0 => [0; 4],
         }
     }
 
@@ -69,7 +74,9 @@ impl ResNetLayout {
     /// channels only (the same stem and block kind, at least as many channels, at least as many
     /// blocks per stage): its weights then warm-start this layout ([`Encoder::grown`]).
     pub fn grows(&self, from: ResNetLayout) -> bool {
-        self.small_stem() == from.small_stem()
+        !self.is_efficientnet()
+            && !from.is_efficientnet()
+            && self.small_stem() == from.small_stem()
             && self.base_width() >= from.base_width()
             && self.bottleneck() == from.bottleneck()
             && self
@@ -83,8 +90,16 @@ impl ResNetLayout {
         matches!(self, ResNetLayout::Resnet50)
     }
 
+    /// Whether this is EfficientNet-Lite0 rather than a ResNet.
+    pub fn is_efficientnet(&self) -> bool {
+        matches!(self, ResNetLayout::EfficientnetLite0)
+    }
+
     /// Length of the feature vector.
     pub fn feature_dim(&self) -> usize {
+        if self.is_efficientnet() {
+            return super::efficientnet::FEATURES;
+        }
         self.base_width() * 8 * if self.bottleneck() { 4 } else { 1 }
     }
 }
@@ -346,12 +361,15 @@ impl Block {
     }
 }
 
-/// A ResNet image encoder: `[B, 3, H, W]` in `[0, 1]` → `[B, feature_dim]`.
+/// An image encoder: `[B, 3, H, W]` in `[0, 1]` → `[B, feature_dim]`. A ResNet (`stem`, its
+/// max-pool, `blocks`), or EfficientNet-Lite0 (`efficientnet`, the ResNet's fields empty); then
+/// the pooling. (Absent modules add nothing to a record: the bundles of ResNets read as before.)
 #[derive(Module, Debug)]
 pub struct Encoder {
-    stem: ConvBn,
+    stem: Option<ConvBn>,
     stem_pool: Option<MaxPool2d>,
     blocks: Vec<Block>,
+    efficientnet: Option<EfficientNetLite0>,
     pool: AdaptiveAvgPool2d,
 }
 
@@ -359,6 +377,16 @@ impl EncoderConfig {
     /// Builds the encoder on `device`.
     pub fn init(&self, device: &Device) -> Encoder {
         let layout = self.layout;
+        let pool = AdaptiveAvgPool2dConfig::new([self.pool_grid; 2]).init();
+        if layout.is_efficientnet() {
+            return Encoder {
+                stem: None,
+                stem_pool: None,
+                blocks: Vec::new(),
+                efficientnet: Some(EfficientNetLite0::new(device)),
+                pool,
+            };
+        }
         let base = layout.base_width();
         let (stem, stem_pool) = if layout.small_stem() {
             (ConvBn::new(3, base, 3, 1, device), None)
@@ -389,11 +417,27 @@ impl EncoderConfig {
             }
         }
         Encoder {
-            stem,
+            stem: Some(stem),
             stem_pool,
             blocks,
-            pool: AdaptiveAvgPool2dConfig::new([self.pool_grid; 2]).init(),
+            efficientnet: None,
+            pool,
         }
+    }
+
+    /// EfficientNet-Lite0 with the ImageNet weights of `path` (`scripts/fetch_pretrained.sh`),
+    /// pooled as this configuration says; `None` for the other layouts (they start fresh).
+    pub fn init_pretrained(
+        &self,
+        path: &std::path::Path,
+        device: &Device,
+    ) -> Option<Result<Encoder, PretrainedError>> {
+        self.layout.is_efficientnet().then(|| {
+            Ok(Encoder {
+                efficientnet: Some(EfficientNetLite0::pretrained(path, device)?),
+                ..self.init(device)
+            })
+        })
     }
 }
 
@@ -402,7 +446,12 @@ impl Encoder {
     /// values. burn keeps each step's update pending until read with `value_sync`, and saving
     /// reads the stored value: call this before saving or evaluating a trained encoder.
     pub fn sync_running_stats(&self) {
-        self.stem.sync_running_stats();
+        if let Some(net) = &self.efficientnet {
+            net.sync_running_stats();
+        }
+        if let Some(stem) = &self.stem {
+            stem.sync_running_stats();
+        }
         for block in &self.blocks {
             block.layers.iter().for_each(ConvBn::sync_running_stats);
             if let Some(s) = &block.shortcut {
@@ -439,7 +488,7 @@ impl Encoder {
             }
         }
         Some(Encoder {
-            stem: self.stem.embedded_in(fresh.stem, device)?,
+            stem: Some(self.stem?.embedded_in(fresh.stem?, device)?),
             blocks,
             ..self
         })
@@ -460,14 +509,17 @@ impl Encoder {
         }
     }
 
-    /// The stem, whether a max-pool follows it, and the residual blocks.
-    pub(crate) fn parts(&self) -> (&ConvBn, bool, &[Block]) {
-        (&self.stem, self.stem_pool.is_some(), &self.blocks)
+    /// The ResNet's stem (`None` for EfficientNet), whether a max-pool follows it, and its
+    /// residual blocks.
+    pub(crate) fn parts(&self) -> (Option<&ConvBn>, bool, &[Block]) {
+        (self.stem.as_ref(), self.stem_pool.is_some(), &self.blocks)
     }
 
     /// The stem and each block's units (first, second, projection shortcut) where the layout
-    /// is one the hand-written passes run (basic blocks, no stem max-pool), else `None`.
+    /// is one the hand-written passes run (a ResNet of basic blocks, no stem max-pool), else
+    /// `None`.
     pub(crate) fn basic_units(&self) -> Option<(&ConvBn, Vec<BasicUnits<'_>>)> {
+        let stem = self.stem.as_ref()?;
         if self.stem_pool.is_some() {
             return None;
         }
@@ -475,18 +527,25 @@ impl Encoder {
             ([first, second], shortcut) => Some((first, second, shortcut)),
             _ => None,
         });
-        Some((&self.stem, blocks.collect::<Option<Vec<_>>>()?))
+        Some((stem, blocks.collect::<Option<Vec<_>>>()?))
     }
 
     /// `[B, 3, H, W]` → `[B, feature_dim]`.
     pub fn forward(&self, images: Tensor<4>) -> Tensor<2> {
-        let mut h = relu(self.stem.forward(images));
-        if let Some(pool) = &self.stem_pool {
-            h = pool.forward(h);
-        }
-        for block in &self.blocks {
-            h = block.forward(h);
-        }
+        let h = match (&self.efficientnet, &self.stem) {
+            (Some(net), _) => net.forward(images),
+            (None, Some(stem)) => {
+                let mut h = relu(stem.forward(images));
+                if let Some(pool) = &self.stem_pool {
+                    h = pool.forward(h);
+                }
+                for block in &self.blocks {
+                    h = block.forward(h);
+                }
+                h
+            }
+            (None, None) => unreachable!("an encoder is built with a ResNet stem or EfficientNet"),
+        };
         let [b, c, _, _] = h.dims();
         let cells = self.pool_grid() * self.pool_grid();
         self.pool.forward(h).reshape([b, c * cells])

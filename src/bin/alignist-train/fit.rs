@@ -66,6 +66,11 @@ pub(crate) struct FitArgs {
     /// Encoder layout.
     #[arg(long, value_enum, default_value_t = ResNetLayout::Tiny)]
     layout: ResNetLayout,
+    /// The ImageNet weights an `efficientnet-lite0` encoder starts from
+    /// (scripts/fetch_pretrained.sh writes data/pretrained/efficientnet-lite0.pth); without it
+    /// that layout starts from random weights.
+    #[arg(long)]
+    pretrained: Option<PathBuf>,
     /// Rotation encoding.
     #[arg(long, value_enum, default_value_t = EncodingArg::Cube)]
     encoding: EncodingArg,
@@ -221,11 +226,15 @@ impl FitArgs {
                 })
                 .transpose()?,
             plain_start: self.plain_start,
+            pretrained: self.pretrained.as_ref().map(|p| p.display().to_string()),
         })
     }
 
     /// Checks what clap cannot: counts, ranges and the flags that go together.
     fn check(&self) -> Result<()> {
+        if self.pretrained.is_some() && !self.layout.is_efficientnet() {
+            bail!("--pretrained goes with --layout efficientnet-lite0");
+        }
         // The data's own settings (--fraction, --supersample, one --experts per --data) are
         // checked where the data is assembled (alignist::train::fit).
         if !(0.0..=1.0).contains(&self.focused_fraction) {

@@ -53,9 +53,15 @@ pub(crate) struct NewArgs {
     /// The default, the shipped SYMSOL model (read from the working directory: run from the
     /// repository's root), has seen the most realistic crops; a warm start was measured to learn a
     /// part in 45 minutes where a random start stays at chance, and this one at 48 px to learn it
-    /// fastest (docs/RESULTS.md).
-    #[arg(long, default_value = DEFAULT_INIT, value_parser = parse_init)]
-    init: InitArg,
+    /// fastest (docs/RESULTS.md). With `--layout efficientnet-lite0` the default is none (that
+    /// encoder starts from `--pretrained`).
+    #[arg(long, value_parser = parse_init)]
+    init: Option<InitArg>,
+    /// The ImageNet weights an `efficientnet-lite0` encoder starts from (fetch them with
+    /// scripts/fetch_pretrained.sh; default data/pretrained/efficientnet-lite0.pth with that
+    /// layout, read from the repository's root).
+    #[arg(long)]
+    pretrained: Option<PathBuf>,
     /// The image encoder's layout (for experiments; the recipe's is `tiny-deep`). A warm start must
     /// have this layout or one this layout grows (`tiny` for `tiny-deep`; `tiny` or `tiny-deep`
     /// for `tiny-wide`).
@@ -114,6 +120,10 @@ pub(crate) fn parse_lr(s: &str) -> Result<f64, String> {
 /// The recipe's warm start (`--init`'s default), relative to the repository's root.
 const DEFAULT_INIT: &str = "models/symsol1";
 
+/// `--pretrained`'s default with `--layout efficientnet-lite0`, relative to the repository's root
+/// (`scripts/fetch_pretrained.sh` writes it).
+const DEFAULT_PRETRAINED: &str = "data/pretrained/efficientnet-lite0.pth";
+
 /// `--init`: a bundle folder, or none.
 #[derive(Debug, Clone, PartialEq)]
 struct InitArg(Option<PathBuf>);
@@ -167,6 +177,20 @@ pub(crate) fn new_cmd(args: &NewArgs) -> Result<()> {
         None if args.twin_share == 0.0 => 0,
         None => RECIPE.own_twins,
     };
+    let lite = args.layout.is_efficientnet();
+    let init = match &args.init {
+        Some(InitArg(path)) => path.clone(),
+        None if lite => None,
+        None => Some(PathBuf::from(DEFAULT_INIT)),
+    };
+    let pretrained = match &args.pretrained {
+        Some(_) if !lite => bail!(
+            "--pretrained goes with --layout efficientnet-lite0 (the other layouts start from \
+             --init or random weights)"
+        ),
+        Some(path) => Some(path.clone()),
+        None => lite.then(|| PathBuf::from(DEFAULT_PRETRAINED)),
+    };
     let model = NewModel {
         meshes: args.mesh.clone(),
         units: parse_units(&args.units)?,
@@ -177,7 +201,8 @@ pub(crate) fn new_cmd(args: &NewArgs) -> Result<()> {
         max_steps: args.max_steps,
         max_expert_steps: args.max_expert_steps,
         seed: args.seed,
-        init: args.init.0.clone(),
+        init: init.clone(),
+        pretrained,
         recipe: Recipe {
             layout: args.layout,
             image_size: args.image_size,
@@ -193,7 +218,7 @@ pub(crate) fn new_cmd(args: &NewArgs) -> Result<()> {
         command: std::env::args().collect::<Vec<_>>().join(" "),
     };
     let manifest = new_model(&model, args.resume, &|line| eprintln!("{line}")).with_context(|| {
-        let hint = match args.init.0.as_deref() {
+        let hint = match init.as_deref() {
             Some(p) if p == std::path::Path::new(DEFAULT_INIT) && !p.exists() => format!(
                 " (the default warm start {DEFAULT_INIT} is read from the repository's root: run \
                  from there, give --init DIR, or --init none to start from random weights)"
