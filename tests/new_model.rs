@@ -170,6 +170,12 @@ async fn an_imagenet_pretrained_encoder_becomes_a_served_model() {
     assert_eq!(m["network"]["image_size"], 32);
     let train = &m["provenance"]["train"];
     assert_eq!(train["pretrained"], weights.to_str().unwrap());
+    // With the file's checksum and size, as the fetch script printed them.
+    assert_eq!(
+        train["pretrained_file"]["sha256"],
+        "579344248a93e23026e6b78f1f6faf0bc1d282386f6c881cdbaacd49cabf77db"
+    );
+    assert_eq!(train["pretrained_file"]["bytes"], 18_826_032);
     // No warm start: the encoder started from the ImageNet weights, the head fresh.
     assert!(train.get("init").is_none(), "{train}");
     // The layout without its weights, or with a warm start, is refused before any work.

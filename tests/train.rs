@@ -110,6 +110,7 @@ fn config(method: Method) -> TrainConfig {
         teacher: None,
         plain_start: None,
         pretrained: None,
+        pretrained_file: None,
     }
 }
 

@@ -279,6 +279,10 @@ pub struct TrainConfig {
     /// the seeded initialisation. Read only at a fresh start (not when resuming or warm-starting).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pretrained: Option<String>,
+    /// The checksum and size of [`TrainConfig::pretrained`]'s file when the run started, so
+    /// that a model records exactly which weights it started from.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pretrained_file: Option<FileEntry>,
 }
 
 impl TrainConfig {
@@ -319,6 +323,7 @@ impl Default for TrainConfig {
             teacher: None,
             plain_start: None,
             pretrained: None,
+            pretrained_file: None,
         }
     }
 }

@@ -135,6 +135,7 @@ pub fn bench_training(config: &TrainingBenchConfig) -> Result<TrainingBench, Tra
             teacher: None,
             plain_start: None,
             pretrained: None,
+            pretrained_file: None,
         };
         train(&cfg, &set, None, false, |_, _, _| ControlFlow::Continue(()))
             .map(|(_, report)| report.profile)

@@ -630,11 +630,17 @@ fn train_experts(
 impl NewModel {
     /// The training configuration of this job's recipe for `steps`, its encoder started from
     /// the pretrained weights where the job has them.
-    fn train_config(&self, steps: usize, seed: u64) -> TrainConfig {
-        TrainConfig {
+    fn train_config(&self, steps: usize, seed: u64) -> Result<TrainConfig, NewModelError> {
+        let file = |p: &PathBuf| {
+            crate::bundle::sha256_file(p).map_err(|e| {
+                NewModelError::Invalid(format!("the pretrained weights {}: {e}", p.display()))
+            })
+        };
+        Ok(TrainConfig {
             pretrained: self.pretrained.as_ref().map(|p| p.display().to_string()),
+            pretrained_file: self.pretrained.as_ref().map(file).transpose()?,
             ..self.recipe.config(steps, seed)
-        }
+        })
     }
 }
 
@@ -671,6 +677,7 @@ impl Recipe {
             teacher: None,
             plain_start: self.plain_start,
             pretrained: None,
+            pretrained_file: None,
         }
     }
 }
@@ -780,7 +787,7 @@ fn fit_and_write(
     }
     let mut config = TrainConfig {
         init,
-        ..model.train_config(plan.fit_steps, model.seed)
+        ..model.train_config(plan.fit_steps, model.seed)?
     };
     if plan.first_fit_steps > 0 {
         config.warmup = super::config::warmup_steps(plan.first_fit_steps);
@@ -1142,7 +1149,7 @@ fn size_fit(
     const PROBE_MAX_STEPS: usize = 400;
     const MIN_STEPS: usize = 20;
     let window = (PROBE_SHARE * job.clock.budget).clamp(PROBE_MIN_S, PROBE_MAX_S);
-    let probe = model.train_config(PROBE_MAX_STEPS, model.seed ^ 0x9b0b);
+    let probe = model.train_config(PROBE_MAX_STEPS, model.seed ^ 0x9b0b)?;
     let t = Instant::now();
     let mut after_two = None;
     let mut last = (0, 0.0);

@@ -227,6 +227,14 @@ impl FitArgs {
                 .transpose()?,
             plain_start: self.plain_start,
             pretrained: self.pretrained.as_ref().map(|p| p.display().to_string()),
+            pretrained_file: self
+                .pretrained
+                .as_deref()
+                .map(|p| {
+                    alignist::bundle::sha256_file(p)
+                        .with_context(|| format!("--pretrained {}", p.display()))
+                })
+                .transpose()?,
         })
     }
 
