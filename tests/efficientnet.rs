@@ -30,7 +30,7 @@ fn imagenet_weights_give_pytorchs_features() {
         .mean_dim(3)
         .mean_dim(2)
         .into_data()
-        .to_vec()
+        .try_to_vec::<f32>()
         .unwrap();
     assert_eq!(f.len(), 1280);
     // PyTorch 2.x on the same file, eval mode (`python scripts/efficientnet_reference.py`):
