@@ -18,9 +18,8 @@
 //! 0.1.0, a PyTorch state dict with the key names of `lukemelas/EfficientNet-PyTorch`), read by
 //! burn's PyTorch store with its keys remapped onto this module ([`EfficientNetLite0::pretrained`]).
 
+use super::conv_bn::ConvBn;
 use burn::module::Module;
-use burn::nn::conv::{Conv2d, Conv2dConfig};
-use burn::nn::{BatchNorm, BatchNormConfig, PaddingConfig2d};
 use burn::tensor::activation::relu6;
 use burn::tensor::{Device, Tensor, TensorData};
 use std::path::Path;
@@ -70,46 +69,12 @@ pub enum PretrainedError {
     },
 }
 
-/// A convolution and its BatchNorm (ReLU6 follows where the layout has it).
-#[derive(Module, Debug)]
-pub struct ConvBn6 {
-    conv: Conv2d,
-    bn: BatchNorm,
-}
-
-impl ConvBn6 {
-    fn new(c: [usize; 2], k: usize, stride: usize, groups: usize, device: &Device) -> Self {
-        let p = k / 2;
-        ConvBn6 {
-            conv: Conv2dConfig::new(c, [k, k])
-                .with_stride([stride, stride])
-                .with_padding(PaddingConfig2d::Explicit(p, p, p, p))
-                .with_groups(groups)
-                .with_bias(false)
-                .init(device),
-            bn: BatchNormConfig::new(c[1])
-                .with_epsilon(1e-3)
-                .with_momentum(0.01)
-                .init(device),
-        }
-    }
-
-    fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        self.bn.forward(self.conv.forward(x))
-    }
-
-    fn sync_running_stats(&self) {
-        self.bn.running_mean.value_sync();
-        self.bn.running_var.value_sync();
-    }
-}
-
 /// A mobile inverted bottleneck (MBConv without squeeze-and-excitation).
 #[derive(Module, Debug)]
 pub struct MbConv {
-    expand: Option<ConvBn6>,
-    depthwise: ConvBn6,
-    project: ConvBn6,
+    expand: Option<ConvBn>,
+    depthwise: ConvBn,
+    project: ConvBn,
 }
 
 impl MbConv {
@@ -123,9 +88,9 @@ impl MbConv {
     ) -> Self {
         let mid = c_in * expansion;
         MbConv {
-            expand: (expansion != 1).then(|| ConvBn6::new([c_in, mid], 1, 1, 1, device)),
-            depthwise: ConvBn6::new([mid, mid], k, stride, mid, device),
-            project: ConvBn6::new([mid, c_out], 1, 1, 1, device),
+            expand: (expansion != 1).then(|| ConvBn::grouped([c_in, mid], 1, 1, 1, device)),
+            depthwise: ConvBn::grouped([mid, mid], k, stride, mid, device),
+            project: ConvBn::grouped([mid, c_out], 1, 1, 1, device),
         }
     }
 
@@ -139,7 +104,7 @@ impl MbConv {
         if h.dims() == x.dims() { h + x } else { h }
     }
 
-    fn units(&self) -> impl Iterator<Item = &ConvBn6> {
+    fn units(&self) -> impl Iterator<Item = &ConvBn> {
         self.expand.iter().chain([&self.depthwise, &self.project])
     }
 }
@@ -147,9 +112,9 @@ impl MbConv {
 /// EfficientNet-Lite0 without its classifier: `[B, 3, H, W]` in `[0, 1]` → `[B, 1280, h, w]`.
 #[derive(Module, Debug)]
 pub struct EfficientNetLite0 {
-    stem: ConvBn6,
+    stem: ConvBn,
     blocks: Vec<MbConv>,
-    head: ConvBn6,
+    head: ConvBn,
 }
 
 impl EfficientNetLite0 {
@@ -165,9 +130,9 @@ impl EfficientNetLite0 {
             }
         }
         EfficientNetLite0 {
-            stem: ConvBn6::new([3, 32], 3, 2, 1, device),
+            stem: ConvBn::grouped([3, 32], 3, 2, 1, device),
             blocks,
-            head: ConvBn6::new([c_in, FEATURES], 1, 1, 1, device),
+            head: ConvBn::grouped([c_in, FEATURES], 1, 1, 1, device),
         }
     }
 
@@ -175,6 +140,11 @@ impl EfficientNetLite0 {
     /// parameter and running statistic read, only the classifier (`_fc`) and PyTorch's batch
     /// counters left over, else [`PretrainedError::Mismatch`].
     pub fn pretrained(path: &Path, device: &Device) -> Result<Self, PretrainedError> {
+        Self::new(device).with_weights_of(path)
+    }
+
+    /// This network with the ImageNet weights of `path` read into it ([`Self::pretrained`]).
+    pub fn with_weights_of(mut self, path: &Path) -> Result<Self, PretrainedError> {
         use burn::store::{ModuleSnapshot, PytorchStore};
         let name = path.display().to_string();
         if let Err(e) = std::fs::metadata(path) {
@@ -201,8 +171,7 @@ impl EfficientNetLite0 {
             )
             .with_key_remapping(r"^_blocks\.(\d+)\._bn2\.", "blocks.$1.project.bn.")
             .allow_partial(true);
-        let mut network = Self::new(device);
-        let result = network
+        let result = self
             .load_from(&mut store)
             .map_err(|e| PretrainedError::Read {
                 path: name.clone(),
@@ -221,7 +190,7 @@ impl EfficientNetLite0 {
                 errors: result.errors.iter().map(|e| format!("{e:?}")).collect(),
             });
         }
-        Ok(network)
+        Ok(self)
     }
 
     /// The last feature map: `[B, 3, H, W]` in `[0, 1]` → `[B, 1280, ⌈H/32⌉, ⌈W/32⌉]`.
@@ -244,6 +213,6 @@ impl EfficientNetLite0 {
         self.blocks
             .iter()
             .flat_map(MbConv::units)
-            .for_each(ConvBn6::sync_running_stats);
+            .for_each(ConvBn::sync_running_stats);
     }
 }

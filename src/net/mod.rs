@@ -4,6 +4,7 @@
 pub mod amx;
 pub mod bf16;
 mod conv3x3;
+pub mod conv_bn;
 pub(crate) mod dense;
 pub mod efficientnet;
 pub mod encoder;
