@@ -46,6 +46,7 @@ fn study() -> SearchStudy {
         level: 5,
         images: 400,
         command: "tests/calibration.rs".into(),
+        seed: None,
         searches: vec![
             studied(1, 32, 1.0, "f32", 0.80),
             studied(1, 64, 0.5, "f32", 0.99),
@@ -469,4 +470,22 @@ fn every_coarse_precision_ranks_a_full_level_like_f32() {
             );
         }
     }
+}
+
+/// A study records the seed its images were rendered from, so that a check of the served search
+/// can draw others; a study written before the field reads back without one.
+#[test]
+fn a_study_records_its_seed_and_an_older_one_reads_without() {
+    let dir = tempfile::tempdir().unwrap();
+    let with = SearchStudy {
+        seed: Some(98),
+        ..study()
+    };
+    with.save(dir.path()).unwrap();
+    assert_eq!(SearchStudy::load(dir.path()).unwrap(), Some(with));
+    let older = study();
+    older.save(dir.path()).unwrap();
+    let text = std::fs::read_to_string(dir.path().join(SEARCH_STUDY_FILE)).unwrap();
+    assert!(!text.contains("\"seed\""), "{text}");
+    assert_eq!(SearchStudy::load(dir.path()).unwrap().unwrap().seed, None);
 }

@@ -111,6 +111,7 @@ fn config(method: Method) -> TrainConfig {
         plain_start: None,
         pretrained: None,
         pretrained_file: None,
+        encoder_lr_scale: None,
     }
 }
 
@@ -850,4 +851,74 @@ fn a_distilled_head_keeps_the_teachers_encoder_and_learns_its_scores() {
     other.teacher.as_mut().unwrap().file.sha256 = "0".repeat(64);
     let err = go(&other).unwrap_err().to_string();
     assert!(err.contains("network.safetensors"), "{err}");
+}
+
+/// `encoder_lr_scale`: one Adam step moves every encoder parameter by that share of what the
+/// same step moves it at the head's rate, and the head exactly as before.
+#[test]
+fn the_encoder_learns_at_its_own_share_of_the_learning_rate() {
+    let set = tiny_set();
+    let cfg = TrainConfig {
+        steps: 1,
+        warmup: 1,
+        ..config(alignist_method())
+    };
+    let files = tempfile::tempdir().unwrap();
+    let weights = |c: &TrainConfig, name: &str| {
+        let (n, _) = train(c, &set, None, false, |_, _, _| ControlFlow::Continue(())).unwrap();
+        let p = files.path().join(name);
+        alignist::bundle::save_weights(&n, &p).unwrap();
+        let mut t = tensors(&p);
+        t.retain(|k, _| !k.contains("running"));
+        t
+    };
+    let start = weights(
+        &TrainConfig {
+            lr: 0.0,
+            ..cfg.clone()
+        },
+        "start.safetensors",
+    );
+    let same = weights(&cfg, "same.safetensors");
+    let scaled = weights(
+        &TrainConfig {
+            encoder_lr_scale: Some(0.1),
+            ..cfg.clone()
+        },
+        "scaled.safetensors",
+    );
+    let (mut encoder, mut head) = (0, 0);
+    for (name, s) in &start {
+        let floats = |b: &[u8]| -> Vec<f32> {
+            b.chunks_exact(4)
+                .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+                .collect()
+        };
+        let moved = |w: &std::collections::BTreeMap<String, Vec<u8>>| -> f64 {
+            floats(&w[name])
+                .iter()
+                .zip(floats(s))
+                .map(|(a, b)| (a - b).abs() as f64)
+                .fold(0.0, f64::max)
+        };
+        let (full, part) = (moved(&same), moved(&scaled));
+        if name.starts_with("encoder.") {
+            encoder += 1;
+            assert!(full > 0.0, "{name} did not move");
+            assert!(
+                (part / full - 0.1).abs() < 0.01,
+                "{name}: moved {part} at 0.1 × the rate, {full} at the rate"
+            );
+        } else {
+            head += 1;
+            assert!(
+                (part - full).abs() <= 1e-6 * full.max(1e-12),
+                "{name}: the head moved {part} against {full}"
+            );
+        }
+    }
+    assert!(
+        encoder > 5 && head > 2,
+        "{encoder} encoder, {head} head tensors"
+    );
 }

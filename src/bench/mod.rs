@@ -79,7 +79,7 @@ pub fn bench(
     bundle: &Path,
     crops: &[Vec<u8>],
     objects: &[String],
-    write_study: bool,
+    write_study: Option<u64>,
 ) -> anyhow::Result<()> {
     anyhow::ensure!(!crops.is_empty(), "the bench needs at least one image");
     anyhow::ensure!(
@@ -103,9 +103,9 @@ pub fn bench(
     // The coarse-to-fine search against the exhaustive level-5 argmax.
     let figures = search::study(&model, crops, &search::candidates(), 5, 10)?;
     search::print(&figures, &model.config().search(), objects);
-    if write_study {
+    if let Some(seed) = write_study {
         let command = std::env::args().collect::<Vec<_>>().join(" ");
-        search::record(&figures, 5, crops.len(), command).save(bundle)?;
+        search::record(&figures, 5, crops.len(), seed, command).save(bundle)?;
         println!(
             "search study written to {}",
             bundle

@@ -266,12 +266,20 @@ pub fn study(
         .collect())
 }
 
-/// The study as the record a bundle carries ([`SearchStudy`]), for `images` images to `level`.
-pub fn record(figures: &[SearchFigures], level: u8, images: usize, command: String) -> SearchStudy {
+/// The study as the record a bundle carries ([`SearchStudy`]), for `images` images rendered
+/// from `seed`, to `level`.
+pub fn record(
+    figures: &[SearchFigures],
+    level: u8,
+    images: usize,
+    seed: u64,
+    command: String,
+) -> SearchStudy {
     SearchStudy {
         level,
         images,
         command,
+        seed: Some(seed),
         searches: figures
             .iter()
             .map(|f| StudiedSearch {

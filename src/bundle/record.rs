@@ -283,6 +283,12 @@ pub struct TrainConfig {
     /// that a model records exactly which weights it started from.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pretrained_file: Option<FileEntry>,
+    /// The encoder's learning rate as a share of [`TrainConfig::lr`] at every step (the head's
+    /// stays `lr`): the usual split when a pretrained encoder meets a fresh head, whose first,
+    /// noisy gradients would otherwise move the pretrained features at the head's pace.
+    /// `None`: the same rate for both.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub encoder_lr_scale: Option<f64>,
 }
 
 impl TrainConfig {
@@ -324,6 +330,7 @@ impl Default for TrainConfig {
             plain_start: None,
             pretrained: None,
             pretrained_file: None,
+            encoder_lr_scale: None,
         }
     }
 }

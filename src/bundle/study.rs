@@ -54,6 +54,11 @@ pub struct SearchStudy {
     pub images: usize,
     /// The command that wrote the study.
     pub command: String,
+    /// The seed its images were rendered from (`alignist-train bench`'s study seed), so that a
+    /// check of the served search can draw images the study did not see. Absent in studies
+    /// written before the field (their images came from the bench's own seed, 99).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub seed: Option<u64>,
     /// Every search studied.
     pub searches: Vec<StudiedSearch>,
 }

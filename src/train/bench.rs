@@ -136,6 +136,7 @@ pub fn bench_training(config: &TrainingBenchConfig) -> Result<TrainingBench, Tra
             plain_start: None,
             pretrained: None,
             pretrained_file: None,
+            encoder_lr_scale: None,
         };
         train(&cfg, &set, None, false, |_, _, _| ControlFlow::Continue(()))
             .map(|(_, report)| report.profile)

@@ -81,6 +81,10 @@ pub struct Recipe {
     /// curriculum ([`TrainConfig::plain_start`]; an experiment, none in the recipe).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub plain_start: Option<f64>,
+    /// The encoder's learning rate as a share of `lr` ([`TrainConfig::encoder_lr_scale`]; an
+    /// experiment, none in the recipe).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub encoder_lr_scale: Option<f64>,
 }
 
 fn is_zero(n: &usize) -> bool {
@@ -119,6 +123,7 @@ pub const RECIPE: Recipe = Recipe {
     own_twins: 32,
     pool_grid: 3,
     plain_start: None,
+    encoder_lr_scale: None,
 };
 
 /// Share of the budget the experts of all objects get at most (the rest trains the network).
@@ -678,6 +683,7 @@ impl Recipe {
             plain_start: self.plain_start,
             pretrained: None,
             pretrained_file: None,
+            encoder_lr_scale: self.encoder_lr_scale,
         }
     }
 }
@@ -871,7 +877,7 @@ fn realistic_crops(
 /// The progress line that opens the fit: its schedule, its probe's pace and its warm start.
 fn fit_line(plan: &BudgetPlan, recipe: &Recipe, config: &TrainConfig) -> String {
     format!(
-        "fit: {} steps of batch {} × K {} ({:.3} s per step in the probe), focused share {} → {}{}{}{}",
+        "fit: {} steps of batch {} × K {} ({:.3} s per step in the probe), focused share {} → {}{}{}{}{}",
         plan.fit_steps,
         recipe.batch,
         recipe.k,
@@ -897,6 +903,9 @@ fn fit_line(plan: &BudgetPlan, recipe: &Recipe, config: &TrainConfig) -> String 
         recipe.plain_start.map_or(String::new(), |p| format!(
             ", plain crops {p} → {}",
             Realism::TRAIN.plain
+        )),
+        recipe.encoder_lr_scale.map_or(String::new(), |s| format!(
+            ", the encoder at {s} × the head's learning rate"
         )),
         config
             .init

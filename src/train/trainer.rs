@@ -686,7 +686,16 @@ impl Run<'_> {
         };
         let started = Instant::now();
         let steps = self.steps.load(Ordering::Relaxed);
-        let network = optim.step(learning_rate(config, steps, step), network, grads);
+        let lr = learning_rate(config, steps, step);
+        let network = match config.encoder_lr_scale {
+            Some(scale) if scale != 1.0 => {
+                let mut head_grads = grads;
+                let encoder_grads = take_grads_of(&mut head_grads, &network.encoder);
+                let network = optim.step(lr, network, head_grads);
+                optim.step(lr * scale, network, encoder_grads)
+            }
+            _ => optim.step(lr, network, grads),
+        };
         profile.optimiser += started.elapsed().as_secs_f64();
         Ok((network, loss_value))
     }
@@ -829,6 +838,29 @@ impl Run<'_> {
         profile.backward += started.elapsed().as_secs_f64();
         Ok((loss_value, grads))
     }
+}
+
+/// Moves the gradients of `module`'s parameters out of `grads` into a set of their own, so that
+/// they can be stepped at another learning rate ([`TrainConfig::encoder_lr_scale`]). Adam keeps
+/// its moments per parameter, so two steps on the two sets are one step at two rates.
+fn take_grads_of<M: Module>(grads: &mut GradientsParams, module: &M) -> GradientsParams {
+    struct Take<'a> {
+        from: &'a mut GradientsParams,
+        to: GradientsParams,
+    }
+    impl burn::module::ModuleVisitor for Take<'_> {
+        fn visit_float<const D: usize>(&mut self, param: &burn::module::Param<Tensor<D>>) {
+            if let Some(g) = self.from.remove::<D>(param.id) {
+                self.to.register(param.id, g);
+            }
+        }
+    }
+    let mut take = Take {
+        from: grads,
+        to: GradientsParams::new(),
+    };
+    module.visit(&mut take);
+    take.to
 }
 
 /// The threads that prepare the next step's batch while this one computes. On the step's pool its

@@ -14,7 +14,8 @@ pub(crate) struct BenchArgs {
     #[arg(long, default_value_t = 50)]
     images: usize,
     /// Write the search study into the bundle (`search-study.json`): the agreement of each
-    /// studied search, which a server's calibration reads to choose among them.
+    /// studied search, which a server's calibration reads to choose among them. Its images are
+    /// rendered from a seed of their own, apart from the images a plain `bench` checks on.
     #[arg(long, conflicts_with_all = ["training", "depth"])]
     write_study: bool,
     /// Measure the training step instead (IPDF and Alignist, with their profiles), on a small
@@ -63,15 +64,54 @@ pub(crate) fn bench_cmd(args: &BenchArgs) -> Result<()> {
         return alignist::bench::depth::depth_cost(&model, &renders, args.images);
     }
     let per_object = args.images.max(1).div_ceil(renders.names.len().max(1));
-    // A seed no training run uses (training draws from its own seeds, evaluation from 2^40).
+    // Seeds no training run uses (training draws from its own seeds, evaluation from 2^40): the
+    // study's images and the check's are apart, so that the served search's agreement printed
+    // below is measured on images its calibration's study never saw.
+    let seed = if args.write_study {
+        STUDY_SEED
+    } else {
+        CHECK_SEED
+    };
+    match alignist::bundle::study::SearchStudy::load(&args.model) {
+        Ok(Some(study)) if !args.write_study && study.seed.unwrap_or(CHECK_SEED) == CHECK_SEED => {
+            eprintln!(
+                "note: {}'s search study was rendered from the bench's own seed {CHECK_SEED}: the \
+                 agreement below is measured on the study's images (re-write it with --write-study)",
+                args.model.display()
+            )
+        }
+        _ => {}
+    }
+    println!(
+        "images: {} from seed {seed} ({})",
+        per_object * renders.names.len(),
+        if args.write_study {
+            "the study's seed"
+        } else {
+            "the check's seed, not the study's"
+        }
+    );
     let (objects, crops): (Vec<String>, Vec<Vec<u8>>) = renders
-        .eval_images(size, per_object, 99)
+        .eval_images(size, per_object, seed)
         .into_iter()
         .map(|im| (im.object, im.rgb))
         .unzip();
     drop(loaded);
-    alignist::bench::bench(&args.model, &crops, &objects, args.write_study)
+    alignist::bench::bench(
+        &args.model,
+        &crops,
+        &objects,
+        args.write_study.then_some(seed),
+    )
 }
+
+/// The seed of the images a search study is written from (`--write-study`).
+const STUDY_SEED: u64 = 98;
+
+/// The seed of the images the bench checks a bundle's searches on otherwise: apart from
+/// [`STUDY_SEED`], so that the served (calibrated) search is checked on images its study did not
+/// see.
+const CHECK_SEED: u64 = 99;
 
 fn bench_training(args: &BenchArgs) -> Result<()> {
     use alignist::train::bench::{TrainingBenchConfig, bench_training, pytorch_reference};

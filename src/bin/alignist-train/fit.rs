@@ -99,6 +99,10 @@ pub(crate) struct FitArgs {
     /// Peak learning rate (positive).
     #[arg(long, default_value_t = TrainConfig::default().lr, value_parser = crate::new::parse_lr)]
     lr: f64,
+    /// The encoder's learning rate as a share of --lr at every step (the head's stays --lr; for
+    /// a pretrained encoder under a fresh head, e.g. 0.1). Without it both learn at --lr.
+    #[arg(long, value_parser = crate::new::parse_lr_scale)]
+    encoder_lr_scale: Option<f64>,
     /// Fraction of each training split used (the paper's low-data regime: 0.1). With --fresh: a
     /// fixed pool of fraction × steps × batch images (the same for every run) instead of a new
     /// render every time.
@@ -235,6 +239,7 @@ impl FitArgs {
                         .with_context(|| format!("--pretrained {}", p.display()))
                 })
                 .transpose()?,
+            encoder_lr_scale: self.encoder_lr_scale,
         })
     }
 

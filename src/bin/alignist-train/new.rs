@@ -84,6 +84,11 @@ pub(crate) struct NewArgs {
     /// Peak learning rate (for experiments; the recipe's is 1e-3).
     #[arg(long, default_value_t = RECIPE.lr, value_parser = parse_lr)]
     lr: f64,
+    /// The encoder's learning rate as a share of --lr at every step, the head's staying --lr
+    /// (for experiments, e.g. 0.1 with --layout efficientnet-lite0; the recipe has none: one
+    /// rate for both).
+    #[arg(long, value_parser = parse_lr_scale)]
+    encoder_lr_scale: Option<f64>,
     /// Share of the focused rotations drawn around the pose's twins: the part's near-symmetry's
     /// and the network's own (in [0, 1]; the recipe's is 0.5; 0 is the paper's sampling). A part
     /// with neither has no twins.
@@ -106,6 +111,16 @@ pub(crate) fn parse_share(s: &str) -> Result<f64, String> {
     match s.trim().parse::<f64>() {
         Ok(x) if (0.0..=1.0).contains(&x) => Ok(x),
         _ => Err(format!("'{s}' is not a share in [0, 1] (e.g. 0.25)")),
+    }
+}
+
+/// A share of the learning rate in (0, 10] (`new --encoder-lr-scale`, `fit --encoder-lr-scale`).
+pub(crate) fn parse_lr_scale(s: &str) -> Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(x) if x > 0.0 && x <= 10.0 => Ok(x),
+        _ => Err(format!(
+            "'{s}' is not a share of the learning rate in (0, 10] (e.g. 0.1)"
+        )),
     }
 }
 
@@ -213,6 +228,7 @@ pub(crate) fn new_cmd(args: &NewArgs) -> Result<()> {
             twin_share: args.twin_share,
             own_twins,
             plain_start: args.plain_start,
+            encoder_lr_scale: args.encoder_lr_scale,
             ..RECIPE
         },
         command: std::env::args().collect::<Vec<_>>().join(" "),
