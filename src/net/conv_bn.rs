@@ -6,11 +6,13 @@ use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::{BatchNorm, BatchNormConfig, PaddingConfig2d};
 use burn::tensor::{Device, Tensor};
 
-fn conv(c_in: usize, c_out: usize, k: usize, stride: usize, device: &Device) -> Conv2d {
+/// A `k × k` convolution without bias, padded by `k / 2`, over `groups` groups of channels.
+fn conv(c: [usize; 2], k: usize, stride: usize, groups: usize, device: &Device) -> Conv2d {
     let p = k / 2;
-    Conv2dConfig::new([c_in, c_out], [k, k])
+    Conv2dConfig::new(c, [k, k])
         .with_stride([stride, stride])
         .with_padding(PaddingConfig2d::Explicit(p, p, p, p))
+        .with_groups(groups)
         .with_bias(false)
         .init(device)
 }
@@ -25,7 +27,7 @@ pub struct ConvBn {
 impl ConvBn {
     pub(crate) fn new(c_in: usize, c_out: usize, k: usize, stride: usize, device: &Device) -> Self {
         ConvBn {
-            conv: conv(c_in, c_out, k, stride, device),
+            conv: conv([c_in, c_out], k, stride, 1, device),
             bn: BatchNormConfig::new(c_out).init(device),
         }
     }
@@ -40,14 +42,8 @@ impl ConvBn {
         groups: usize,
         device: &Device,
     ) -> Self {
-        let p = k / 2;
         ConvBn {
-            conv: Conv2dConfig::new(c, [k, k])
-                .with_stride([stride, stride])
-                .with_padding(PaddingConfig2d::Explicit(p, p, p, p))
-                .with_groups(groups)
-                .with_bias(false)
-                .init(device),
+            conv: conv(c, k, stride, groups, device),
             bn: BatchNormConfig::new(c[1])
                 .with_epsilon(1e-3)
                 .with_momentum(0.01)

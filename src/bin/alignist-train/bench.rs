@@ -67,10 +67,10 @@ pub(crate) fn bench_cmd(args: &BenchArgs) -> Result<()> {
     // Seeds no training run uses (training draws from its own seeds, evaluation from 2^40): the
     // study's images and the check's are apart, so that the served search's agreement printed
     // below is measured on images its calibration's study never saw.
-    let seed = if args.write_study {
-        STUDY_SEED
+    let (seed, whose) = if args.write_study {
+        (STUDY_SEED, "the study's seed")
     } else {
-        CHECK_SEED
+        (CHECK_SEED, "the check's seed, not the study's")
     };
     match alignist::bundle::study::SearchStudy::load(&args.model) {
         Ok(Some(study)) if !args.write_study && study.seed.unwrap_or(CHECK_SEED) == CHECK_SEED => {
@@ -83,13 +83,8 @@ pub(crate) fn bench_cmd(args: &BenchArgs) -> Result<()> {
         _ => {}
     }
     println!(
-        "images: {} from seed {seed} ({})",
-        per_object * renders.names.len(),
-        if args.write_study {
-            "the study's seed"
-        } else {
-            "the check's seed, not the study's"
-        }
+        "images: {} from seed {seed} ({whose})",
+        per_object * renders.names.len()
     );
     let (objects, crops): (Vec<String>, Vec<Vec<u8>>) = renders
         .eval_images(size, per_object, seed)
