@@ -539,7 +539,8 @@ fn run_once(
 /// lengthens a timing, so a search whose prediction a slow timing pushed just over the budget is
 /// not ruled out by it (on a 2-core AMD Zen 4 the most agreeing search was predicted 16.8–25.0 ms
 /// over ten starts and, over 25 ms, gave way to another: the same choice in 8 of 10,
-/// docs/RESULTS.md). Not once the deadline has cut the measuring short.
+/// docs/RESULTS.md). Not past the deadline: a search is timed again only while the measuring
+/// is within it.
 fn estimate_and_retime(
     meter: &mut Meter,
     (candidates, rows, agreement): (&[Candidate], &[usize], &Agreement),
@@ -556,7 +557,8 @@ fn estimate_and_retime(
             (started, deadline_ms),
         );
         let predicted = exact_predictions(&estimates);
-        let next = (!cut_short)
+        let in_time = !cut_short && started.elapsed().as_secs_f64() * 1e3 < deadline_ms;
+        let next = in_time
             .then(|| retime_next(rows, agreement, &predicted, budget_ms, &retimed))
             .flatten();
         let Some(i) = next else {
