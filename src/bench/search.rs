@@ -146,8 +146,9 @@ pub fn candidates() -> Vec<SearchParams> {
 }
 
 /// Halving searches whose coarse levels are ranked by the shape branch alone: to level 3 in
-/// every precision, to levels 2 and 4 in i8 (the shipped model's choice on AVX2), and from start
-/// level 2 (keeps of 192–1024, one of them with its finest level rescored).
+/// every precision, to levels 2 and 4 in i8 (the shipped model's choice on AVX2), from start
+/// level 2 (keeps of 192–1024, one of them with its finest level rescored), and from start level
+/// 2 with fewer rows for cores without VNNI (to level 2, and with the finest level rescored).
 fn shape_ranked() -> Vec<SearchParams> {
     const EVERY_PRECISION: [Precision; 4] = [
         Precision::I8,
@@ -187,6 +188,20 @@ fn shape_ranked() -> Vec<SearchParams> {
         rescore_finest: true,
         ..halving(2, 256, 3, Precision::I8)
     });
+    // For cores without VNNI, whose `VPMADDWD` kernel runs the 8-bit head at about a third of
+    // VNNI's rate: with the 200-image study none of the searches above at 99 % fits 25 ms there
+    // (keep 384 to level 3: 30.6 ms p50 under `ALIGNIST_KERNELS=avx2` on Zen 4, docs/RESULTS.md).
+    // Fewer rows: only level 2 ranked by the shape branch (its finest level 512 rows, not 768),
+    // and the finest level in i8 with its best cells rescored in f32.
+    for keep in [256, 384] {
+        out.push(halving(2, keep, 2, Precision::I8));
+    }
+    for (keep, to) in [(256, 2), (384, 2), (384, 3)] {
+        out.push(SearchParams {
+            rescore_finest: true,
+            ..halving(2, keep, to, Precision::I8)
+        });
+    }
     out
 }
 
@@ -355,5 +370,18 @@ pub fn print(figures: &[SearchFigures], default: &SearchParams, objects: &[Strin
                 listed.join(", ")
             }
         );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::candidates;
+
+    #[test]
+    fn every_studied_search_is_studied_once() {
+        let all = candidates();
+        for (i, a) in all.iter().enumerate() {
+            assert!(all[i + 1..].iter().all(|b| b != a), "studied twice: {a}");
+        }
     }
 }
