@@ -9,7 +9,7 @@
 //! target, the most agreeing one predicted within the budget (agreements one studied image apart
 //! count as equal, [`TIE_IMAGES`]; ties: the fastest); when none fits, the fastest of them, flagged
 //! as over budget. A search predicted just over the budget that would be chosen within it is timed
-//! again before it is ruled out ([`estimate_and_retime`]). It never picks a search below the
+//! again before it is ruled out (`estimate_and_retime`). It never picks a search below the
 //! target. Without a study it keeps the configured search's shape and only chooses its coarse
 //! precision among f32, bfloat16 and f16 (which rank cells like f32, up to rounding, so each twin
 //! is taken to agree as well; not 8-bit integers, whose scores are a few % off: they are served
