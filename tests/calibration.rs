@@ -7,7 +7,7 @@ use std::path::Path;
 
 use alignist::bundle::study::{SEARCH_STUDY_FILE, SearchStudy, StudiedSearch};
 use alignist::engine::calibrate::{calibrate, calibrate_within};
-use alignist::engine::{Engine, EngineConfig, Model};
+use alignist::engine::{Engine, EngineConfig, Model, SearchParams};
 use alignist::net::{Branches, Precision};
 
 fn shipped() -> &'static Path {
@@ -53,6 +53,9 @@ fn study() -> SearchStudy {
             studied(2, 256, 1.0, "f32", 0.995),
             studied(2, 1024, 1.0, "f32", 1.0),
         ],
+        network_sha256: None,
+        references: Vec::new(),
+        extended_by: Vec::new(),
     }
 }
 
@@ -488,4 +491,96 @@ fn a_study_records_its_seed_and_an_older_one_reads_without() {
     let text = std::fs::read_to_string(dir.path().join(SEARCH_STUDY_FILE)).unwrap();
     assert!(!text.contains("\"seed\""), "{text}");
     assert_eq!(SearchStudy::load(dir.path()).unwrap().unwrap().seed, None);
+}
+
+/// The searches of a study run on images whose exhaustive argmax is given (read from a study)
+/// score as they do when every cell is scored: the same agreement, maximum found and gap, the
+/// same references; a reference is taken only for the same image.
+#[test]
+fn a_study_from_known_references_scores_as_the_exhaustive_one() {
+    use alignist::bench::search::{known_references, study, study_references, unstudied};
+    let model = model();
+    let (crops, _) = shipped_crops_and_top_10(31, 3);
+    let searches = [
+        SearchParams::halving(1, 16, Precision::F32),
+        SearchParams::halving(1, 64, Precision::I8),
+    ];
+    let (full, references) = study(&model, &crops, &searches, (3, 10), &[]).unwrap();
+    let record = SearchStudy {
+        images: crops.len(),
+        references: study_references(&crops, &references),
+        ..self::study()
+    };
+    let known = known_references(&record, &crops);
+    assert!(known.iter().all(Option::is_some), "{known:?}");
+    let (cached, again) = study(&model, &crops, &searches, (3, 10), &known).unwrap();
+    assert_eq!(again, references);
+    for (a, b) in full.iter().zip(&cached) {
+        assert_eq!(
+            (a.agreement, a.found_maximum, &a.disagreements),
+            (b.agreement, b.found_maximum, &b.disagreements)
+        );
+        assert!((a.mean_gap - b.mean_gap).abs() < 1e-5, "{a:?} {b:?}");
+    }
+    // The references are the exhaustive argmax, and the study reads them: a wrong one (a cell
+    // half the grid away in index order, scored 1 higher) changes the figures.
+    let features = model.features(&[&crops[0]]).unwrap().swap_remove(0);
+    let logits = model.logits_at(&features, 3).unwrap();
+    let best = logits.iter().copied().fold(f32::MIN, f32::max);
+    assert_eq!(logits[references[0].cell as usize], best);
+    let mut wrong = known.clone();
+    wrong[0] = Some(alignist::bench::search::Reference {
+        cell: (references[0].cell + logits.len() as u64 / 2) % logits.len() as u64,
+        logit: references[0].logit + 1.0,
+    });
+    let (misled, _) = study(&model, &crops, &searches, (3, 10), &wrong).unwrap();
+    let n = crops.len() as f64;
+    assert!((misled[1].mean_gap - full[1].mean_gap - 1.0 / n).abs() < 1e-4);
+    assert!(
+        misled[1].agreement < full[1].agreement
+            || full[1].disagreements.iter().any(|&(i, _)| i == 0),
+        "{misled:?}"
+    );
+    // Another image in a reference's place is scored again.
+    let mut swapped = crops.clone();
+    swapped.swap(0, 1);
+    let known = known_references(&record, &swapped);
+    assert!(known[0].is_none() && known[1].is_none() && known[2].is_some());
+    // What the study holds is not run again.
+    let holds = SearchStudy {
+        searches: vec![studied(1, 32, 1.0, "f32", 0.8)],
+        ..self::study()
+    };
+    let flat_32 = SearchParams {
+        keep_taper: 1.0,
+        ..SearchParams::halving(1, 32, Precision::F32)
+    };
+    let left = unstudied(&holds, &[flat_32, searches[0]]);
+    assert_eq!(left, vec![searches[0]]);
+}
+
+/// `bench --extend-study` refuses a study that measured another network, naming the file and
+/// the field, and a bundle without a study, before it scores anything.
+#[test]
+fn extending_a_study_of_another_network_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let folder = dir.path().join("symsol1");
+    copy_dir(shipped(), &folder);
+    std::fs::remove_file(folder.join(SEARCH_STUDY_FILE)).unwrap();
+    let crops = vec![vec![0u8; 3]; 400];
+    let names = vec!["cube".to_string(); 400];
+    let err = alignist::bench::extend_study(&folder, &crops, &names).unwrap_err();
+    assert!(err.to_string().contains("no search study"), "{err}");
+    SearchStudy {
+        network_sha256: Some("0".repeat(64)),
+        ..study()
+    }
+    .save(&folder)
+    .unwrap();
+    let err = alignist::bench::extend_study(&folder, &crops, &names).unwrap_err();
+    let text = err.to_string();
+    assert!(
+        text.contains(SEARCH_STUDY_FILE) && text.contains("network_sha256"),
+        "{text}"
+    );
 }

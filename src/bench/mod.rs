@@ -101,11 +101,14 @@ pub fn bench(
     let peaks = print_peaks(&model);
     full_grid_figures(&model, &crops[0], bundle, &peaks)?;
     // The coarse-to-fine search against the exhaustive level-5 argmax.
-    let figures = search::study(&model, crops, &search::candidates(), 5, 10)?;
+    let (figures, references) =
+        search::study(&model, crops, &search::candidates(), (STUDY_LEVEL, 10), &[])?;
     search::print(&figures, &model.config().search(), objects);
     if let Some(seed) = write_study {
         let command = std::env::args().collect::<Vec<_>>().join(" ");
-        search::record(&figures, 5, crops.len(), seed, command).save(bundle)?;
+        let references = search::study_references(crops, &references);
+        let network = network_sha256(&model);
+        search::record(&figures, STUDY_LEVEL, seed, command, network, references).save(bundle)?;
         println!(
             "search study written to {}",
             bundle
@@ -120,6 +123,81 @@ pub fn bench(
         .ok_or_else(|| anyhow::anyhow!("crop size"))?
         .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)?;
     grpc_vs_in_process(model, bundle, &png, in_process_p50)
+}
+
+/// The level a search study compares with exhaustively.
+const STUDY_LEVEL: u8 = 5;
+
+/// The sha256 of the network `model` loaded, from its manifest.
+fn network_sha256(model: &Model) -> Option<String> {
+    let files = &model.manifest.files;
+    files
+        .get(crate::bundle::model::NETWORK_FILE)
+        .map(|entry| entry.sha256.clone())
+}
+
+/// Adds to the bundle's search study the candidate searches it does not hold, on `crops` (the
+/// study's images, rendered again from its seed; `objects[i]` names crop `i`'s), and writes it
+/// back: each image's exhaustive argmax is read from the study where it holds the same image, so
+/// only the new searches run. Refused when the study measured another network.
+pub fn extend_study(bundle: &Path, crops: &[Vec<u8>], objects: &[String]) -> anyhow::Result<()> {
+    use crate::bundle::study::{SEARCH_STUDY_FILE, SearchStudy};
+    let file = bundle.join(SEARCH_STUDY_FILE);
+    let mut study = SearchStudy::load(bundle)?.ok_or_else(|| {
+        anyhow::anyhow!(
+            "{}: no search study to extend (write one with --write-study)",
+            file.display()
+        )
+    })?;
+    anyhow::ensure!(
+        crops.len() == study.images,
+        "{}: images: the study has {}, the extension was given {}",
+        file.display(),
+        study.images,
+        crops.len()
+    );
+    let (_, entry) = crate::bundle::model::ModelBundle::load_weights_entry(bundle)?;
+    let network = Some(entry.sha256);
+    if let (Some(studied), Some(now)) = (&study.network_sha256, &network) {
+        anyhow::ensure!(
+            studied == now,
+            "{}: network_sha256: the study measured network {studied}, the bundle holds {now}: \
+             write the study again with --write-study",
+            file.display()
+        );
+    }
+    let new = search::unstudied(&study, &search::candidates());
+    if new.is_empty() {
+        println!(
+            "{}: every candidate search is studied already",
+            file.display()
+        );
+        return Ok(());
+    }
+    let model = Engine::load_model(bundle, EngineConfig::default())?;
+    let known = search::known_references(&study, crops);
+    println!(
+        "{} searches to add to {}, on its {} images (seed {}); {} of them with their exhaustive \
+         argmax from the study",
+        new.len(),
+        file.display(),
+        crops.len(),
+        study.seed.map_or("unknown".into(), |s| s.to_string()),
+        known.iter().filter(|k| k.is_some()).count()
+    );
+    let (figures, references) = search::study(&model, crops, &new, (study.level, 10), &known)?;
+    search::print(&figures, &model.config().search(), objects);
+    study
+        .searches
+        .extend(figures.iter().map(search::studied_search));
+    study.references = search::study_references(crops, &references);
+    study.network_sha256 = network;
+    study
+        .extended_by
+        .push(std::env::args().collect::<Vec<_>>().join(" "));
+    study.save(bundle)?;
+    println!("{} searches added to {}", figures.len(), file.display());
+    Ok(())
 }
 
 /// The probed peaks the head's rates are compared with, in GFLOP/s.

@@ -7,11 +7,11 @@
 
 use std::time::Instant;
 
-use crate::bundle::study::{SearchStudy, StudiedSearch};
+use crate::bundle::study::{SearchStudy, StudiedSearch, StudyReference};
 use crate::engine::{EngineError, Model, PredictOptions, RESCORED_CELLS, SearchParams};
 use crate::net::Precision;
 use crate::so3::metrics::quantile;
-use crate::so3::{covering_radius, geodesic_angle};
+use crate::so3::{covering_radius, geodesic_angle, to_row_major_f32};
 
 /// What one candidate search scored.
 #[derive(Debug, Clone)]
@@ -148,7 +148,8 @@ pub fn candidates() -> Vec<SearchParams> {
 /// Halving searches whose coarse levels are ranked by the shape branch alone: to level 3 in
 /// every precision, to levels 2 and 4 in i8 (the shipped model's choice on AVX2), from start
 /// level 2 (keeps of 192–1024, one of them with its finest level rescored), and from start level
-/// 2 with fewer rows for cores without VNNI (to level 2, and with the finest level rescored).
+/// 2 with fewer rows for cores without VNNI (to level 2, to level 4 with keeps of 384 and 512,
+/// and with the finest level rescored).
 fn shape_ranked() -> Vec<SearchParams> {
     const EVERY_PRECISION: [Precision; 4] = [
         Precision::I8,
@@ -202,18 +203,45 @@ fn shape_ranked() -> Vec<SearchParams> {
             ..halving(2, keep, to, Precision::I8)
         });
     }
+    // Every level below the finest ranked by the shape branch (level 4's rows at half the
+    // arithmetic), and the widest keeps with their finest level rescored: the fewest rows a keep
+    // of 384 or 512 scores.
+    for keep in [384, 512] {
+        let shape_to_4 = halving(2, keep, 4, Precision::I8);
+        out.push(shape_to_4);
+        out.push(SearchParams {
+            rescore_finest: true,
+            ..shape_to_4
+        });
+    }
+    out.push(SearchParams {
+        rescore_finest: true,
+        ..halving(2, 512, 3, Precision::I8)
+    });
     out
 }
 
+/// The exhaustive argmax of one image at the study's level.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Reference {
+    /// The cell with the highest log-weight.
+    pub cell: u64,
+    /// Its log-weight (f32, both branches).
+    pub logit: f32,
+}
+
 /// Runs `searches` to `level` (top-`top_k`) on every crop and compares each with the exhaustive
-/// argmax of `level`.
+/// argmax of `level`: `known[i]`, where given, is crop `i`'s (from a study written before: no
+/// cell is scored for it, and a search's top-1 is scored alone in f32, as the exhaustive pass
+/// scores it), else every cell of `level` is scored. Returns each search's figures and every
+/// crop's reference.
 pub fn study(
     model: &Model,
     crops: &[Vec<u8>],
     searches: &[SearchParams],
-    level: u8,
-    top_k: usize,
-) -> Result<Vec<SearchFigures>, EngineError> {
+    (level, top_k): (u8, usize),
+    known: &[Option<Reference>],
+) -> Result<(Vec<SearchFigures>, Vec<Reference>), EngineError> {
     let grid = model.grid_at(level)?;
     let options = PredictOptions {
         top_k,
@@ -229,14 +257,31 @@ pub fn study(
     let mut gap = vec![0.0f64; searches.len()];
     let mut times: Vec<Vec<f64>> = vec![Vec::new(); searches.len()];
     let mut disagreements: Vec<Vec<(usize, bool)>> = vec![Vec::new(); searches.len()];
+    let mut references = Vec::with_capacity(crops.len());
     for (n, crop) in crops.iter().enumerate() {
         let features = model.features(&[crop])?.swap_remove(0);
-        let logits = model.logits_at(&features, level)?;
-        let (best, best_logit) = logits
-            .iter()
-            .enumerate()
-            .fold((0, f32::MIN), |b, (i, &l)| if l > b.1 { (i, l) } else { b });
-        let best_rotation = grid.rotation(best as u64);
+        let (logits, best) = match known.get(n).copied().flatten() {
+            Some(reference) => (None, reference),
+            None => {
+                let logits = model.logits_at(&features, level)?;
+                let (cell, logit) = logits
+                    .iter()
+                    .enumerate()
+                    .fold((0, f32::MIN), |b, (i, &l)| if l > b.1 { (i, l) } else { b });
+                let cell = cell as u64;
+                (Some(logits), Reference { cell, logit })
+            }
+        };
+        references.push(best);
+        let best_rotation = grid.rotation(best.cell);
+        let logit_of = |cell: u64| match &logits {
+            Some(logits) => logits[cell as usize],
+            None => {
+                let rotation = to_row_major_f32(&grid.rotation(cell));
+                let features = std::slice::from_ref(&features);
+                model.score_rotations_many(features, &[vec![rotation]], Precision::F32)[0][0]
+            }
+        };
         for (s, search) in searches.iter().enumerate() {
             let t = Instant::now();
             let f = model.features(&[crop])?;
@@ -245,7 +290,8 @@ pub fn study(
                 .swap_remove(0);
             times[s].push(t.elapsed().as_secs_f64() * 1e3);
             let top = p.top[0].cell;
-            let tied = logits[top as usize] >= best_logit - 0.01;
+            let top_logit = logit_of(top);
+            let tied = top_logit >= best.logit - 0.01;
             if geodesic_angle(&grid.rotation(top), &best_rotation) <= neighbour {
                 agree[s] += 1;
             } else {
@@ -255,7 +301,7 @@ pub fn study(
                 found[s] += 1;
             }
             mass[s] += p.covered_mass;
-            gap[s] += f64::from(best_logit - logits[top as usize]);
+            gap[s] += f64::from(best.logit - top_logit);
         }
         eprint!(
             "\rsearch study: {}/{} images, {:.0} s",
@@ -266,7 +312,7 @@ pub fn study(
     }
     eprintln!();
     let n = crops.len().max(1) as f64;
-    Ok(searches
+    let figures = searches
         .iter()
         .enumerate()
         .map(|(s, &params)| SearchFigures {
@@ -278,38 +324,100 @@ pub fn study(
             p50_ms: quantile(&times[s], 0.5),
             disagreements: std::mem::take(&mut disagreements[s]),
         })
-        .collect())
+        .collect();
+    Ok((figures, references))
 }
 
-/// The study as the record a bundle carries ([`SearchStudy`]), for `images` images rendered
-/// from `seed`, to `level`.
+/// The study as the record a bundle carries ([`SearchStudy`]), for the images rendered from
+/// `seed` with their `references`, on the network whose sha256 is `network_sha256`, to `level`.
 pub fn record(
     figures: &[SearchFigures],
     level: u8,
-    images: usize,
     seed: u64,
     command: String,
+    network_sha256: Option<String>,
+    references: Vec<StudyReference>,
 ) -> SearchStudy {
     SearchStudy {
         level,
-        images,
+        images: references.len(),
         command,
         seed: Some(seed),
-        searches: figures
-            .iter()
-            .map(|f| StudiedSearch {
-                start_level: f.params.start_level,
-                keep: f.params.keep,
-                keep_mass: f.params.keep_mass,
-                keep_taper: f.params.keep_taper,
-                coarse_precision: f.params.coarse_precision.name().into(),
-                rescore_finest: f.params.rescores(),
-                shape_only_to: f.params.shape_only_to,
-                agreement: f.agreement,
-                found_maximum: f.found_maximum,
-            })
-            .collect(),
+        searches: figures.iter().map(studied_search).collect(),
+        network_sha256,
+        references,
+        extended_by: Vec::new(),
     }
+}
+
+/// One search's figures as the study file holds them.
+pub fn studied_search(f: &SearchFigures) -> StudiedSearch {
+    StudiedSearch {
+        start_level: f.params.start_level,
+        keep: f.params.keep,
+        keep_mass: f.params.keep_mass,
+        keep_taper: f.params.keep_taper,
+        coarse_precision: f.params.coarse_precision.name().into(),
+        rescore_finest: f.params.rescores(),
+        shape_only_to: f.params.shape_only_to,
+        agreement: f.agreement,
+        found_maximum: f.found_maximum,
+    }
+}
+
+/// Whether `studied` is the study of the search `params`.
+fn is_studied(studied: &StudiedSearch, params: &SearchParams) -> bool {
+    studied.start_level == params.start_level
+        && studied.keep == params.keep
+        && studied.keep_mass == params.keep_mass
+        && studied.keep_taper == params.keep_taper
+        && studied.precision().ok() == Some(params.coarse_precision)
+        && studied.rescore_finest == params.rescores()
+        && studied.shape_only_to == params.shape_only_to
+}
+
+/// The searches of `candidates` that `study` does not hold.
+pub fn unstudied(study: &SearchStudy, candidates: &[SearchParams]) -> Vec<SearchParams> {
+    candidates
+        .iter()
+        .filter(|c| !study.searches.iter().any(|s| is_studied(s, c)))
+        .copied()
+        .collect()
+}
+
+/// The sha256 of a crop's bytes, lower-case hex.
+fn image_sha256(crop: &[u8]) -> String {
+    use sha2::{Digest, Sha256};
+    hex::encode(Sha256::digest(crop))
+}
+
+/// Each crop's references as the study file holds them (`crops[i]` is `references[i]`'s).
+pub fn study_references(crops: &[Vec<u8>], references: &[Reference]) -> Vec<StudyReference> {
+    crops
+        .iter()
+        .zip(references)
+        .map(|(crop, r)| StudyReference {
+            image_sha256: image_sha256(crop),
+            cell: r.cell,
+            logit: r.logit,
+        })
+        .collect()
+}
+
+/// The exhaustive argmax `study` holds for each of `crops`, where it holds one for the same
+/// image at the same place (`None` for the others: they are scored again).
+pub fn known_references(study: &SearchStudy, crops: &[Vec<u8>]) -> Vec<Option<Reference>> {
+    crops
+        .iter()
+        .enumerate()
+        .map(|(i, crop)| {
+            let r = study.references.get(i)?;
+            (r.image_sha256 == image_sha256(crop)).then_some(Reference {
+                cell: r.cell,
+                logit: r.logit,
+            })
+        })
+        .collect()
 }
 
 /// Prints the study as a table, then the default search's figures and its disagreements by

@@ -61,6 +61,30 @@ pub struct SearchStudy {
     pub seed: Option<u64>,
     /// Every search studied.
     pub searches: Vec<StudiedSearch>,
+    /// The sha256 of the network the study measured (the manifest's entry for
+    /// `network.safetensors`), so that searches are added to it only for the same weights.
+    /// Absent in studies written before the field.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub network_sha256: Option<String>,
+    /// Each studied image's exhaustive argmax, in the order the images were rendered, so that
+    /// searches can be added to the study (`bench --extend-study`) without scoring every cell of
+    /// the finest level again. Empty in studies written before the field.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub references: Vec<StudyReference>,
+    /// The commands that added searches to the study after it was written.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub extended_by: Vec<String>,
+}
+
+/// The exhaustive argmax of one studied image: what each search's top-1 is compared with.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StudyReference {
+    /// The sha256 of the image's RGB bytes: a reference is used only for the same image.
+    pub image_sha256: String,
+    /// The cell of the study's level with the highest log-weight.
+    pub cell: u64,
+    /// Its log-weight `s_θ + s_φ` in f32.
+    pub logit: f32,
 }
 
 impl StudiedSearch {
@@ -115,6 +139,26 @@ impl SearchStudy {
     fn check(&self) -> Result<(), String> {
         if self.images == 0 {
             return Err("images: must be positive".into());
+        }
+        if !self.references.is_empty() && self.references.len() != self.images {
+            return Err(format!(
+                "references: {} of them for {} images (one per image, or none)",
+                self.references.len(),
+                self.images
+            ));
+        }
+        // `72·8^L` cells at level L (`so3::GridLevel::len`).
+        let cells = 72u64 << (3 * u32::from(self.level.min(crate::so3::grid::MAX_LEVEL)));
+        for (i, r) in self.references.iter().enumerate() {
+            if r.cell >= cells {
+                return Err(format!(
+                    "references[{i}].cell: {} is not a cell of level {} ({cells} cells)",
+                    r.cell, self.level
+                ));
+            }
+            if !r.logit.is_finite() {
+                return Err(format!("references[{i}].logit: {} is not finite", r.logit));
+            }
         }
         for (i, s) in self.searches.iter().enumerate() {
             let field = |name: &str| format!("searches[{i}].{name}");

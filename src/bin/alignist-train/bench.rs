@@ -18,6 +18,12 @@ pub(crate) struct BenchArgs {
     /// rendered from a seed of their own, apart from the images a plain `bench` checks on.
     #[arg(long, conflicts_with_all = ["training", "depth"])]
     write_study: bool,
+    /// Add to the bundle's search study the candidate searches it does not hold yet, on the
+    /// study's own images (its seed and number; --images is not read), then stop. Each image's
+    /// exhaustive argmax is read from the study where it holds it (studies written since the
+    /// field), so only the new searches run; the study must have measured this network.
+    #[arg(long, conflicts_with_all = ["training", "depth", "write_study"])]
+    extend_study: bool,
     /// Measure the training step instead (IPDF and Alignist, with their profiles), on a small
     /// set the benchmark makes itself.
     #[arg(long)]
@@ -63,6 +69,9 @@ pub(crate) fn bench_cmd(args: &BenchArgs) -> Result<()> {
         );
         return alignist::bench::depth::depth_cost(&model, &renders, args.images);
     }
+    if args.extend_study {
+        return extend_study(args, &loaded, &renders);
+    }
     let per_object = args.images.max(1).div_ceil(renders.names.len().max(1));
     // Seeds no training run uses (training draws from its own seeds, evaluation from 2^40): the
     // study's images and the check's are apart, so that the served search's agreement printed
@@ -98,6 +107,42 @@ pub(crate) fn bench_cmd(args: &BenchArgs) -> Result<()> {
         &objects,
         args.write_study.then_some(seed),
     )
+}
+
+/// `bench --extend-study`: the study's images rendered again from its seed, then the searches it
+/// lacks run on them.
+fn extend_study(
+    args: &BenchArgs,
+    loaded: &alignist::bundle::model::ModelBundle,
+    renders: &alignist::train::data::BundleRenders,
+) -> Result<()> {
+    let study = alignist::bundle::study::SearchStudy::load(&args.model)
+        .with_context(|| format!("--model {}", args.model.display()))?
+        .with_context(|| {
+            format!(
+                "--model {}: no search study to extend (write one with --write-study)",
+                args.model.display()
+            )
+        })?;
+    let objects = renders.names.len().max(1);
+    if !study.images.is_multiple_of(objects) {
+        bail!(
+            "{}: images: {} is not a multiple of the bundle's {objects} objects, so the study's \
+             images cannot be rendered again",
+            args.model
+                .join(alignist::bundle::study::SEARCH_STUDY_FILE)
+                .display(),
+            study.images
+        );
+    }
+    let seed = study.seed.unwrap_or(CHECK_SEED);
+    let size = loaded.manifest.network.image_size;
+    let (objects, crops): (Vec<String>, Vec<Vec<u8>>) = renders
+        .eval_images(size, study.images / objects, seed)
+        .into_iter()
+        .map(|im| (im.object, im.rgb))
+        .unzip();
+    alignist::bench::extend_study(&args.model, &crops, &objects)
 }
 
 /// The seed of the images a search study is written from (`--write-study`).
