@@ -154,7 +154,14 @@ fn the_search_study_counts_agreements_and_lists_disagreements() {
         shape_only_to: None,
     };
     // From level 2 keeping all 4 608 cells, level 3 is scored in full: the exhaustive argmax.
-    let figures = study(&model, &crops, &[search(2, 4608), search(0, 1)], 3, 5).unwrap();
+    let (figures, _) = study(
+        &model,
+        &crops,
+        &[search(2, 4608), search(0, 1)],
+        (3, 5),
+        &[],
+    )
+    .unwrap();
     assert_eq!(figures[0].agreement, 1.0);
     assert!(figures[0].disagreements.is_empty());
     assert_eq!(figures[0].mean_gap, 0.0);
