@@ -148,8 +148,8 @@ pub fn candidates() -> Vec<SearchParams> {
 /// Halving searches whose coarse levels are ranked by the shape branch alone: to level 3 in
 /// every precision, to levels 2 and 4 in i8 (the shipped model's choice on AVX2), from start
 /// level 2 (keeps of 192–1024, one of them with its finest level rescored), and from start level
-/// 2 with fewer rows for cores without VNNI (to level 2, to level 4 with keeps of 384 and 512,
-/// and with the finest level rescored).
+/// 2 with fewer rows for cores without VNNI (to level 2, also with narrower or faster-tapering
+/// keeps; to level 4 with keeps of 384 and 512; and with the finest level rescored).
 fn shape_ranked() -> Vec<SearchParams> {
     const EVERY_PRECISION: [Precision; 4] = [
         Precision::I8,
@@ -218,6 +218,15 @@ fn shape_ranked() -> Vec<SearchParams> {
         rescore_finest: true,
         ..halving(2, 512, 3, Precision::I8)
     });
+    // Only level 2 ranked by the shape branch, with fewer rows below it: a keep of 192, and a
+    // keep of 256 that tapers faster (level 4 and 5 rows cut by a quarter, or by half or more).
+    out.push(halving(2, 192, 2, Precision::I8));
+    for keep_taper in [0.375, 0.25] {
+        out.push(SearchParams {
+            keep_taper,
+            ..halving(2, 256, 2, Precision::I8)
+        });
+    }
     out
 }
 
