@@ -157,12 +157,12 @@ pub fn extend_study(bundle: &Path, crops: &[Vec<u8>], objects: &[String]) -> any
         crops.len()
     );
     let (_, entry) = crate::bundle::model::ModelBundle::load_weights_entry(bundle)?;
-    let network = Some(entry.sha256);
-    if let (Some(studied), Some(now)) = (&study.network_sha256, &network) {
+    let network = entry.sha256;
+    if let Some(studied) = &study.network_sha256 {
         anyhow::ensure!(
-            studied == now,
-            "{}: network_sha256: the study measured network {studied}, the bundle holds {now}: \
-             write the study again with --write-study",
+            *studied == network,
+            "{}: network_sha256: the study measured network {studied}, the bundle holds \
+             {network}: write the study again with --write-study",
             file.display()
         );
     }
@@ -191,7 +191,7 @@ pub fn extend_study(bundle: &Path, crops: &[Vec<u8>], objects: &[String]) -> any
         .searches
         .extend(figures.iter().map(search::studied_search));
     study.references = search::study_references(crops, &references);
-    study.network_sha256 = network;
+    study.network_sha256 = Some(network);
     study
         .extended_by
         .push(std::env::args().collect::<Vec<_>>().join(" "));
