@@ -529,7 +529,7 @@ fn a_study_from_known_references_scores_as_the_exhaustive_one() {
     let best = logits.iter().copied().fold(f32::MIN, f32::max);
     assert_eq!(logits[references[0].cell as usize], best);
     let mut wrong = known.clone();
-    wrong[0] = Some(alignist::bench::search::Reference {
+    wrong[0] = Some(alignist::bundle::study::Argmax {
         cell: (references[0].cell + logits.len() as u64 / 2) % logits.len() as u64,
         logit: references[0].logit + 1.0,
     });
@@ -567,9 +567,10 @@ fn extending_a_study_of_another_network_is_refused() {
     let folder = dir.path().join("symsol1");
     copy_dir(shipped(), &folder);
     std::fs::remove_file(folder.join(SEARCH_STUDY_FILE)).unwrap();
-    let crops = vec![vec![0u8; 3]; 400];
-    let names = vec!["cube".to_string(); 400];
-    let err = alignist::bench::extend_study(&folder, &crops, &names).unwrap_err();
+    let render = |_: Option<u64>, images: usize| {
+        Ok((vec!["cube".to_string(); images], vec![vec![0u8; 3]; images]))
+    };
+    let err = alignist::bench::extend_study(&folder, render).unwrap_err();
     assert!(err.to_string().contains("no search study"), "{err}");
     SearchStudy {
         network_sha256: Some("0".repeat(64)),
@@ -577,7 +578,7 @@ fn extending_a_study_of_another_network_is_refused() {
     }
     .save(&folder)
     .unwrap();
-    let err = alignist::bench::extend_study(&folder, &crops, &names).unwrap_err();
+    let err = alignist::bench::extend_study(&folder, render).unwrap_err();
     let text = err.to_string();
     assert!(
         text.contains(SEARCH_STUDY_FILE) && text.contains("network_sha256"),

@@ -136,11 +136,15 @@ fn network_sha256(model: &Model) -> Option<String> {
         .map(|entry| entry.sha256.clone())
 }
 
-/// Adds to the bundle's search study the candidate searches it does not hold, on `crops` (the
-/// study's images, rendered again from its seed; `objects[i]` names crop `i`'s), and writes it
-/// back: each image's exhaustive argmax is read from the study where it holds the same image, so
-/// only the new searches run. Refused when the study measured another network.
-pub fn extend_study(bundle: &Path, crops: &[Vec<u8>], objects: &[String]) -> anyhow::Result<()> {
+/// Adds to the bundle's search study the candidate searches it does not hold, on the study's own
+/// images (`render(seed, images)` renders them again: each crop with its object's name, from
+/// the study's seed, `None` in studies written before it), and writes it back: each image's
+/// exhaustive argmax is read from the study where it holds the same image, so only the new
+/// searches run. Refused when the study measured another network.
+pub fn extend_study(
+    bundle: &Path,
+    render: impl FnOnce(Option<u64>, usize) -> anyhow::Result<(Vec<String>, Vec<Vec<u8>>)>,
+) -> anyhow::Result<()> {
     use crate::bundle::study::{SEARCH_STUDY_FILE, SearchStudy};
     let file = bundle.join(SEARCH_STUDY_FILE);
     let mut study = SearchStudy::load(bundle)?.ok_or_else(|| {
@@ -149,13 +153,6 @@ pub fn extend_study(bundle: &Path, crops: &[Vec<u8>], objects: &[String]) -> any
             file.display()
         )
     })?;
-    anyhow::ensure!(
-        crops.len() == study.images,
-        "{}: images: the study has {}, the extension was given {}",
-        file.display(),
-        study.images,
-        crops.len()
-    );
     let (_, entry) = crate::bundle::model::ModelBundle::load_weights_entry(bundle)?;
     let network = entry.sha256;
     if let Some(studied) = &study.network_sha256 {
@@ -174,6 +171,15 @@ pub fn extend_study(bundle: &Path, crops: &[Vec<u8>], objects: &[String]) -> any
         );
         return Ok(());
     }
+    let (objects, crops) = render(study.seed, study.images)?;
+    anyhow::ensure!(
+        crops.len() == study.images && objects.len() == crops.len(),
+        "{}: images: the study has {}, {} were rendered again",
+        file.display(),
+        study.images,
+        crops.len()
+    );
+    let crops = &crops[..];
     let model = Engine::load_model(bundle, EngineConfig::default())?;
     let known = search::known_references(&study, crops);
     println!(
@@ -186,7 +192,7 @@ pub fn extend_study(bundle: &Path, crops: &[Vec<u8>], objects: &[String]) -> any
         known.iter().filter(|k| k.is_some()).count()
     );
     let (figures, references) = search::study(&model, crops, &new, (study.level, 10), &known)?;
-    search::print(&figures, &model.config().search(), objects);
+    search::print(&figures, &model.config().search(), &objects);
     study
         .searches
         .extend(figures.iter().map(search::studied_search));

@@ -7,7 +7,7 @@
 
 use std::time::Instant;
 
-use crate::bundle::study::{SearchStudy, StudiedSearch, StudyReference};
+use crate::bundle::study::{Argmax, SearchStudy, StudiedSearch, StudyReference};
 use crate::engine::{EngineError, Model, PredictOptions, RESCORED_CELLS, SearchParams};
 use crate::net::Precision;
 use crate::so3::metrics::quantile;
@@ -230,15 +230,6 @@ fn shape_ranked() -> Vec<SearchParams> {
     out
 }
 
-/// The exhaustive argmax of one image at the study's level.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Reference {
-    /// The cell with the highest log-weight.
-    pub cell: u64,
-    /// Its log-weight (f32, both branches).
-    pub logit: f32,
-}
-
 /// Runs `searches` to `level` (top-`top_k`) on every crop and compares each with the exhaustive
 /// argmax of `level`: `known[i]`, where given, is crop `i`'s (from a study written before: no
 /// cell is scored for it, and a search's top-1 is scored alone in f32, as the exhaustive pass
@@ -249,8 +240,8 @@ pub fn study(
     crops: &[Vec<u8>],
     searches: &[SearchParams],
     (level, top_k): (u8, usize),
-    known: &[Option<Reference>],
-) -> Result<(Vec<SearchFigures>, Vec<Reference>), EngineError> {
+    known: &[Option<Argmax>],
+) -> Result<(Vec<SearchFigures>, Vec<Argmax>), EngineError> {
     let grid = model.grid_at(level)?;
     let options = PredictOptions {
         top_k,
@@ -278,7 +269,7 @@ pub fn study(
                     .enumerate()
                     .fold((0, f32::MIN), |b, (i, &l)| if l > b.1 { (i, l) } else { b });
                 let cell = cell as u64;
-                (Some(logits), Reference { cell, logit })
+                (Some(logits), Argmax { cell, logit })
             }
         };
         references.push(best);
@@ -374,15 +365,14 @@ pub fn studied_search(f: &SearchFigures) -> StudiedSearch {
     }
 }
 
-/// Whether `studied` is the study of the search `params`.
+/// Whether `studied` is the study of the search `params` (a study records whether a search
+/// rescores, [`SearchParams::rescores`], not the flag as given).
 fn is_studied(studied: &StudiedSearch, params: &SearchParams) -> bool {
-    studied.start_level == params.start_level
-        && studied.keep == params.keep
-        && studied.keep_mass == params.keep_mass
-        && studied.keep_taper == params.keep_taper
-        && studied.precision().ok() == Some(params.coarse_precision)
-        && studied.rescore_finest == params.rescores()
-        && studied.shape_only_to == params.shape_only_to
+    let recorded = |p: SearchParams| SearchParams {
+        rescore_finest: p.rescores(),
+        ..p
+    };
+    SearchParams::of_studied(studied).is_some_and(|s| recorded(s) == recorded(*params))
 }
 
 /// The searches of `candidates` that `study` does not hold.
@@ -401,30 +391,26 @@ fn image_sha256(crop: &[u8]) -> String {
 }
 
 /// Each crop's references as the study file holds them (`crops[i]` is `references[i]`'s).
-pub fn study_references(crops: &[Vec<u8>], references: &[Reference]) -> Vec<StudyReference> {
+pub fn study_references(crops: &[Vec<u8>], references: &[Argmax]) -> Vec<StudyReference> {
     crops
         .iter()
         .zip(references)
-        .map(|(crop, r)| StudyReference {
+        .map(|(crop, &argmax)| StudyReference {
             image_sha256: image_sha256(crop),
-            cell: r.cell,
-            logit: r.logit,
+            argmax,
         })
         .collect()
 }
 
 /// The exhaustive argmax `study` holds for each of `crops`, where it holds one for the same
 /// image at the same place (`None` for the others: they are scored again).
-pub fn known_references(study: &SearchStudy, crops: &[Vec<u8>]) -> Vec<Option<Reference>> {
+pub fn known_references(study: &SearchStudy, crops: &[Vec<u8>]) -> Vec<Option<Argmax>> {
     crops
         .iter()
         .enumerate()
         .map(|(i, crop)| {
             let r = study.references.get(i)?;
-            (r.image_sha256 == image_sha256(crop)).then_some(Reference {
-                cell: r.cell,
-                logit: r.logit,
-            })
+            (r.image_sha256 == image_sha256(crop)).then_some(r.argmax)
         })
         .collect()
 }

@@ -76,15 +76,24 @@ pub struct SearchStudy {
     pub extended_by: Vec<String>,
 }
 
-/// The exhaustive argmax of one studied image: what each search's top-1 is compared with.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct StudyReference {
-    /// The sha256 of the image's RGB bytes: a reference is used only for the same image.
-    pub image_sha256: String,
+/// The exhaustive argmax of one image at a study's level: what each search's top-1 is compared
+/// with.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Argmax {
     /// The cell of the study's level with the highest log-weight.
     pub cell: u64,
     /// Its log-weight `s_θ + s_φ` in f32.
     pub logit: f32,
+}
+
+/// One studied image's [`Argmax`], with the image it is of.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StudyReference {
+    /// The sha256 of the image's RGB bytes: a reference is used only for the same image.
+    pub image_sha256: String,
+    /// The image's argmax (its fields `cell` and `logit` sit beside `image_sha256` in the file).
+    #[serde(flatten)]
+    pub argmax: Argmax,
 }
 
 impl StudiedSearch {
@@ -149,7 +158,7 @@ impl SearchStudy {
         }
         // `72·8^L` cells at level L (`so3::GridLevel::len`).
         let cells = 72u64 << (3 * u32::from(self.level.min(crate::so3::grid::MAX_LEVEL)));
-        for (i, r) in self.references.iter().enumerate() {
+        for (i, r) in self.references.iter().map(|r| r.argmax).enumerate() {
             if r.cell >= cells {
                 return Err(format!(
                     "references[{i}].cell: {} is not a cell of level {} ({cells} cells)",

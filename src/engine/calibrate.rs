@@ -346,15 +346,7 @@ fn candidates(
             .filter(|s| s.agreement >= target && s.start_level <= model.config.max_full_level)
             .filter_map(|s| {
                 Some(Candidate {
-                    params: SearchParams {
-                        start_level: s.start_level,
-                        keep: s.keep,
-                        keep_mass: s.keep_mass,
-                        keep_taper: s.keep_taper,
-                        coarse_precision: s.precision().ok()?,
-                        rescore_finest: s.rescore_finest,
-                        shape_only_to: s.shape_only_to,
-                    },
+                    params: SearchParams::of_studied(s)?,
                     agreement: Some(s.agreement),
                 })
             })

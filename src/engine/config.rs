@@ -115,6 +115,19 @@ impl SearchParams {
 }
 
 impl SearchParams {
+    /// The search a study's entry measured (`None` when its precision does not parse).
+    pub fn of_studied(s: &crate::bundle::study::StudiedSearch) -> Option<SearchParams> {
+        Some(SearchParams {
+            start_level: s.start_level,
+            keep: s.keep,
+            keep_mass: s.keep_mass,
+            keep_taper: s.keep_taper,
+            coarse_precision: s.precision().ok()?,
+            rescore_finest: s.rescore_finest,
+            shape_only_to: s.shape_only_to,
+        })
+    }
+
     /// Start at `start_level`, keep `keep` cells at the first refinement and half as many at
     /// each finer one, the coarse levels in `coarse_precision` and by both branches, the finest
     /// in f32.

@@ -109,40 +109,33 @@ pub(crate) fn bench_cmd(args: &BenchArgs) -> Result<()> {
     )
 }
 
-/// `bench --extend-study`: the study's images rendered again from its seed, then the searches it
-/// lacks run on them.
+/// `bench --extend-study`: the searches the study lacks, run on its images rendered again from
+/// its seed (the bench's own for a study written before the seed was recorded).
 fn extend_study(
     args: &BenchArgs,
     loaded: &alignist::bundle::model::ModelBundle,
     renders: &alignist::train::data::BundleRenders,
 ) -> Result<()> {
-    let study = alignist::bundle::study::SearchStudy::load(&args.model)
-        .with_context(|| format!("--model {}", args.model.display()))?
-        .with_context(|| {
-            format!(
-                "--model {}: no search study to extend (write one with --write-study)",
-                args.model.display()
-            )
-        })?;
-    let objects = renders.names.len().max(1);
-    if !study.images.is_multiple_of(objects) {
-        bail!(
-            "{}: images: {} is not a multiple of the bundle's {objects} objects, so the study's \
-             images cannot be rendered again",
-            args.model
-                .join(alignist::bundle::study::SEARCH_STUDY_FILE)
-                .display(),
-            study.images
-        );
-    }
-    let seed = study.seed.unwrap_or(CHECK_SEED);
     let size = loaded.manifest.network.image_size;
-    let (objects, crops): (Vec<String>, Vec<Vec<u8>>) = renders
-        .eval_images(size, study.images / objects, seed)
-        .into_iter()
-        .map(|im| (im.object, im.rgb))
-        .unzip();
-    alignist::bench::extend_study(&args.model, &crops, &objects)
+    let render = |seed: Option<u64>, images: usize| {
+        let objects = renders.names.len().max(1);
+        if !images.is_multiple_of(objects) {
+            bail!(
+                "{}: images: {images} is not a multiple of the bundle's {objects} objects, so the \
+                 study's images cannot be rendered again",
+                args.model
+                    .join(alignist::bundle::study::SEARCH_STUDY_FILE)
+                    .display()
+            );
+        }
+        Ok(renders
+            .eval_images(size, images / objects, seed.unwrap_or(CHECK_SEED))
+            .into_iter()
+            .map(|im| (im.object, im.rgb))
+            .unzip())
+    };
+    alignist::bench::extend_study(&args.model, render)
+        .with_context(|| format!("--model {}", args.model.display()))
 }
 
 /// The seed of the images a search study is written from (`--write-study`).
