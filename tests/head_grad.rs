@@ -3,8 +3,8 @@
 //! 1e-4 relative, for each loss, and for a branch left out of the loss.
 
 use alignist::net::{
-    DualHead, HeadConfig, Kernels, TrainingHead, gkl_loss, gkl_loss_grad, ipdf_loss,
-    ipdf_loss_grad, l1_measure_loss, l1_measure_loss_grad,
+    DualHead, HeadConfig, Kernels, TrainingHead, contrast_loss, contrast_loss_grad, gkl_loss,
+    gkl_loss_grad, ipdf_loss, ipdf_loss_grad, l1_measure_loss, l1_measure_loss_grad,
 };
 use burn::module::ParamId;
 use burn::optim::GradientsParams;
@@ -26,7 +26,16 @@ enum Loss {
     Ipdf,
     /// GKL on the shape branch only (the feature branch left out).
     ShapeOnly,
+    /// GKL with the contrast term at [`CONTRAST`], each image's uniform columns from
+    /// [`UNIFORM_FROM`].
+    GklContrast,
 }
+
+/// The contrast term's weight in [`Loss::GklContrast`].
+const CONTRAST: f32 = 0.7;
+/// The first uniform column of each image: none focused, some, most, all but one, all (the ground
+/// truth alone, whose term is 0).
+const UNIFORM_FROM: [usize; B] = [1, 50, 150, K - 1, K];
 
 fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
     t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap()
@@ -99,6 +108,13 @@ fn burn_side(c: &Case, loss: Loss) -> Side {
         }
         Loss::Ipdf => ipdf_loss(scores.combined()),
         Loss::ShapeOnly => gkl_loss(t(&c.log_sdf), scores.shape),
+        Loss::GklContrast => {
+            let log_a = t(&c.log_sdf) + t(&c.log_se);
+            let contrast = contrast_loss(log_a, scores.combined(), &UNIFORM_FROM);
+            gkl_loss(t(&c.log_sdf), scores.shape.clone())
+                + gkl_loss(t(&c.log_se), scores.feature.clone())
+                + contrast.mul_scalar(CONTRAST)
+        }
     };
     let loss_value = value.clone().into_scalar::<f32>() as f64;
     let grads = value.backward();
@@ -138,6 +154,25 @@ fn fused_side(c: &Case, loss: Loss, kernels: Kernels) -> (Side, Vec<(ParamId, Op
         Loss::ShapeOnly => {
             let s = gkl_loss_grad(&c.log_sdf, &shape, B);
             (s.loss, [Some(s.grad), None])
+        }
+        Loss::GklContrast => {
+            let sum = |a: &[f32], b: &[f32]| -> Vec<f32> {
+                a.iter().zip(b).map(|(a, b)| a + b).collect()
+            };
+            let log_a = sum(&c.log_sdf, &c.log_se);
+            let k = contrast_loss_grad(&log_a, &sum(&shape, &feature), K, &UNIFORM_FROM);
+            let (s, f) = (
+                gkl_loss_grad(&c.log_sdf, &shape, B),
+                gkl_loss_grad(&c.log_se, &feature, B),
+            );
+            let with = |g: Vec<f32>| -> Vec<f32> {
+                g.iter()
+                    .zip(&k.grad)
+                    .map(|(g, d)| g + CONTRAST * d)
+                    .collect()
+            };
+            let loss = s.loss + f.loss + CONTRAST as f64 * k.loss;
+            (loss, [Some(with(s.grad)), Some(with(f.grad))])
         }
     };
     let grads = head.backward(&pass, d.each_ref().map(|d| d.as_deref()));
@@ -253,6 +288,37 @@ fn l1_measure_gradients_equal_burns_autodiff() {
 #[test]
 fn ipdf_gradients_equal_burns_autodiff() {
     check(Loss::Ipdf, 13);
+}
+
+#[test]
+fn contrast_term_gradients_equal_burns_autodiff() {
+    check(Loss::GklContrast, 16);
+}
+
+/// The contrast term alone: 0 where the scores are the targets up to a constant on the term's
+/// columns (whatever the masked columns hold), positive otherwise; its gradient is 0 on the
+/// masked columns and sums to 0 on each row.
+#[test]
+fn the_contrast_term_vanishes_at_the_targets_and_ignores_the_focused_columns() {
+    let k = 6;
+    let log_a = [0.0, -3.0, -1.0, -2.0, -5.0, -0.5];
+    let uniform_from = [3];
+    let mut c: Vec<f32> = log_a.iter().map(|a| a + 4.0).collect();
+    c[1] = 40.0; // a focused column: not in the term
+    c[2] = -40.0;
+    let at = contrast_loss_grad(&log_a, &c, k, &uniform_from);
+    assert!(at.loss.abs() < 1e-9, "loss {} at the targets", at.loss);
+    assert!(at.grad.iter().all(|g| g.abs() < 1e-6), "{:?}", at.grad);
+    c[4] += 2.0;
+    let off = contrast_loss_grad(&log_a, &c, k, &uniform_from);
+    assert!(off.loss > 1e-3, "loss {} off the targets", off.loss);
+    assert_eq!((off.grad[1], off.grad[2]), (0.0, 0.0));
+    assert!(
+        off.grad[4] > 0.0,
+        "the raised column is pushed down: {:?}",
+        off.grad
+    );
+    assert!(off.grad.iter().sum::<f32>().abs() < 1e-6);
 }
 
 #[test]

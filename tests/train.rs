@@ -112,6 +112,7 @@ fn config(method: Method) -> TrainConfig {
         pretrained: None,
         pretrained_file: None,
         encoder_lr_scale: None,
+        contrast: None,
     }
 }
 
@@ -883,6 +884,7 @@ fn the_encoder_learns_at_its_own_share_of_the_learning_rate() {
     let scaled = weights(
         &TrainConfig {
             encoder_lr_scale: Some(0.1),
+            contrast: None,
             ..cfg.clone()
         },
         "scaled.safetensors",
@@ -921,4 +923,34 @@ fn the_encoder_learns_at_its_own_share_of_the_learning_rate() {
         encoder > 5 && head > 2,
         "{encoder} encoder, {head} head tensors"
     );
+}
+
+/// The contrast term (`TrainConfig::contrast`): the first step scores the same batch, so its loss
+/// is the paper's plus the term, which is positive for an untrained network; the run trains other
+/// weights than the paper's loss alone.
+#[test]
+fn a_contrast_term_adds_to_the_papers_loss_and_trains_other_weights() {
+    let set = tiny_set();
+    let run = |cfg: &TrainConfig| {
+        let mut losses = Vec::new();
+        let (network, _) = train(cfg, &set, None, false, |_, _, l| {
+            losses.push(l);
+            ControlFlow::Continue(())
+        })
+        .unwrap();
+        (network, losses)
+    };
+    let (paper, paper_losses) = run(&config(alignist_method()));
+    let (with, with_losses) = run(&TrainConfig {
+        contrast: Some(1.0),
+        ..config(alignist_method())
+    });
+    assert!(
+        with_losses[0] > paper_losses[0] + 1e-3,
+        "first step: {} with the term, {} without",
+        with_losses[0],
+        paper_losses[0]
+    );
+    assert!(with_losses.iter().all(|l| l.is_finite()), "{with_losses:?}");
+    assert_ne!(fingerprint(&paper, &set), fingerprint(&with, &set));
 }

@@ -289,6 +289,11 @@ pub struct TrainConfig {
     /// `None`: the same rate for both.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub encoder_lr_scale: Option<f64>,
+    /// The weight of the contrast term added to an Alignist run's loss
+    /// ([`crate::net::contrast_loss`]: the ground truth against the uniformly drawn rotations,
+    /// as a classifier's softmax). `None`: the paper's loss alone.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub contrast: Option<f64>,
 }
 
 impl TrainConfig {
@@ -331,6 +336,7 @@ impl Default for TrainConfig {
             pretrained: None,
             pretrained_file: None,
             encoder_lr_scale: None,
+            contrast: None,
         }
     }
 }

@@ -31,8 +31,8 @@ pub use head::{BranchScores, DualHead, HeadConfig};
 pub use head_grad::{HeadGrads, HeadPass, TrainingHead};
 pub use kernels::Kernels;
 pub use loss::{
-    LossGrad, gkl_loss, gkl_loss_grad, ipdf_loss, ipdf_loss_grad, l1_measure_loss,
-    l1_measure_loss_grad,
+    LossGrad, contrast_loss, contrast_loss_grad, gkl_loss, gkl_loss_grad, ipdf_loss,
+    ipdf_loss_grad, l1_measure_loss, l1_measure_loss_grad,
 };
 pub use network::{
     NETWORK_LIMITS, Network, NetworkConfig, NetworkLimits, ProjectedGrid, check_range,

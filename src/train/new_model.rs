@@ -85,6 +85,10 @@ pub struct Recipe {
     /// experiment, none in the recipe).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub encoder_lr_scale: Option<f64>,
+    /// The weight of the contrast term ([`TrainConfig::contrast`]; an experiment, none in the
+    /// recipe).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub contrast: Option<f64>,
 }
 
 fn is_zero(n: &usize) -> bool {
@@ -124,6 +128,7 @@ pub const RECIPE: Recipe = Recipe {
     pool_grid: 3,
     plain_start: None,
     encoder_lr_scale: None,
+    contrast: None,
 };
 
 /// Share of the budget the experts of all objects get at most (the rest trains the network).
@@ -684,6 +689,7 @@ impl Recipe {
             pretrained: None,
             pretrained_file: None,
             encoder_lr_scale: self.encoder_lr_scale,
+            contrast: self.contrast,
         }
     }
 }
@@ -877,7 +883,7 @@ fn realistic_crops(
 /// The progress line that opens the fit: its schedule, its probe's pace and its warm start.
 fn fit_line(plan: &BudgetPlan, recipe: &Recipe, config: &TrainConfig) -> String {
     format!(
-        "fit: {} steps of batch {} × K {} ({:.3} s per step in the probe), focused share {} → {}{}{}{}{}",
+        "fit: {} steps of batch {} × K {} ({:.3} s per step in the probe), focused share {} → {}{}{}{}{}{}",
         plan.fit_steps,
         recipe.batch,
         recipe.k,
@@ -906,6 +912,9 @@ fn fit_line(plan: &BudgetPlan, recipe: &Recipe, config: &TrainConfig) -> String 
         )),
         recipe.encoder_lr_scale.map_or(String::new(), |s| format!(
             ", the encoder at {s} × the head's learning rate"
+        )),
+        recipe.contrast.map_or(String::new(), |w| format!(
+            ", a contrast term of weight {w}"
         )),
         config
             .init

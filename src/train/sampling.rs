@@ -117,6 +117,20 @@ pub fn ball_rotation<R: Rng + ?Sized>(radius: f64, rng: &mut R) -> Rotation3<f64
     Rotation3::from_axis_angle(&axis, angle)
 }
 
+/// The first of [`sample_rotations`]' columns drawn Haar-uniformly: after the ground truth and
+/// the focused rotations (the contrast term's columns, [`crate::net::contrast_loss`]).
+pub fn uniform_from(strategy: &SamplingStrategy, k: usize, modes: Option<&ModeSampler>) -> usize {
+    let focused = match (strategy, modes) {
+        (SamplingStrategy::ModeFocused { focused, .. }, Some(modes))
+            if !modes.centres.is_empty() =>
+        {
+            (*focused).min(k.saturating_sub(1))
+        }
+        _ => 0,
+    };
+    1 + focused
+}
+
 /// Draws the K rotations: index 0 is `r_gt`. `modes` (the object's [`ModeSampler`]) is needed by
 /// [`SamplingStrategy::ModeFocused`]; without it every non-GT rotation is uniform.
 pub fn sample_rotations<R: Rng + ?Sized>(
@@ -128,22 +142,14 @@ pub fn sample_rotations<R: Rng + ?Sized>(
 ) -> Vec<Rotation3<f64>> {
     let mut out = Vec::with_capacity(k);
     out.push(*r_gt);
-    if let (
-        SamplingStrategy::ModeFocused {
-            focused,
-            twin_share,
-            ..
-        },
-        Some(modes),
-    ) = (strategy, modes)
-        && !modes.centres.is_empty()
-    {
+    let focused = uniform_from(strategy, k, modes).saturating_sub(1);
+    if let (SamplingStrategy::ModeFocused { twin_share, .. }, Some(modes)) = (strategy, modes) {
         let twins = if *twin_share > 0.0 {
             modes.twins.as_slice()
         } else {
             &[]
         };
-        for _ in 0..(*focused).min(k.saturating_sub(1)) {
+        for _ in 0..focused {
             // No draw for the twin's coin without twins: a run without them keeps its stream.
             let twin = (!twins.is_empty() && rng.random::<f64>() < *twin_share)
                 .then(|| twins[rng.random_range(0..twins.len())]);

@@ -20,13 +20,14 @@ use super::checkpoint::{CheckpointState, latest_checkpoint, load_checkpoint, sav
 pub use super::config::{ExpertBranches, MeasureLoss, Method, TrainConfig, learning_rate};
 pub use super::data::{FreshRenders, TrainingImage};
 use super::distil::Teacher;
-use super::sampling::{ModeSampler, OwnTwins, SamplingStrategy, sample_rotations};
+use super::sampling::{ModeSampler, OwnTwins, SamplingStrategy, sample_rotations, uniform_from};
 pub use crate::bundle::record::{OwnTwinsFound, StepProfile, TrainReport};
 use crate::experts::energy::{BakedExperts, LogTargets};
 use crate::experts::modes::ModeTable;
 use crate::net::{
-    HeadGrads, HeadPass, LossGrad, TrainingEncoder, TrainingHead, gkl_loss, gkl_loss_grad,
-    ipdf_loss, ipdf_loss_grad, l1_measure_loss, l1_measure_loss_grad,
+    HeadGrads, HeadPass, LossGrad, TrainingEncoder, TrainingHead, contrast_loss,
+    contrast_loss_grad, gkl_loss, gkl_loss_grad, ipdf_loss, ipdf_loss_grad, l1_measure_loss,
+    l1_measure_loss_grad,
 };
 use crate::net::{Network, images_tensor};
 use crate::so3::to_row_major_f32;
@@ -98,8 +99,8 @@ impl EncoderPath {
     }
 }
 
-/// The K rotations of image `id` at `step`, and (Alignist, unless a teacher gives the targets)
-/// their expert targets.
+/// The K rotations of image `id` at `step`, the first of them drawn uniformly
+/// ([`uniform_from`]), and (Alignist, unless a teacher gives the targets) their expert targets.
 fn sample_image(
     config: &TrainConfig,
     set: &TrainingSet,
@@ -108,25 +109,17 @@ fn sample_image(
     (step, steps): (usize, usize),
     rng: &mut ChaCha8Rng,
     profile: &mut StepProfile,
-) -> (Vec<[f32; 9]>, Option<LogTargets>) {
+) -> (Vec<[f32; 9]>, usize, Option<LogTargets>) {
     let experts = &set.objects[im.object];
     let started = Instant::now();
-    let samples = match &config.method {
-        Method::Alignist { sampling, .. } => sample_rotations(
-            &sampling.at_step(step, steps),
-            config.k,
-            &im.rotation,
-            samplers.get(im.object),
-            rng,
-        ),
-        Method::Ipdf => sample_rotations(
-            &SamplingStrategy::Uniform,
-            config.k,
-            &im.rotation,
-            None,
-            rng,
-        ),
+    let (strategy, modes) = match &config.method {
+        Method::Alignist { sampling, .. } => {
+            (sampling.at_step(step, steps), samplers.get(im.object))
+        }
+        Method::Ipdf => (SamplingStrategy::Uniform, None),
     };
+    let samples = sample_rotations(&strategy, config.k, &im.rotation, modes, rng);
+    let uniform = uniform_from(&strategy, config.k, modes);
     let mats: Vec<[f32; 9]> = samples.iter().map(to_row_major_f32).collect();
     profile.sampling += started.elapsed().as_secs_f64();
     let started = Instant::now();
@@ -137,7 +130,7 @@ fn sample_image(
         _ => None,
     };
     profile.targets += started.elapsed().as_secs_f64();
-    (mats, targets)
+    (mats, uniform, targets)
 }
 
 /// The images of `step` of `steps`: `batch` draws from the fixed set, or (with
@@ -206,7 +199,7 @@ fn mean_log_targets(
             teacher: None,
             ..config.clone()
         };
-        if let (_, Some(t)) = sample_image(
+        if let (_, _, Some(t)) = sample_image(
             &experts_only,
             set,
             &im,
@@ -496,8 +489,8 @@ fn method_loss(
     network: &Network,
     features: Tensor<2>,
     rotations: &[Vec<[f32; 9]>],
-    log_sdf: Vec<f32>,
-    log_se: Vec<f32>,
+    (log_sdf, log_se): (Vec<f32>, Vec<f32>),
+    uniform_from: &[usize],
 ) -> Tensor<1> {
     let scores = network.scores_of_features(features, rotations, &config.network.encoding);
     let Method::Alignist { loss, experts, .. } = &config.method else {
@@ -511,25 +504,33 @@ fn method_loss(
         MeasureLoss::Gkl => gkl_loss,
         MeasureLoss::L1 => l1_measure_loss,
     };
-    match experts {
+    let contrast = config.contrast.filter(|&w| w != 0.0).map(|w| {
+        let log_a = target(log_sdf.clone()) + target(log_se.clone());
+        contrast_loss(log_a, scores.combined(), uniform_from).mul_scalar(w)
+    });
+    let measures = match experts {
         ExpertBranches::Both => {
             f(target(log_sdf), scores.shape) + f(target(log_se), scores.feature)
         }
         ExpertBranches::ShapeOnly => f(target(log_sdf), scores.shape),
         ExpertBranches::FeatureOnly => f(target(log_se), scores.feature),
+    };
+    match contrast {
+        Some(c) => measures + c,
+        None => measures,
     }
 }
 
 /// The loss of one batch on the hand-written head's scores and its gradient with respect to each
 /// branch's scores (`None` for a branch the method leaves out of the loss): the same losses as
-/// [`method_loss`].
+/// [`method_loss`], for the images whose first uniform columns are `uniform_from`.
 fn fused_loss(
     config: &TrainConfig,
     pass: &HeadPass,
-    images: usize,
-    log_sdf: &[f32],
-    log_se: &[f32],
+    (log_sdf, log_se): (&[f32], &[f32]),
+    uniform_from: &[usize],
 ) -> (f64, [Option<Vec<f32>>; 2]) {
+    let images = uniform_from.len();
     let [shape, feature] = pass.scores();
     let Method::Alignist { loss, experts, .. } = &config.method else {
         let combined: Vec<f32> = shape.iter().zip(&feature).map(|(s, f)| s + f).collect();
@@ -540,22 +541,39 @@ fn fused_loss(
         MeasureLoss::Gkl => gkl_loss_grad,
         MeasureLoss::L1 => l1_measure_loss_grad,
     };
-    let shape = || f(log_sdf, &shape, images);
-    let feature = || f(log_se, &feature, images);
-    match experts {
-        ExpertBranches::Both => {
-            let (s, f) = (shape(), feature());
-            (s.loss + f.loss, [Some(s.grad), Some(f.grad)])
-        }
-        ExpertBranches::ShapeOnly => {
-            let s = shape();
-            (s.loss, [Some(s.grad), None])
-        }
-        ExpertBranches::FeatureOnly => {
-            let f = feature();
-            (f.loss, [None, Some(f.grad)])
+    let contrast = config.contrast.filter(|&w| w != 0.0).map(|w| {
+        let sum =
+            |a: &[f32], b: &[f32]| -> Vec<f32> { a.iter().zip(b).map(|(a, b)| a + b).collect() };
+        let c = contrast_loss_grad(
+            &sum(log_sdf, log_se),
+            &sum(&shape, &feature),
+            config.k,
+            uniform_from,
+        );
+        (
+            w * c.loss,
+            c.grad
+                .into_iter()
+                .map(|g| g * w as f32)
+                .collect::<Vec<f32>>(),
+        )
+    });
+    let shape = || Some(f(log_sdf, &shape, images));
+    let feature = || Some(f(log_se, &feature, images));
+    let [s, f] = match experts {
+        ExpertBranches::Both => [shape(), feature()],
+        ExpertBranches::ShapeOnly => [shape(), None],
+        ExpertBranches::FeatureOnly => [None, feature()],
+    };
+    let mut total = s.as_ref().map_or(0.0, |s| s.loss) + f.as_ref().map_or(0.0, |f| f.loss);
+    let mut grads = [s.map(|s| s.grad), f.map(|f| f.grad)];
+    if let Some((loss, d)) = contrast {
+        total += loss;
+        for g in grads.iter_mut().flatten() {
+            g.iter_mut().zip(&d).for_each(|(g, d)| *g += d);
         }
     }
+    (total, grads)
 }
 
 /// Stops a run whose loss is no longer a number.
@@ -592,6 +610,8 @@ struct Batch {
     images: Vec<TrainingImage>,
     /// The K rotations of each image.
     rotations: Vec<Vec<[f32; 9]>>,
+    /// The first uniformly drawn column of each image's rotations.
+    uniform_from: Vec<usize>,
     /// The experts' log-targets, `[B, K]` (Alignist; empty for IPDF).
     log_sdf: Vec<f32>,
     log_se: Vec<f32>,
@@ -618,8 +638,9 @@ impl Run<'_> {
         let mut rotations = Vec::with_capacity(images.len());
         let mut log_sdf = Vec::with_capacity(images.len() * config.k);
         let mut log_se = Vec::with_capacity(images.len() * config.k);
+        let mut uniform = Vec::with_capacity(images.len());
         for im in &images {
-            let (mats, targets) = sample_image(
+            let (mats, from, targets) = sample_image(
                 config,
                 set,
                 im,
@@ -633,10 +654,12 @@ impl Run<'_> {
                 log_se.extend(t.log_a_se);
             }
             rotations.push(mats);
+            uniform.push(from);
         }
         Batch {
             images,
             rotations,
+            uniform_from: uniform,
             log_sdf,
             log_se,
             profile,
@@ -712,11 +735,19 @@ impl Run<'_> {
         let started = Instant::now();
         let Batch {
             rotations,
+            uniform_from,
             log_sdf,
             log_se,
             ..
         } = batch;
-        let loss = method_loss(self.config, network, features, &rotations, log_sdf, log_se);
+        let loss = method_loss(
+            self.config,
+            network,
+            features,
+            &rotations,
+            (log_sdf, log_se),
+            &uniform_from,
+        );
         let loss_value = loss.clone().into_scalar::<f32>() as f64;
         profile.head_forward += started.elapsed().as_secs_f64();
         check_finite(step, loss_value)?;
@@ -746,8 +777,12 @@ impl Run<'_> {
             images,
             flat.len() / images.max(1),
         );
-        let (loss_value, d_scores) =
-            fused_loss(self.config, &pass, images, &batch.log_sdf, &batch.log_se);
+        let (loss_value, d_scores) = fused_loss(
+            self.config,
+            &pass,
+            (&batch.log_sdf, &batch.log_se),
+            &batch.uniform_from,
+        );
         profile.head_forward += started.elapsed().as_secs_f64();
         check_finite(step, loss_value)?;
         let started = Instant::now();

@@ -103,6 +103,11 @@ pub(crate) struct FitArgs {
     /// a pretrained encoder under a fresh head, e.g. 0.1). Without it both learn at --lr.
     #[arg(long, value_parser = crate::new::parse_lr_scale)]
     encoder_lr_scale: Option<f64>,
+    /// Weight of a contrast term added to the alignist loss: the ground truth against the
+    /// uniformly drawn rotations, as a classifier's softmax, fitted to the experts' measure.
+    /// Without it, the paper's loss alone.
+    #[arg(long, value_parser = crate::new::parse_weight)]
+    contrast: Option<f64>,
     /// Fraction of each training split used (the paper's low-data regime: 0.1). With --fresh: a
     /// fixed pool of fraction × steps × batch images (the same for every run) instead of a new
     /// render every time.
@@ -240,6 +245,7 @@ impl FitArgs {
                 })
                 .transpose()?,
             encoder_lr_scale: self.encoder_lr_scale,
+            contrast: self.contrast,
         })
     }
 

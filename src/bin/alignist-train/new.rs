@@ -89,6 +89,11 @@ pub(crate) struct NewArgs {
     /// rate for both).
     #[arg(long, value_parser = parse_lr_scale)]
     encoder_lr_scale: Option<f64>,
+    /// Weight of a contrast term added to the paper's loss: the ground truth against the uniformly
+    /// drawn rotations, as a classifier's softmax, fitted to the experts' measure (for
+    /// experiments; the recipe has none).
+    #[arg(long, value_parser = parse_weight)]
+    contrast: Option<f64>,
     /// Share of the focused rotations drawn around the pose's twins: the part's near-symmetry's
     /// and the network's own (in [0, 1]; the recipe's is 0.5; 0 is the paper's sampling). A part
     /// with neither has no twins.
@@ -111,6 +116,14 @@ pub(crate) fn parse_share(s: &str) -> Result<f64, String> {
     match s.trim().parse::<f64>() {
         Ok(x) if (0.0..=1.0).contains(&x) => Ok(x),
         _ => Err(format!("'{s}' is not a share in [0, 1] (e.g. 0.25)")),
+    }
+}
+
+/// A loss term's weight in (0, 10] (`new --contrast`, `fit --contrast`).
+pub(crate) fn parse_weight(s: &str) -> Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(x) if x > 0.0 && x <= 10.0 => Ok(x),
+        _ => Err(format!("'{s}' is not a weight in (0, 10] (e.g. 1)")),
     }
 }
 
@@ -229,6 +242,7 @@ pub(crate) fn new_cmd(args: &NewArgs) -> Result<()> {
             own_twins,
             plain_start: args.plain_start,
             encoder_lr_scale: args.encoder_lr_scale,
+            contrast: args.contrast,
             ..RECIPE
         },
         command: std::env::args().collect::<Vec<_>>().join(" "),
