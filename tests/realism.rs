@@ -465,6 +465,7 @@ fn the_plain_share_is_annealed_from_its_start_to_the_realisms() {
         pretrained_file: None,
         encoder_lr_scale: None,
         contrast: None,
+        target_temperature: None,
         ..TrainConfig::default()
     };
     assert_eq!(curriculum.plain_share(0, 101, end), 1.0);

@@ -113,6 +113,7 @@ fn config(method: Method) -> TrainConfig {
         pretrained_file: None,
         encoder_lr_scale: None,
         contrast: None,
+        target_temperature: None,
     }
 }
 
@@ -885,6 +886,7 @@ fn the_encoder_learns_at_its_own_share_of_the_learning_rate() {
         &TrainConfig {
             encoder_lr_scale: Some(0.1),
             contrast: None,
+            target_temperature: None,
             ..cfg.clone()
         },
         "scaled.safetensors",

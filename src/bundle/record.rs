@@ -294,9 +294,24 @@ pub struct TrainConfig {
     /// as a classifier's softmax). `None`: the paper's loss alone.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub contrast: Option<f64>,
+    /// The experts' log-targets are divided by a temperature annealed geometrically from this at
+    /// the first step to 1 at the last ([`TrainConfig::target_temperature_at`]; ours, an
+    /// experiment): the measure's bells `√T` times wider at first, the paper's at the end.
+    /// `None`: the paper's targets at every step.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub target_temperature: Option<f64>,
 }
 
 impl TrainConfig {
+    /// The temperature the experts' log-targets are divided by at `step` of `steps`:
+    /// `T₀^(1 − step/steps)` for a start temperature `T₀`, 1 without one.
+    pub fn target_temperature_at(&self, step: usize, steps: usize) -> f64 {
+        match self.target_temperature {
+            None => 1.0,
+            Some(t0) => t0.powf(1.0 - (step as f64 / steps.max(1) as f64).min(1.0)),
+        }
+    }
+
     /// The share of plain crops at `step` of `steps` when the realism's own share is `end`:
     /// [`TrainConfig::plain_start`] annealed linearly to `end`, or `end` without one.
     pub fn plain_share(&self, step: usize, steps: usize, end: f64) -> f64 {
@@ -337,6 +352,7 @@ impl Default for TrainConfig {
             pretrained_file: None,
             encoder_lr_scale: None,
             contrast: None,
+            target_temperature: None,
         }
     }
 }

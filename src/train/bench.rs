@@ -138,6 +138,7 @@ pub fn bench_training(config: &TrainingBenchConfig) -> Result<TrainingBench, Tra
             pretrained_file: None,
             encoder_lr_scale: None,
             contrast: None,
+            target_temperature: None,
         };
         train(&cfg, &set, None, false, |_, _, _| ControlFlow::Continue(()))
             .map(|(_, report)| report.profile)

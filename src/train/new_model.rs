@@ -89,6 +89,10 @@ pub struct Recipe {
     /// recipe).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub contrast: Option<f64>,
+    /// The experts' log-targets' start temperature ([`TrainConfig::target_temperature`]; an
+    /// experiment, none in the recipe).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub target_temperature: Option<f64>,
 }
 
 fn is_zero(n: &usize) -> bool {
@@ -129,6 +133,7 @@ pub const RECIPE: Recipe = Recipe {
     plain_start: None,
     encoder_lr_scale: None,
     contrast: None,
+    target_temperature: None,
 };
 
 /// Share of the budget the experts of all objects get at most (the rest trains the network).
@@ -690,6 +695,7 @@ impl Recipe {
             pretrained_file: None,
             encoder_lr_scale: self.encoder_lr_scale,
             contrast: self.contrast,
+            target_temperature: self.target_temperature,
         }
     }
 }
@@ -883,7 +889,7 @@ fn realistic_crops(
 /// The progress line that opens the fit: its schedule, its probe's pace and its warm start.
 fn fit_line(plan: &BudgetPlan, recipe: &Recipe, config: &TrainConfig) -> String {
     format!(
-        "fit: {} steps of batch {} × K {} ({:.3} s per step in the probe), focused share {} → {}{}{}{}{}{}",
+        "fit: {} steps of batch {} × K {} ({:.3} s per step in the probe), focused share {} → {}{}{}{}{}{}{}",
         plan.fit_steps,
         recipe.batch,
         recipe.k,
@@ -915,6 +921,9 @@ fn fit_line(plan: &BudgetPlan, recipe: &Recipe, config: &TrainConfig) -> String 
         )),
         recipe.contrast.map_or(String::new(), |w| format!(
             ", a contrast term of weight {w}"
+        )),
+        recipe.target_temperature.map_or(String::new(), |t| format!(
+            ", the targets tempered from T {t} to 1"
         )),
         config
             .init

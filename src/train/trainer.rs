@@ -125,7 +125,14 @@ fn sample_image(
     let started = Instant::now();
     let targets = match config.method {
         Method::Alignist { .. } if config.teacher.is_none() => {
-            Some(experts.log_targets(&im.rotation, &im.visible, &mats))
+            let mut t = experts.log_targets(&im.rotation, &im.visible, &mats);
+            let temperature = config.target_temperature_at(step, steps) as f32;
+            if temperature != 1.0 {
+                let cool = |v: &mut Vec<f32>| v.iter_mut().for_each(|x| *x /= temperature);
+                cool(&mut t.log_a_sdf);
+                cool(&mut t.log_a_se);
+            }
+            Some(t)
         }
         _ => None,
     };

@@ -108,6 +108,10 @@ pub(crate) struct FitArgs {
     /// Without it, the paper's loss alone.
     #[arg(long, value_parser = crate::new::parse_weight)]
     contrast: Option<f64>,
+    /// The experts' log-targets divided by a temperature annealed geometrically from this at the
+    /// first step to 1 at the last (broad bells first). Without it, the paper's targets.
+    #[arg(long, value_parser = crate::new::parse_temperature)]
+    target_temperature: Option<f64>,
     /// Fraction of each training split used (the paper's low-data regime: 0.1). With --fresh: a
     /// fixed pool of fraction × steps × batch images (the same for every run) instead of a new
     /// render every time.
@@ -246,6 +250,7 @@ impl FitArgs {
                 .transpose()?,
             encoder_lr_scale: self.encoder_lr_scale,
             contrast: self.contrast,
+            target_temperature: self.target_temperature,
         })
     }
 

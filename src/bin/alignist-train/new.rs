@@ -94,6 +94,11 @@ pub(crate) struct NewArgs {
     /// experiments; the recipe has none).
     #[arg(long, value_parser = parse_weight)]
     contrast: Option<f64>,
+    /// The experts' log-targets divided by a temperature annealed geometrically from this at the
+    /// fit's first step to 1 at its last: the targets' bells √T times wider at first (for
+    /// experiments; the recipe has none).
+    #[arg(long, value_parser = parse_temperature)]
+    target_temperature: Option<f64>,
     /// Share of the focused rotations drawn around the pose's twins: the part's near-symmetry's
     /// and the network's own (in [0, 1]; the recipe's is 0.5; 0 is the paper's sampling). A part
     /// with neither has no twins.
@@ -124,6 +129,14 @@ pub(crate) fn parse_weight(s: &str) -> Result<f64, String> {
     match s.trim().parse::<f64>() {
         Ok(x) if x > 0.0 && x <= 10.0 => Ok(x),
         _ => Err(format!("'{s}' is not a weight in (0, 10] (e.g. 1)")),
+    }
+}
+
+/// A start temperature in [1, 1000] (`new --target-temperature`, `fit --target-temperature`).
+pub(crate) fn parse_temperature(s: &str) -> Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(x) if (1.0..=1000.0).contains(&x) => Ok(x),
+        _ => Err(format!("'{s}' is not a temperature in [1, 1000] (e.g. 25)")),
     }
 }
 
@@ -243,6 +256,7 @@ pub(crate) fn new_cmd(args: &NewArgs) -> Result<()> {
             plain_start: args.plain_start,
             encoder_lr_scale: args.encoder_lr_scale,
             contrast: args.contrast,
+            target_temperature: args.target_temperature,
             ..RECIPE
         },
         command: std::env::args().collect::<Vec<_>>().join(" "),
