@@ -956,3 +956,29 @@ fn a_contrast_term_adds_to_the_papers_loss_and_trains_other_weights() {
     assert!(with_losses.iter().all(|l| l.is_finite()), "{with_losses:?}");
     assert_ne!(fingerprint(&paper, &set), fingerprint(&with, &set));
 }
+
+/// Tempered targets (`TrainConfig::target_temperature`): the temperature starts at T₀, is its
+/// square root halfway and 1 at the last step (1 throughout without one); a run with them trains
+/// other weights than the paper's targets.
+#[test]
+fn tempered_targets_anneal_to_the_papers_and_train_other_weights() {
+    let tempered = TrainConfig {
+        target_temperature: Some(25.0),
+        ..config(alignist_method())
+    };
+    assert_eq!(tempered.target_temperature_at(0, 100), 25.0);
+    assert!((tempered.target_temperature_at(50, 100) - 5.0).abs() < 1e-9);
+    assert_eq!(tempered.target_temperature_at(100, 100), 1.0);
+    let paper = config(alignist_method());
+    assert_eq!(paper.target_temperature_at(0, 100), 1.0);
+    let set = tiny_set();
+    let run = |cfg: &TrainConfig| {
+        train(cfg, &set, None, false, |_, _, _| ControlFlow::Continue(()))
+            .unwrap()
+            .0
+    };
+    assert_ne!(
+        fingerprint(&run(&paper), &set),
+        fingerprint(&run(&tempered), &set)
+    );
+}
