@@ -29,7 +29,7 @@ pub fn ipdf_loss(s: Tensor<2>) -> Tensor<1> {
 /// its softmax share is exactly 0, finite so that `0 · log 0` stays 0.
 const MASKED: f32 = -1.0e4;
 
-/// The contrast term (ours, [`crate::train::TrainConfig::contrast`]): IPDF's softmax, taken over
+/// The contrast term (ours, a run's `TrainConfig::contrast`): IPDF's softmax, taken over
 /// each row's ground truth (column 0) and its uniformly drawn rotations (columns
 /// `uniform_from[b]..K`), fitted to the experts' combined measure normalised over the same columns:
 /// `KL(p ‖ softmax(c))` with `p ∝ a`. The GKL of Eq. 5 lets a wrong pose keep any score whose

@@ -116,46 +116,44 @@ pub(crate) struct NewArgs {
     plain_start: Option<f64>,
 }
 
+/// `s` as a number that `ok` accepts, or a message naming what was asked for (`what`).
+fn parse_number(s: &str, ok: impl Fn(f64) -> bool, what: &str) -> Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(x) if ok(x) => Ok(x),
+        _ => Err(format!("'{s}' is not {what}")),
+    }
+}
+
 /// A share in [0, 1] (`new --twin-share`, `--plain-start`; `fit --plain-start`).
 pub(crate) fn parse_share(s: &str) -> Result<f64, String> {
-    match s.trim().parse::<f64>() {
-        Ok(x) if (0.0..=1.0).contains(&x) => Ok(x),
-        _ => Err(format!("'{s}' is not a share in [0, 1] (e.g. 0.25)")),
-    }
+    parse_number(
+        s,
+        |x| (0.0..=1.0).contains(&x),
+        "a share in [0, 1] (e.g. 0.25)",
+    )
 }
 
 /// A loss term's weight in (0, 10] (`new --contrast`, `fit --contrast`).
 pub(crate) fn parse_weight(s: &str) -> Result<f64, String> {
-    match s.trim().parse::<f64>() {
-        Ok(x) if x > 0.0 && x <= 10.0 => Ok(x),
-        _ => Err(format!("'{s}' is not a weight in (0, 10] (e.g. 1)")),
-    }
+    parse_number(s, |x| x > 0.0 && x <= 10.0, "a weight in (0, 10] (e.g. 1)")
 }
 
 /// A start temperature in [1, 1000] (`new --target-temperature`, `fit --target-temperature`).
 pub(crate) fn parse_temperature(s: &str) -> Result<f64, String> {
-    match s.trim().parse::<f64>() {
-        Ok(x) if (1.0..=1000.0).contains(&x) => Ok(x),
-        _ => Err(format!("'{s}' is not a temperature in [1, 1000] (e.g. 25)")),
-    }
+    let ok = |x: f64| (1.0..=1000.0).contains(&x);
+    parse_number(s, ok, "a temperature in [1, 1000] (e.g. 25)")
 }
 
 /// A share of the learning rate in (0, 10] (`new --encoder-lr-scale`, `fit --encoder-lr-scale`).
 pub(crate) fn parse_lr_scale(s: &str) -> Result<f64, String> {
-    match s.trim().parse::<f64>() {
-        Ok(x) if x > 0.0 && x <= 10.0 => Ok(x),
-        _ => Err(format!(
-            "'{s}' is not a share of the learning rate in (0, 10] (e.g. 0.1)"
-        )),
-    }
+    let ok = |x: f64| x > 0.0 && x <= 10.0;
+    parse_number(s, ok, "a share of the learning rate in (0, 10] (e.g. 0.1)")
 }
 
 /// A positive, finite learning rate (`new --lr` and `fit --lr`).
 pub(crate) fn parse_lr(s: &str) -> Result<f64, String> {
-    match s.trim().parse::<f64>() {
-        Ok(lr) if lr.is_finite() && lr > 0.0 => Ok(lr),
-        _ => Err(format!("'{s}' is not a positive learning rate (e.g. 1e-3)")),
-    }
+    let ok = |lr: f64| lr.is_finite() && lr > 0.0;
+    parse_number(s, ok, "a positive learning rate (e.g. 1e-3)")
 }
 
 /// The recipe's warm start (`--init`'s default), relative to the repository's root.
