@@ -73,7 +73,7 @@ fn evaluate(
     set: &[(Vec<u8>, Rotation3<f64>)],
     cells: &[Rotation3<f64>],
     size: usize,
-) -> (f64, f64) {
+) -> anyhow::Result<(f64, f64)> {
     network.encoder.sync_running_stats();
     let plain = network.valid();
     let device = plain.cells.weight.device();
@@ -86,14 +86,14 @@ fn evaluate(
             .into_data()
             .convert::<i64>()
             .try_to_vec::<i64>()
-            .unwrap();
+            .map_err(|e| anyhow::anyhow!("the logits' argmax: {e:?}"))?;
         for ((_, truth), pick) in chunk.iter().zip(picks) {
             errors.push(cells[pick as usize].angle_to(truth).to_degrees());
         }
     }
     let ar = errors.iter().filter(|&&e| e < 30.0).count() as f64 / errors.len() as f64;
     errors.sort_by(f64::total_cmp);
-    (ar, errors[errors.len() / 2])
+    Ok((ar, errors[errors.len() / 2]))
 }
 
 fn learning_rate(step: usize, steps: usize) -> f64 {
@@ -190,7 +190,7 @@ fn main() -> anyhow::Result<()> {
             );
         }
         if done % eval_every == 0 || done == steps {
-            let (ar, median) = evaluate(&network, &held_out, &cells, size as usize);
+            let (ar, median) = evaluate(&network, &held_out, &cells, size as usize)?;
             println!(
                 "  step {done} held-out (300 crops): AR@30 {ar:.3}, median error {median:.1} deg"
             );
