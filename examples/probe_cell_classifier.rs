@@ -96,6 +96,10 @@ fn evaluate(
     Ok((ar, errors[errors.len() / 2]))
 }
 
+/// The PyTorch probe's schedule (`compare_pretrained.py`'s `LambdaLR`): a linear ramp over a tenth
+/// of the steps (at most 200) times a cosine over the whole run, to 0. Not the project's
+/// [`alignist::schedule::CosineSchedule`] (its cosine starts after the warm-up and ends at a
+/// floor): this probe repeats PyTorch's run, not the trainer's.
 fn learning_rate(step: usize, steps: usize) -> f64 {
     let warm = (steps / 10).clamp(1, 200);
     let ramp = ((step + 1) as f64 / warm as f64).min(1.0);
