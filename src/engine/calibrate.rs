@@ -1,11 +1,12 @@
 //! Calibration at load: the search a model serves, chosen on the CPU it runs on. A search's
 //! agreement with the exhaustive argmax is the model's (the bundle's search study measured it,
 //! [`SearchStudy`]); its latency is the CPU's. The calibration times what a search is made of on
-//! this CPU — the encoder, a start level in full, and rows of the head in each precision, by both
-//! branches or by the shape branch alone, gathered from a full level's projections or (above the
-//! full levels) encoded from their rotations (the minimum of two runs, or one run of a large
-//! measurement whose code just ran) — predicts each studied search's latency from the rows it
-//! scores (a fixed number per level), and picks, among the searches whose agreement reaches the
+//! this CPU — the encoder, and rows of the head in each precision, by both branches or by the
+//! shape branch alone, gathered from a full level's projections or (above the full levels) encoded
+//! from their rotations (each the minimum of two runs) — predicts each studied search's latency
+//! from the rows it scores (a fixed number per level; a start level scored in full is a level of
+//! projected rows like the others, predicted from the same line, not timed on its own), and
+//! picks, among the searches whose agreement reaches the
 //! target, the most agreeing one predicted within the budget (agreements one studied image apart
 //! count as equal, [`TIE_IMAGES`]; ties: the fastest); when none fits, the fastest of them, flagged
 //! as over budget. A search predicted just over the budget that would be chosen within it is timed
@@ -42,10 +43,6 @@ const RETIMED_RUNS: usize = 3;
 /// out, if it would be chosen within the budget ([`estimate_and_retime`]).
 const RETIME_BEYOND: f64 = 1.5;
 
-/// A start level of more cells than this, in a precision whose code a smaller measurement has
-/// just run, is timed once (see [`Meter`]).
-const LARGE_ROWS: usize = 1024;
-
 /// Rows of the head timed per precision, many and few (a level's fixed cost), each the minimum
 /// of [`RUNS`]: 2 048 rows timed once left one slow timing uncorrected, and the choice flipped
 /// with it (docs/BENCHMARKS.md, 2026-12-01).
@@ -53,8 +50,10 @@ const TIMED_ROWS: usize = 1024;
 const SMALL_ROWS: usize = 64;
 
 /// After this long, a calibration measures only until one search's prediction is exact
-/// ([`calibrate_within`]); it took 45–100 ms a model on a 2-core AMD EPYC and 73–203 ms on
-/// 2-core Intel Xeons with AMX (docs/BENCHMARKS.md).
+/// ([`calibrate_within`]); it took 45–100 ms a model on a 2-core AMD EPYC with AVX-512 and
+/// 73–203 ms on 2-core Intel Xeons with AMX while the start levels were timed in full, and
+/// 127–335 ms on a 2-core AMD Zen 3 (AVX2 only) once they were predicted from the rows
+/// (docs/BENCHMARKS.md, 2026-12-07).
 pub const MEASURING_DEADLINE_MS: f64 = 250.0;
 
 /// Predictions within this factor of the fastest count as equally fast. A search and its twin
@@ -99,19 +98,17 @@ pub struct Calibration {
     pub reason: String,
 }
 
-/// Where a calibration's time went, in milliseconds: timing the encoder, the start levels in
-/// full, the head's rows, and running the chosen search (`check`).
+/// Where a calibration's time went, in milliseconds: timing the encoder, the head's rows, and
+/// running the chosen search (`check`).
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct Spent {
     /// Timing the encoder.
     pub encoder_ms: f64,
-    /// Timing the start levels in full, in each precision the candidates start in.
-    pub starts_ms: f64,
-    /// Timing the head's rows of the finer levels, in each precision.
+    /// Timing the head's rows, in each precision (a start level in full is predicted from them).
     pub rows_ms: f64,
     /// Running the chosen search.
     pub check_ms: f64,
-    /// Measurements made of start levels and rows (the encoder's and the check's not counted).
+    /// Measurements made of the head's rows (the encoder's and the check's not counted).
     pub measurements: usize,
     /// Searches predicted just over the budget whose measurements were made again.
     pub retimed: usize,
@@ -121,13 +118,8 @@ impl std::fmt::Display for Spent {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(
             f,
-            "encoder {:.0} ms, {} measurements of start levels {:.0} ms and head rows {:.0} ms ({} searches timed again), the chosen search {:.0} ms",
-            self.encoder_ms,
-            self.measurements,
-            self.starts_ms,
-            self.rows_ms,
-            self.retimed,
-            self.check_ms
+            "encoder {:.0} ms, {} measurements of head rows {:.0} ms ({} searches timed again), the chosen search {:.0} ms",
+            self.encoder_ms, self.measurements, self.rows_ms, self.retimed, self.check_ms
         )
     }
 }
@@ -162,19 +154,13 @@ enum Source {
     Encoded,
 }
 
-/// A measurement a prediction needs: a start level in full, or the head's rows from a source,
-/// in an arithmetic.
+/// A measurement a prediction needs: the head's rows from a source, in an arithmetic.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
-enum Need {
-    Start(u8, Arithmetic),
-    Rows(Source, Arithmetic),
-}
+struct Need(Source, Arithmetic);
 
 /// The costs measured so far, in milliseconds.
 struct Rates {
     encoder: f64,
-    /// Per start level and arithmetic: scoring the level in full from its projections.
-    start: BTreeMap<(u8, Arithmetic), f64>,
     /// Per source and arithmetic: the times of [`SMALL_ROWS`] and of [`TIMED_ROWS`] rows (a
     /// line through them gives a level's fixed cost and one row's, [`line`]).
     row: BTreeMap<(Source, Arithmetic), (f64, f64)>,
@@ -204,7 +190,7 @@ impl Rates {
         let mut ms = self.encoder;
         let mut missing = None;
         for (l, rows, precision, branches) in rows_per_level(model, search, level) {
-            let need = |p: Precision| part(model, search, level, l, (p, branches));
+            let need = |p: Precision| part(model, l, (p, branches));
             let cost = |p: Precision| self.cost(need(p), rows);
             match cost(precision) {
                 Some(c) => ms += c,
@@ -222,26 +208,22 @@ impl Rates {
     }
 
     /// What `rows` rows of `need` cost, when it was measured.
-    fn cost(&self, need: Need, rows: usize) -> Option<f64> {
-        match need {
-            Need::Start(l, arithmetic) => self.start.get(&(l, arithmetic)).copied(),
-            Need::Rows(source, arithmetic) => self.row.get(&(source, arithmetic)).map(|&timed| {
-                let (fixed, per_row) = line(timed);
-                fixed + rows as f64 * per_row
-            }),
-        }
+    fn cost(&self, Need(source, arithmetic): Need, rows: usize) -> Option<f64> {
+        self.row.get(&(source, arithmetic)).map(|&timed| {
+            let (fixed, per_row) = line(timed);
+            fixed + rows as f64 * per_row
+        })
     }
 }
 
-/// The measurement that level `l` of `search` to `level` needs in `arithmetic`: its start level
-/// in full, or rows from a full level's projections or (above the full levels) from rotations.
-fn part(model: &Model, search: &SearchParams, level: u8, l: u8, arithmetic: Arithmetic) -> Need {
-    if l == search.start_level.min(level) {
-        Need::Start(l, arithmetic)
-    } else if (l as usize) < model.projected.len() {
-        Need::Rows(Source::Projected, arithmetic)
+/// The measurement that level `l` needs in `arithmetic`: rows from a full level's projections
+/// (the start level scored in full among them: the same kernels on a longer block of rows), or
+/// (above the full levels) from rotations.
+fn part(model: &Model, l: u8, arithmetic: Arithmetic) -> Need {
+    if (l as usize) < model.projected.len() {
+        Need(Source::Projected, arithmetic)
     } else {
-        Need::Rows(Source::Encoded, arithmetic)
+        Need(Source::Encoded, arithmetic)
     }
 }
 
@@ -249,7 +231,7 @@ fn part(model: &Model, search: &SearchParams, level: u8, l: u8, arithmetic: Arit
 fn parts(model: &Model, search: &SearchParams, level: u8) -> Vec<Need> {
     let mut needs: Vec<Need> = rows_per_level(model, search, level)
         .into_iter()
-        .map(|(l, _, precision, branches)| part(model, search, level, l, (precision, branches)))
+        .map(|(l, _, precision, branches)| part(model, l, (precision, branches)))
         .collect();
     needs.sort();
     needs.dedup();
@@ -667,10 +649,8 @@ fn next_need(
 }
 
 /// Measures the costs of a search on this CPU on demand ([`Need`]), on the features of one grey
-/// image, into [`Rates`]. Each measurement is the minimum of [`RUNS`] calls, except a large start
-/// level (over [`LARGE_ROWS`] cells) in a precision whose code has already run here: it is timed
-/// once.
-/// The few rows are timed before the many.
+/// image, into [`Rates`]. Each measurement is the minimum of [`RUNS`] calls; the few rows are
+/// timed before the many.
 struct Meter<'a> {
     model: &'a Model,
     features: Vec<Vec<f32>>,
@@ -712,7 +692,6 @@ impl<'a> Meter<'a> {
             cells,
             rates: Rates {
                 encoder,
-                start: BTreeMap::new(),
                 row: BTreeMap::new(),
             },
             spent: Spent {
@@ -722,75 +701,39 @@ impl<'a> Meter<'a> {
         })
     }
 
-    /// Whether a measurement in `precision` has run here (its code is warm).
-    fn ran(&self, precision: Precision) -> bool {
-        self.rates.row.keys().any(|&(_, (p, _))| p == precision)
-            || self.rates.start.keys().any(|&(_, (p, _))| p == precision)
-    }
-
     /// Measures `need` for the first time, or (`again`) times it [`RETIMED_RUNS`] more times and
     /// keeps the minimum with what it measured before.
-    fn measure(&mut self, need: Need, again: bool) {
+    fn measure(&mut self, Need(source, (precision, branches)): Need, again: bool) {
         let clock = Instant::now();
         let (model, features) = (self.model, &self.features);
-        match need {
-            Need::Start(l, (precision, branches)) => {
-                let cells = model.grid(l).map_or(0, |g| g.len());
-                // Once for a large level whose code just ran, else the minimum of RUNS.
-                let warm = self.ran(precision);
-                let runs = match (again, cells > LARGE_ROWS && warm) {
-                    (true, _) => RETIMED_RUNS,
-                    (false, true) => 1,
-                    (false, false) => RUNS,
-                };
-                let ms = min_ms(runs, || {
-                    let _ = model.projected[l as usize].log_weights_of_row_by(
+        let runs = if again { RETIMED_RUNS } else { RUNS };
+        let time = |few: bool, runs: usize| {
+            let rows = if few { SMALL_ROWS } else { TIMED_ROWS };
+            // One image's rows (the grey image's features).
+            let rotations = [&self.many[..rows.min(self.many.len())]];
+            let cells = &self.cells[..rows.min(self.cells.len())];
+            min_ms(runs, || match source {
+                Source::Encoded => {
+                    let _ = model.score_rotations_by(features, &rotations, precision, branches);
+                }
+                Source::Projected => {
+                    let _ = model.projected[self.full].log_weights_of_cells_by(
                         precision,
                         branches,
                         &features[0],
+                        cells,
                     );
-                });
-                let key = (l, (precision, branches));
-                let ms = self
-                    .rates
-                    .start
-                    .get(&key)
-                    .map_or(ms, |&before| before.min(ms));
-                self.rates.start.insert(key, ms);
-                self.spent.starts_ms += clock.elapsed().as_secs_f64() * 1e3;
-            }
-            Need::Rows(source, (precision, branches)) => {
-                let runs = if again { RETIMED_RUNS } else { RUNS };
-                let time = |few: bool, runs: usize| {
-                    let rows = if few { SMALL_ROWS } else { TIMED_ROWS };
-                    // One image's rows (the grey image's features).
-                    let rotations = [&self.many[..rows.min(self.many.len())]];
-                    let cells = &self.cells[..rows.min(self.cells.len())];
-                    min_ms(runs, || match source {
-                        Source::Encoded => {
-                            let _ =
-                                model.score_rotations_by(features, &rotations, precision, branches);
-                        }
-                        Source::Projected => {
-                            let _ = model.projected[self.full].log_weights_of_cells_by(
-                                precision,
-                                branches,
-                                &features[0],
-                                cells,
-                            );
-                        }
-                    })
-                };
-                let timed = (time(true, runs), time(false, runs));
-                let key = (source, (precision, branches));
-                let timed = match self.rates.row.get(&key) {
-                    Some(&(few, many)) => (few.min(timed.0), many.min(timed.1)),
-                    None => timed,
-                };
-                self.rates.row.insert(key, timed);
-                self.spent.rows_ms += clock.elapsed().as_secs_f64() * 1e3;
-            }
-        }
+                }
+            })
+        };
+        let timed = (time(true, runs), time(false, runs));
+        let key = (source, (precision, branches));
+        let timed = match self.rates.row.get(&key) {
+            Some(&(few, many)) => (few.min(timed.0), many.min(timed.1)),
+            None => timed,
+        };
+        self.rates.row.insert(key, timed);
+        self.spent.rows_ms += clock.elapsed().as_secs_f64() * 1e3;
         self.spent.measurements += 1;
     }
 }
@@ -943,11 +886,8 @@ mod tests {
 
     #[test]
     fn a_search_is_measured_only_while_its_bound_may_still_win() {
-        let start = Some(Need::Start(2, (Precision::I8, Branches::Both)));
-        let rows = Some(Need::Rows(
-            Source::Encoded,
-            (Precision::Bf16, Branches::Both),
-        ));
+        let start = Some(Need(Source::Projected, (Precision::I8, Branches::Both)));
+        let rows = Some(Need(Source::Encoded, (Precision::Bf16, Branches::Both)));
         // (estimates, agreement, the measurement expected next), budget 25 ms.
         let cases = [
             // An exact search at 10 ms: a bound beyond TIE × 10 with the same agreement is ruled
@@ -1043,7 +983,7 @@ mod tests {
         assert_eq!(pick, 0, "{reason}");
         // Measuring follows the same rule: a slower search one image more agreeing is not
         // timed once a faster one is exact; two images more agreeing, it is.
-        let start = Some(Need::Start(2, (Precision::F32, Branches::Both)));
+        let start = Some(Need(Source::Projected, (Precision::F32, Branches::Both)));
         let estimates = [(15.0, None), (20.0, start)];
         assert_eq!(
             next_need(&estimates, &agreed(&[0.99, 1.0], 0.01), 25.0),
