@@ -22,7 +22,7 @@
 //! deadline ([`MEASURING_DEADLINE_MS`]) it measures only until one search's prediction is exact.
 //! The chosen search is then run once for real and its latency reported beside the prediction.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::time::Instant;
 
 use super::search::Keep;
@@ -508,7 +508,11 @@ fn run_once(
 
 /// [`estimate`], then, while a search predicted over the budget by at most [`RETIME_BEYOND`]
 /// would be chosen were it within the budget, every measurement it is predicted from is timed
-/// [`RETIMED_RUNS`] times more (the minimum kept), once a search, and estimated again. Noise only
+/// [`RETIMED_RUNS`] times more (the minimum kept), once a search and once a measurement, and
+/// estimated again: a part that an earlier search had timed again is not timed a third time (on
+/// a 2-core AMD Zen 3, where the served search is predicted near the budget, three or four
+/// searches sharing their parts were timed again, and a calibration took 290–350 ms instead of
+/// 160, docs/BENCHMARKS.md, 2026-12-07). Noise only
 /// lengthens a timing, so a search whose prediction a slow timing pushed just over the budget is
 /// not ruled out by it (on a 2-core AMD Zen 4 the most agreeing search was predicted 16.8–25.0 ms
 /// over ten starts and, over 25 ms, gave way to another: the same choice in 8 of 10,
@@ -521,6 +525,7 @@ fn estimate_and_retime(
     (started, deadline_ms): (Instant, f64),
 ) -> (Vec<(f64, Option<Need>)>, bool) {
     let mut retimed = vec![false; candidates.len()];
+    let mut timed_again = BTreeSet::new();
     loop {
         let (estimates, cut_short) = estimate(
             meter,
@@ -540,7 +545,9 @@ fn estimate_and_retime(
         retimed[i] = true;
         meter.spent.retimed += 1;
         for need in parts(meter.model, &candidates[i].params, level) {
-            meter.measure(need, true);
+            if timed_again.insert(need) {
+                meter.measure(need, true);
+            }
         }
     }
 }
