@@ -52,8 +52,8 @@ const SMALL_ROWS: usize = 64;
 /// After this long, a calibration measures only until one search's prediction is exact
 /// ([`calibrate_within`]); it took 45–100 ms a model on a 2-core AMD EPYC with AVX-512 and
 /// 73–203 ms on 2-core Intel Xeons with AMX while the start levels were timed in full, and
-/// 127–335 ms on a 2-core AMD Zen 3 (AVX2 only) once they were predicted from the rows
-/// (docs/BENCHMARKS.md, 2026-12-07).
+/// 127–202 ms on a 2-core AMD Zen 3 (AVX2 only) once they were predicted from the rows and each
+/// part was timed again at most once (30 calibrations, docs/BENCHMARKS.md, 2026-12-07).
 pub const MEASURING_DEADLINE_MS: f64 = 250.0;
 
 /// Predictions within this factor of the fastest count as equally fast. A search and its twin
