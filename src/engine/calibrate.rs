@@ -6,12 +6,11 @@
 //! from their rotations (each the minimum of two runs) — predicts each studied search's latency
 //! from the rows it scores (a fixed number per level; a start level scored in full is a level of
 //! projected rows like the others, predicted from the same line, not timed on its own), and
-//! picks, among the searches whose agreement reaches the
-//! target, the most agreeing one predicted within the budget (agreements one studied image apart
-//! count as equal, [`TIE_IMAGES`]; ties: the fastest); when none fits, the fastest of them, flagged
-//! as over budget. A search predicted just over the budget that would be chosen within it is timed
-//! again before it is ruled out (`estimate_and_retime`). It never picks a search below the
-//! target. Without a study it keeps the configured search's shape and only chooses its coarse
+//! picks, among the searches whose agreement reaches the target, the most agreeing one predicted
+//! within the budget (agreements one studied image apart count as equal, [`TIE_IMAGES`]; ties:
+//! the fastest); when none fits, the fastest of them, flagged as over budget. A search predicted
+//! just over the budget that would be chosen within it is timed again before it is ruled out
+//! (`estimate_and_retime`). It never picks a search below the target. Without a study it keeps the configured search's shape and only chooses its coarse
 //! precision among f32, bfloat16 and f16 (which rank cells like f32, up to rounding, so each twin
 //! is taken to agree as well; not 8-bit integers, whose scores are a few % off: they are served
 //! only where a study measured them). A search in a precision this CPU only emulates is left out
