@@ -1,25 +1,26 @@
 //! Calibration at load: the search a model serves, chosen on the CPU it runs on. A search's
 //! agreement with the exhaustive argmax is the model's (the bundle's search study measured it,
 //! [`SearchStudy`]); its latency is the CPU's. The calibration times what a search is made of on
-//! this CPU — the encoder, and rows of the head in each precision, by both branches or by the
-//! shape branch alone, gathered from a full level's projections or (above the full levels) encoded
-//! from their rotations (each the minimum of two runs) — predicts each studied search's latency
-//! from the rows it scores (a fixed number per level; a start level scored in full is a level of
-//! projected rows like the others, predicted from the same line, not timed on its own), and
-//! picks, among the searches whose agreement reaches the target, the most agreeing one predicted
-//! within the budget (agreements one studied image apart count as equal, [`TIE_IMAGES`]; ties:
-//! the fastest); when none fits, the fastest of them, flagged as over budget. A search predicted
-//! just over the budget that would be chosen within it is timed again before it is ruled out
-//! (`estimate_and_retime`). It never picks a search below the target. Without a study it keeps the configured search's shape and only chooses its coarse
-//! precision among f32, bfloat16 and f16 (which rank cells like f32, up to rounding, so each twin
-//! is taken to agree as well; not 8-bit integers, whose scores are a few % off: they are served
-//! only where a study measured them). A search in a precision this CPU only emulates is left out
-//! where the same search in f32 is a candidate (it would score the same rows, slower). Measurements
-//! are made on demand, for the search with the lowest latency bound among those that may still be
-//! chosen: a cost not measured yet bounds the prediction from below (as 0, or as f32's where the
-//! precision is emulated), and a search whose bound already loses is never timed in full. Past a
-//! deadline ([`MEASURING_DEADLINE_MS`]) it measures only until one search's prediction is exact.
-//! The chosen search is then run once for real and its latency reported beside the prediction.
+//! this CPU — the encoder, and rows of the head in each precision, by both branches or by the shape
+//! branch alone, gathered from a full level's projections or (above the full levels) encoded from
+//! their rotations (each the minimum of two runs) — predicts each studied search's latency from the
+//! rows it scores (a fixed number per level; a start level scored in full is a level of projected
+//! rows like the others, predicted from the same line, not timed on its own), and picks, among the
+//! searches whose agreement reaches the target, the most agreeing one predicted within the budget
+//! (agreements one studied image apart count as equal, [`TIE_IMAGES`]; ties: the fastest); when
+//! none fits, the fastest of them, flagged as over budget. A search predicted just over the budget
+//! that would be chosen within it is timed again before it is ruled out (`estimate_and_retime`). It
+//! never picks a search below the target. Without a study it keeps the configured search's shape
+//! and only chooses its coarse precision among f32, bfloat16 and f16 (which rank cells like f32, up
+//! to rounding, so each twin is taken to agree as well; not 8-bit integers, whose scores are a
+//! few % off: they are served only where a study measured them). A search in a precision this CPU only
+//! emulates is left out where the same search in f32 is a candidate (it would score the same rows,
+//! slower). Measurements are made on demand, for the search with the lowest latency bound among
+//! those that may still be chosen: a cost not measured yet bounds the prediction from below (as 0,
+//! or as f32's where the precision is emulated), and a search whose bound already loses is never
+//! timed in full. Past a deadline ([`MEASURING_DEADLINE_MS`]) it measures only until one search's
+//! prediction is exact. The chosen search is then run once for real and its latency reported beside
+//! the prediction.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::Instant;
