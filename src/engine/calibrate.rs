@@ -161,9 +161,9 @@ struct Need(Source, Arithmetic);
 /// The costs measured so far, in milliseconds.
 struct Rates {
     encoder: f64,
-    /// Per source and arithmetic: the times of [`SMALL_ROWS`] and of [`TIMED_ROWS`] rows (a
-    /// line through them gives a level's fixed cost and one row's, [`line`]).
-    row: BTreeMap<(Source, Arithmetic), (f64, f64)>,
+    /// Per measurement: the times of [`SMALL_ROWS`] and of [`TIMED_ROWS`] rows (a line through
+    /// them gives a level's fixed cost and one row's, [`line`]).
+    row: BTreeMap<Need, (f64, f64)>,
 }
 
 /// A level's fixed cost and one row's, from the times of [`SMALL_ROWS`] (`few`) and
@@ -208,8 +208,8 @@ impl Rates {
     }
 
     /// What `rows` rows of `need` cost, when it was measured.
-    fn cost(&self, Need(source, arithmetic): Need, rows: usize) -> Option<f64> {
-        self.row.get(&(source, arithmetic)).map(|&timed| {
+    fn cost(&self, need: Need, rows: usize) -> Option<f64> {
+        self.row.get(&need).map(|&timed| {
             let (fixed, per_row) = line(timed);
             fixed + rows as f64 * per_row
         })
@@ -272,9 +272,8 @@ pub fn rows_per_level(
     out
 }
 
-/// The minimum of `runs` timed calls of `f`, in milliseconds. No untimed call comes first: the
-/// calibration orders its measurements so that each follows a call of the same code (see
-/// [`Meter`]), and a minimum leaves a cold first call out.
+/// The minimum of `runs` timed calls of `f`, in milliseconds. No untimed call comes first: a
+/// minimum leaves a cold first call out (and [`Meter`] times the few rows before the many).
 fn min_ms(runs: usize, mut f: impl FnMut()) -> f64 {
     (0..runs.max(1))
         .map(|_| {
@@ -710,7 +709,8 @@ impl<'a> Meter<'a> {
 
     /// Measures `need` for the first time, or (`again`) times it [`RETIMED_RUNS`] more times and
     /// keeps the minimum with what it measured before.
-    fn measure(&mut self, Need(source, (precision, branches)): Need, again: bool) {
+    fn measure(&mut self, need: Need, again: bool) {
+        let Need(source, (precision, branches)) = need;
         let clock = Instant::now();
         let (model, features) = (self.model, &self.features);
         let runs = if again { RETIMED_RUNS } else { RUNS };
@@ -734,12 +734,11 @@ impl<'a> Meter<'a> {
             })
         };
         let timed = (time(true, runs), time(false, runs));
-        let key = (source, (precision, branches));
-        let timed = match self.rates.row.get(&key) {
+        let timed = match self.rates.row.get(&need) {
             Some(&(few, many)) => (few.min(timed.0), many.min(timed.1)),
             None => timed,
         };
-        self.rates.row.insert(key, timed);
+        self.rates.row.insert(need, timed);
         self.spent.rows_ms += clock.elapsed().as_secs_f64() * 1e3;
         self.spent.measurements += 1;
     }
@@ -893,31 +892,32 @@ mod tests {
 
     #[test]
     fn a_search_is_measured_only_while_its_bound_may_still_win() {
-        let start = Some(Need(Source::Projected, (Precision::I8, Branches::Both)));
+        // Rows of a full level's projections, and rows encoded from rotations.
+        let full = Some(Need(Source::Projected, (Precision::I8, Branches::Both)));
         let rows = Some(Need(Source::Encoded, (Precision::Bf16, Branches::Both)));
         // (estimates, agreement, the measurement expected next), budget 25 ms.
         let cases = [
             // An exact search at 10 ms: a bound beyond TIE × 10 with the same agreement is ruled
             // out; within it, the search is measured, the lowest bound first.
-            (vec![(10.0, None), (13.0, start)], vec![1.0, 1.0], None),
-            (vec![(10.0, None), (12.0, start)], vec![1.0, 1.0], start),
+            (vec![(10.0, None), (13.0, full)], vec![1.0, 1.0], None),
+            (vec![(10.0, None), (12.0, full)], vec![1.0, 1.0], full),
             (
-                vec![(10.0, None), (11.0, start), (10.5, rows)],
+                vec![(10.0, None), (11.0, full), (10.5, rows)],
                 vec![1.0; 3],
                 rows,
             ),
             // A more agreeing search is measured while its bound is within the budget, however
             // slow against the others; a less agreeing one never.
-            (vec![(10.0, None), (20.0, start)], vec![0.99, 1.0], start),
-            (vec![(10.0, None), (30.0, start)], vec![0.99, 1.0], None),
-            (vec![(10.0, None), (5.0, start)], vec![1.0, 0.99], None),
+            (vec![(10.0, None), (20.0, full)], vec![0.99, 1.0], full),
+            (vec![(10.0, None), (30.0, full)], vec![0.99, 1.0], None),
+            (vec![(10.0, None), (5.0, full)], vec![1.0, 0.99], None),
             // Nothing exact within the budget: a bound within it is measured, and one beyond it
             // only while it may be the fastest.
-            (vec![(40.0, None), (20.0, start)], vec![1.0, 1.0], start),
-            (vec![(40.0, None), (45.0, start)], vec![1.0, 1.0], start),
-            (vec![(40.0, None), (51.0, start)], vec![1.0, 1.0], None),
+            (vec![(40.0, None), (20.0, full)], vec![1.0, 1.0], full),
+            (vec![(40.0, None), (45.0, full)], vec![1.0, 1.0], full),
+            (vec![(40.0, None), (51.0, full)], vec![1.0, 1.0], None),
             // Nothing exact yet: everything may win.
-            (vec![(90.0, rows), (50.0, start)], vec![1.0, 1.0], start),
+            (vec![(90.0, rows), (50.0, full)], vec![1.0, 1.0], full),
         ];
         for (estimates, agreement, expected) in cases {
             assert_eq!(
@@ -990,15 +990,15 @@ mod tests {
         assert_eq!(pick, 0, "{reason}");
         // Measuring follows the same rule: a slower search one image more agreeing is not
         // timed once a faster one is exact; two images more agreeing, it is.
-        let start = Some(Need(Source::Projected, (Precision::F32, Branches::Both)));
-        let estimates = [(15.0, None), (20.0, start)];
+        let full = Some(Need(Source::Projected, (Precision::F32, Branches::Both)));
+        let estimates = [(15.0, None), (20.0, full)];
         assert_eq!(
             next_need(&estimates, &agreed(&[0.99, 1.0], 0.01), 25.0),
             None
         );
         assert_eq!(
             next_need(&estimates, &agreed(&[0.98, 1.0], 0.01), 25.0),
-            start
+            full
         );
     }
 }
