@@ -45,15 +45,18 @@ const RETIME_BEYOND: f64 = 1.5;
 
 /// Rows of the head timed per precision, many and few (a level's fixed cost), each the minimum
 /// of [`RUNS`]: 2 048 rows timed once left one slow timing uncorrected, and the choice flipped
-/// with it (docs/BENCHMARKS.md, 2026-12-01).
-const TIMED_ROWS: usize = 1024;
+/// with it (docs/BENCHMARKS.md, 2026-12-01). 512 rows are four tiles of 128 rows (two a core) on
+/// a 512 KiB L2 and two of 256 on larger ones: every core busy, as in a search's levels, at half
+/// the cost of 1 024 (docs/BENCHMARKS.md, 2026-12-07).
+const TIMED_ROWS: usize = 512;
 const SMALL_ROWS: usize = 64;
 
 /// After this long, a calibration measures only until one search's prediction is exact
 /// ([`calibrate_within`]); it took 45–100 ms a model on a 2-core AMD EPYC with AVX-512 and
 /// 73–203 ms on 2-core Intel Xeons with AMX while the start levels were timed in full, and
 /// 127–202 ms on a 2-core AMD Zen 3 (AVX2 only) once they were predicted from the rows and each
-/// part was timed again at most once (30 calibrations, docs/BENCHMARKS.md, 2026-12-07).
+/// part was timed again at most once (30 calibrations), 84–160 ms there with 512 rows timed
+/// instead of 1 024 (70 calibrations, docs/BENCHMARKS.md, 2026-12-07).
 pub const MEASURING_DEADLINE_MS: f64 = 250.0;
 
 /// Predictions within this factor of the fastest count as equally fast. A search and its twin
