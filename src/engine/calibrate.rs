@@ -13,14 +13,14 @@
 //! never picks a search below the target. Without a study it keeps the configured search's shape
 //! and only chooses its coarse precision among f32, bfloat16 and f16 (which rank cells like f32, up
 //! to rounding, so each twin is taken to agree as well; not 8-bit integers, whose scores are a
-//! few % off: they are served only where a study measured them). A search in a precision this CPU only
-//! emulates is left out where the same search in f32 is a candidate (it would score the same rows,
-//! slower). Measurements are made on demand, for the search with the lowest latency bound among
-//! those that may still be chosen: a cost not measured yet bounds the prediction from below (as 0,
-//! or as f32's where the precision is emulated), and a search whose bound already loses is never
-//! timed in full. Past a deadline ([`MEASURING_DEADLINE_MS`]) it measures only until one search's
-//! prediction is exact. The chosen search is then run once for real and its latency reported beside
-//! the prediction.
+//! few % off: they are served only where a study measured them). A search in a precision this CPU
+//! only emulates is left out where the same search in f32 is a candidate (it would score the same
+//! rows, slower). Measurements are made on demand, for the search with the lowest latency bound
+//! among those that may still be chosen: a cost not measured yet bounds the prediction from below
+//! (as 0, or as f32's where the precision is emulated), and a search whose bound already loses is
+//! never timed in full. Past a deadline ([`MEASURING_DEADLINE_MS`]) it measures only until one
+//! search's prediction is exact. The chosen search is then run once for real and its latency
+//! reported beside the prediction.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::Instant;
