@@ -97,7 +97,7 @@ pub(crate) struct NewArgs {
     /// The experts' log-targets divided by a temperature annealed geometrically from this at the
     /// fit's first step to 1 at its last: the targets' bells √T times wider at first (for
     /// experiments; the recipe has none). 100 lifted the drill's held-out AR@30 at `--budget 2h`
-    /// from 0.50 to 0.74; not yet run on other parts with the recipe (docs/RESULTS.md).
+    /// from 0.50 to 0.74, and left the mug's where it was (0.60 against 0.57; docs/RESULTS.md).
     #[arg(long, value_parser = parse_temperature)]
     target_temperature: Option<f64>,
     /// Share of the focused rotations drawn around the pose's twins: the part's near-symmetry's
