@@ -23,7 +23,7 @@ fn main() -> anyhow::Result<()> {
     let rows = rows();
     println!(
         "{per_object} held-out realistic crops per object, level {level}, {}: LL, AR@30 (argmax), \
-         share below uniform; per object",
+         share below uniform, half-turn share; per object",
         path.display()
     );
     for (label, realism) in rows {
@@ -33,10 +33,11 @@ fn main() -> anyhow::Result<()> {
         let mut row = format!("  {label:36}");
         for (object, o) in &report.per_object {
             row += &format!(
-                " | {object}: {:5.2} {:.2} {:3.0} %",
+                " | {object}: {:5.2} {:.2} {:3.0} % {:3.0} %",
                 o.log_likelihood,
                 o.accuracy_at[0].1,
-                100.0 * o.confidently_wrong
+                100.0 * o.confidently_wrong,
+                100.0 * o.half_turn_wrong
             );
         }
         println!("{row}");

@@ -155,6 +155,14 @@ fn uniform_distribution_scores_zero_and_point_mass_scores_log_n() {
             m.spread_deg
         );
         assert!((m.argmax_error_deg - to_centre).abs() < 1e-4);
+        // The argmax's rotation is the cell's centre (a quaternion, either sign).
+        let centre = alignist::so3::to_quaternion(&g.rotation(cell));
+        let dot: f64 = (0..4).map(|i| m.argmax[i] * centre[i]).sum();
+        assert!(
+            (dot.abs() - 1.0).abs() < 1e-9,
+            "{:?} vs {centre:?}",
+            m.argmax
+        );
 
         // Mass moved 90° away: the spread and the error become ~90°, LL drops far below 0.
         let far = g.cell_of(&(gt * alignist::so3::rot_x(std::f64::consts::FRAC_PI_2)));
@@ -234,6 +242,7 @@ fn summary_gives_accuracy_and_median() {
         spread_deg: e,
         argmax_error_deg: e,
         mode_error_deg: 2.0 * e,
+        argmax: [1.0, 0.0, 0.0, 0.0],
     });
     let s = summarize(&per, &[30.0, 15.0]);
     assert_eq!(s.images, 4);
@@ -313,6 +322,7 @@ fn summary_counts_the_half_turn_twins() {
         spread_deg: e,
         argmax_error_deg: e,
         mode_error_deg: 2.0 * e,
+        argmax: [1.0, 0.0, 0.0, 0.0],
     });
     let s = summarize(&per, &[30.0]);
     assert!((s.half_turn_wrong - 0.4).abs() < 1e-12);

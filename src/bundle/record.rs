@@ -686,6 +686,10 @@ pub struct ImageRecord {
     pub argmax_error_deg: f64,
     /// The first mode's error to the nearest equivalent, degrees.
     pub mode_error_deg: f64,
+    /// The argmax cell's rotation as a unit quaternion `[w, x, y, z]` (absent in reports written
+    /// before it was recorded).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub argmax: Option<[f64; 4]>,
 }
 
 /// What the server answers for an evaluation's images: the engine loaded as `alignist-server`

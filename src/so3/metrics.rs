@@ -25,6 +25,8 @@ pub struct ImageMetrics {
     /// most massive group of the distribution's top cells, grouped as the server groups its
     /// answer's ([`first_mode`]).
     pub mode_error_deg: f64,
+    /// The argmax cell's rotation as a unit quaternion `[w, x, y, z]`: where a miss lies.
+    pub argmax: [f64; 4],
 }
 
 /// The most probable cells [`first_mode`] groups, at most: the server's answer lists fewer, and
@@ -153,6 +155,7 @@ pub fn image_metrics(
         spread_deg: spread_deg(&probs, centres, ground_truths),
         argmax_error_deg: error_to_nearest_deg(&grid.rotation(argmax), ground_truths),
         mode_error_deg: error_to_nearest_deg(&mode, ground_truths),
+        argmax: centres[argmax as usize],
     })
 }
 

@@ -83,6 +83,7 @@ pub fn evaluate(
                 log_likelihood: m.log_likelihood,
                 argmax_error_deg: m.argmax_error_deg,
                 mode_error_deg: m.mode_error_deg,
+                argmax: Some(m.argmax),
             });
             per_image.push((im.object.clone(), m));
             shape_only.push(metrics(&s)?);
@@ -356,6 +357,7 @@ mod tests {
             log_likelihood: ll,
             argmax_error_deg: error,
             mode_error_deg: error / 2.0,
+            argmax: None,
         }
     }
 
