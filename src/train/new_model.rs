@@ -343,13 +343,20 @@ impl Job {
         std::fs::rename(&tmp, &path).map_err(io)
     }
 
-    /// Runs `stage` unless it is done, recording its time: from when it began, in this run or in
-    /// the run a kill interrupted (the job's clock counts neither the time between runs nor twice).
+    /// Runs `stage`, recording its time: from when it began, in this run or in the run a kill
+    /// interrupted (the job's clock counts neither the time between runs nor twice). A stage that
+    /// finished before the kill, run again on the way back to the one the kill interrupted (its
+    /// closure finds its work done), is neither timed again nor put on record as running in that
+    /// stage's place.
     fn stage<T>(
         &mut self,
         name: &str,
         run: impl FnOnce(&mut Job) -> Result<T, NewModelError>,
     ) -> Result<T, NewModelError> {
+        let finished = self.state.stages.iter().any(|(n, _)| n == name);
+        if finished && matches!(&self.state.running, Some((n, _)) if n != name) {
+            return run(self);
+        }
         let started = match &self.state.running {
             Some((n, began)) if n == name => *began,
             _ => {
@@ -1134,6 +1141,9 @@ fn run_fit(
                 if step % config.checkpoint_every.max(1) != 0 {
                     return std::ops::ControlFlow::Continue(None);
                 }
+                // The job's clock on record with every checkpoint: a kill loses the time of the
+                // steps after the last one, which the resume does again, and no more.
+                let _ = job.save();
                 let per_step = pace.mark(step, started.elapsed().as_secs_f64());
                 let replanned = per_step.and_then(|per_step| {
                     let available = job.clock.left() - reserve;
@@ -1250,6 +1260,14 @@ mod tests {
             state,
             clock,
         };
+        // The experts, finished before the kill, are passed through: not timed again, and the
+        // fit stays on record as the stage under way.
+        job.stage("experts", |job| {
+            assert_eq!(job.state.running, Some(("fit".into(), 40.0)));
+            Ok(())
+        })
+        .unwrap();
+        assert_eq!(job.state.stages, vec![("experts".into(), 35.0)]);
         job.stage("fit", |_| Ok(())).unwrap();
         let fit = job.state.stages[1].1;
         assert!((60.0..61.0).contains(&fit), "{fit}");
