@@ -119,6 +119,8 @@ async fn a_part_becomes_a_served_model_within_its_budget() {
     );
     assert_eq!(m["network"]["image_size"], 48);
     assert_eq!(m["network"]["layout"], "tiny_deep");
+    // The recipe's targets, tempered from T 100 to 1.
+    assert_eq!(m["provenance"]["train"]["target_temperature"], 100.0);
     // The recipe's 3 × 3 cells, from the globally pooled warm start (recorded as such).
     assert_eq!(m["network"]["pool_grid"], 3);
     assert_eq!(m["provenance"]["train"]["init"]["pool_grid"], 1);

@@ -295,8 +295,8 @@ pub struct TrainConfig {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub contrast: Option<f64>,
     /// The experts' log-targets are divided by a temperature annealed geometrically from this at
-    /// the first step to 1 at the last ([`TrainConfig::target_temperature_at`]; ours, an
-    /// experiment): the measure's bells `√T` times wider at first, the paper's at the end.
+    /// the first step to 1 at the last ([`TrainConfig::target_temperature_at`]; ours, `new`'s
+    /// recipe uses 100): the measure's bells `√T` times wider at first, the paper's at the end.
     /// `None`: the paper's targets at every step.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub target_temperature: Option<f64>,
