@@ -157,7 +157,7 @@ fn uniform_distribution_scores_zero_and_point_mass_scores_log_n() {
         assert!((m.argmax_error_deg - to_centre).abs() < 1e-4);
         // The argmax's rotation is the cell's centre (a quaternion, either sign).
         let centre = alignist::so3::to_quaternion(&g.rotation(cell));
-        let dot: f64 = (0..4).map(|i| m.argmax[i] * centre[i]).sum();
+        let dot = alignist::so3::quaternion_dot(&m.argmax, &centre);
         assert!(
             (dot.abs() - 1.0).abs() < 1e-9,
             "{:?} vs {centre:?}",
